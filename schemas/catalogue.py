@@ -1,0 +1,51 @@
+"""The message catalogue: key expression → type → publisher → subscribers → rate.
+
+README.md carries this table verbatim (`python -m schemas catalogue` prints it; a test
+checks the README is in step), so the code is the single source of truth.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import msgspec
+
+from schemas import messages as m
+
+
+class Entry(NamedTuple):
+    key: str
+    type: type[msgspec.Struct] | None
+    publisher: str
+    subscribers: str
+    rate: str
+
+
+CATALOGUE: tuple[Entry, ...] = (
+    Entry("falconry/sim/clock", m.SimClock, "simulator", "every service, launcher", "1/tick (20 Hz)"),
+    Entry("falconry/sim/world", m.WorldModel, "simulator", "sensor_driver, job_manager, mapper, launcher", "at start, then 1 Hz"),
+    Entry("falconry/sim/truth", m.GroundTruth, "simulator", "sensor_driver (ray casting), launcher (truth log, summary)", "1/tick"),
+    Entry("falconry/sim/events", m.SimEvent, "simulator, launcher", "launcher", "on event"),
+    Entry("falconry/<uav>/odometry", m.Odometry, "simulator (onboard: flight controller bridge)", "sensor_driver, classifier, mapper, tracker, job_manager, planner", "1/tick"),
+    Entry("falconry/<uav>/points", m.PointCloud, "sensor_driver", "classifier, tracker", "10 Hz"),
+    Entry("falconry/<uav>/labels", m.LabelSet, "classifier", "mapper", "10 Hz"),
+    Entry("falconry/<uav>/detections", m.Detections, "classifier", "tracker", "10 Hz"),
+    Entry("falconry/<uav>/map", m.VoxelMap, "mapper", "classifier, tracker", "delta 10 Hz, snapshot 1 Hz"),
+    Entry("falconry/<uav>/tracks", m.Tracks, "tracker", "job_manager, planner", "10 Hz"),
+    Entry("falconry/<uav>/command", m.MissionCommand, "job_manager", "planner", "on change"),
+    Entry("falconry/<uav>/trajectory", m.TrajectoryReference, "planner", "simulator (onboard: flight controller)", "on command, 2 Hz re-plan"),
+    Entry("falconry/<uav>/status", m.UavStatus, "job_manager", "partners' job_manager, launcher", "5 Hz"),
+    Entry("falconry/<scope>/ack/<service>", m.StepAck, "every service (lockstep only)", "simulator, downstream services", "1/tick"),
+    Entry("falconry/<scope>/health/<service>", m.ServiceHealth, "every service (queryable)", "anyone (`falconry health`)", "on query"),
+    Entry("falconry/<scope>/alive/<service>", None, "every service (liveliness token)", "simulator, job_manager, launcher", "while alive"),
+)
+
+
+def markdown() -> str:
+    rows = [
+        "| key expression | type | publisher | subscribers | rate |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for e in CATALOGUE:
+        type_name = f"`{e.type.__name__}`" if e.type else "liveliness token"
+        rows.append(f"| `{e.key}` | {type_name} | {e.publisher} | {e.subscribers} | {e.rate} |")
+    return "\n".join(rows) + "\n"

@@ -1,0 +1,70 @@
+"""The one place that builds Falconry key expressions.
+
+Per-UAV data: falconry/<uav>/<topic>; simulator: falconry/sim/<topic>;
+liveliness: falconry/<uav>/alive/<service>; health queries: falconry/<uav>/health/<service>;
+lockstep acknowledgements: falconry/<uav>/ack/<service>.
+"""
+from __future__ import annotations
+
+import re
+
+ROOT = "falconry"
+SIM = "sim"  # the run-wide segment used in place of a UAV name
+UAV_SERVICES = ("sensor_driver", "classifier", "mapper", "tracker", "job_manager", "planner")
+SIM_SERVICES = ("simulator",)
+SERVICES = SIM_SERVICES + UAV_SERVICES
+
+_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+def check_name(name: str, what: str = "name") -> str:
+    """UAV and service names become key segments, so keep them to one plain chunk."""
+    if not _NAME.match(name) or name == SIM:
+        raise ValueError(f"invalid {what} {name!r}: use lower-case letters, digits and '_'")
+    return name
+
+
+def uav_names(count: int) -> list[str]:
+    return [f"uav{i + 1}" for i in range(count)]
+
+
+def uav(uav_name: str, topic: str) -> str:
+    return f"{ROOT}/{uav_name}/{topic}"
+
+
+def sim(topic: str) -> str:
+    return f"{ROOT}/{SIM}/{topic}"
+
+
+def scope_of(service: str, uav_name: str | None) -> str:
+    """The key segment a service lives under: its UAV, or 'sim' for run-wide services."""
+    return SIM if service in SIM_SERVICES or uav_name is None else uav_name
+
+
+def alive(scope: str, service: str) -> str:
+    return f"{ROOT}/{scope}/alive/{service}"
+
+
+def health(scope: str, service: str) -> str:
+    return f"{ROOT}/{scope}/health/{service}"
+
+
+def ack(scope: str, service: str) -> str:
+    return f"{ROOT}/{scope}/ack/{service}"
+
+
+ALL_ALIVE = f"{ROOT}/*/alive/*"
+ALL_ACKS = f"{ROOT}/*/ack/*"
+ALL_STATUS = f"{ROOT}/*/status"
+CLOCK = sim("clock")
+WORLD = sim("world")
+TRUTH = sim("truth")
+EVENTS = sim("events")
+
+
+def parse_alive(key: str) -> tuple[str, str] | None:
+    """(scope, service) of a liveliness key, or None when it is not one."""
+    parts = key.split("/")
+    if len(parts) == 4 and parts[0] == ROOT and parts[2] == "alive":
+        return parts[1], parts[3]
+    return None

@@ -1,0 +1,283 @@
+"""Every message Falconry sends, as msgspec Structs.
+
+Evolution rule: fields are only ever appended, always with defaults, so old readers
+ignore new fields and new readers fill in missing ones. `python -m schemas export`
+writes the JSON Schema of each message to schemas/json/ (checked by a test).
+Vectors are (x, y, z) in metres in the world frame (ENU, z up) unless a frame says otherwise;
+quaternions are (w, x, y, z); stamps are integer nanoseconds of mission time.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+import msgspec
+
+from schemas.arrays import Array
+
+Vec3 = tuple[float, float, float]
+Quat = tuple[float, float, float, float]
+Point2 = tuple[float, float]
+
+
+class Header(msgspec.Struct, kw_only=True):
+    """Who sent it, its place in the sender's stream on this key, and when the data is valid."""
+
+    sender: str = ""  # "<uav>/<service>", e.g. "uav1/tracker", or "sim/simulator"
+    seq: int = 0  # per publisher and key expression, starts at 1
+    stamp: int = 0  # mission time of the data, ns
+    frame: str = "world"
+
+
+class Pose(msgspec.Struct):
+    position: Vec3 = (0.0, 0.0, 0.0)
+    orientation: Quat = (1.0, 0.0, 0.0, 0.0)
+
+
+class PointCloud(msgspec.Struct, kw_only=True):
+    """One organised LiDAR scan: `points` is float32 (height, width, 3) in the world frame,
+    NaN where the ray returned nothing. `sensor_pose` is where the scan was taken from."""
+
+    header: Header
+    width: int
+    height: int
+    sensor_pose: Pose
+    points: Array
+    intensity: Array | None = None  # float32 (height, width)
+    sensor_model: str = ""
+    min_range: float = 0.0
+    max_range: float = 0.0
+
+
+class Odometry(msgspec.Struct, kw_only=True):
+    """Estimated state of one UAV. `covariance` is float64 6×6 over (x, y, z, roll, pitch, yaw)."""
+
+    header: Header
+    pose: Pose
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    angular_velocity: Vec3 = (0.0, 0.0, 0.0)
+    covariance: Array | None = None
+
+
+class Detections(msgspec.Struct, kw_only=True):
+    """Flying objects found in one scan: N rows in every array."""
+
+    header: Header
+    detector: str  # "classifier" (LiDAR pipeline) or "oracle" (evaluation only)
+    positions: Array  # float64 (N, 3) cluster centres
+    covariances: Array  # float64 (N, 3, 3)
+    point_counts: Array  # int32 (N,)
+    extents: Array  # float32 (N,) largest cluster dimension, m
+    sensor_position: Vec3 = (0.0, 0.0, 0.0)
+
+
+class LabelSet(msgspec.Struct, kw_only=True):
+    """Classifier output for the mapper: the scan's valid returns with a label each,
+    and the voxel label sets with weights. Labels: 0 background, 1 flying object, 2 unknown."""
+
+    header: Header
+    sensor_origin: Vec3
+    points: Array  # float32 (N, 3) valid returns
+    point_labels: Array  # uint8 (N,)
+    voxel_size: float
+    voxels: Array  # int32 (M, 3) voxel indices relative to map origin
+    voxel_labels: Array  # uint8 (M,)
+    voxel_weights: Array  # float32 (M,)
+
+
+class VoxelMap(msgspec.Struct, kw_only=True):
+    """The occupancy map G(v): a snapshot lists every voxel whose value differs from
+    `default_value`; a delta lists the voxels changed since the previous message."""
+
+    header: Header
+    snapshot: bool
+    voxel_size: float
+    origin: Vec3  # world position of voxel (0, 0, 0)'s minimum corner
+    shape: tuple[int, int, int]
+    indices: Array  # int64 (N,) flat indices, C order over `shape`
+    values: Array  # float32 (N,) G values
+    default_value: float = -740.0
+
+
+class Track(msgspec.Struct, kw_only=True):
+    id: int
+    state: Array  # float64 (9,) position, velocity, acceleration
+    covariance: Array  # float64 (9, 9)
+    detections: int
+    confirmed: bool
+    uncertainty_radius: float
+    last_detection: int  # stamp, ns
+
+
+class Tracks(msgspec.Struct, kw_only=True):
+    header: Header
+    tracks: list[Track] = []
+
+
+class ConstraintProfile(msgspec.Struct, kw_only=True):
+    name: str = "sweeping"
+    max_speed: float = 5.0  # m/s
+    max_acceleration: float = 1.5  # m/s²
+    max_heading_rate: float = 1.0  # rad/s
+    max_vertical_speed: float = 2.0  # m/s
+
+
+MissionAction = Literal[
+    "idle", "takeoff", "scan", "goto", "attack", "hover", "land", "emergency_land"
+]
+
+
+class MissionCommand(msgspec.Struct, kw_only=True):
+    """What the job manager wants the planner to do next."""
+
+    header: Header
+    command_id: int
+    action: MissionAction
+    target: Vec3 | None = None
+    target_velocity: Vec3 | None = None
+    area: list[Point2] = []  # polygon to scan, counter-clockwise
+    height: float = 5.0
+    spacing: float = 10.0  # lawnmower line spacing, m
+    profile: ConstraintProfile = msgspec.field(default_factory=ConstraintProfile)
+
+
+class TrajectoryReference(msgspec.Struct, kw_only=True):
+    """Timed reference for the flight controller: sample i is valid at start + i·dt."""
+
+    header: Header
+    command_id: int
+    start: int  # mission time of sample 0, ns
+    dt: float  # s
+    positions: Array  # float64 (N, 3)
+    headings: Array  # float64 (N,), rad
+    profile: ConstraintProfile = msgspec.field(default_factory=ConstraintProfile)
+
+
+class UavStatus(msgspec.Struct, kw_only=True):
+    """Heartbeat each UAV's job manager sends to its partners."""
+
+    header: Header
+    uav: str
+    state: str
+    flying_normally: bool
+    airborne: bool
+    position: Vec3
+    working_area: list[Point2] = []
+    target: Vec3 | None = None
+
+
+class SimClock(msgspec.Struct, kw_only=True):
+    """A mission clock tick. In lockstep mode `bounds` gives, for every key expression,
+    the last sequence number published before this tick: a service processes exactly
+    those messages, so the run is the same whatever the machine's load."""
+
+    header: Header
+    step: int
+    dt: float
+    lockstep: bool
+    real_time_factor: float = 1.0
+    bounds: dict[str, int] = {}
+    finished: bool = False
+
+
+class StepAck(msgspec.Struct, kw_only=True):
+    """Lockstep: a service has processed tick `step`; `published` is its last seq per key."""
+
+    header: Header
+    step: int
+    published: dict[str, int] = {}
+
+
+class Obstacle(msgspec.Struct, kw_only=True):
+    """A static primitive: 'plane' (z = center.z), 'box' (center, size), 'cylinder'
+    (vertical, base center, radius, height), 'sphere' (center, radius), 'cone' (base center,
+    radius, height)."""
+
+    kind: Literal["plane", "box", "cylinder", "sphere", "cone"]
+    center: Vec3
+    size: Vec3 = (0.0, 0.0, 0.0)
+    radius: float = 0.0
+    height: float = 0.0
+    name: str = ""
+
+
+class WorldModel(msgspec.Struct, kw_only=True):
+    """The static world and team, published by the simulator at start and every second."""
+
+    header: Header
+    scenario: str
+    arena: list[Point2]
+    min_height: float
+    max_height: float
+    obstacles: list[Obstacle] = []
+    uavs: list[str] = []
+    seed: int = 0
+    duration: float = 0.0  # s of mission time
+
+
+class VehicleTruth(msgspec.Struct, kw_only=True):
+    name: str
+    position: Vec3
+    velocity: Vec3
+    heading: float
+    airborne: bool
+    alive: bool = True
+
+
+class TargetTruth(msgspec.Struct, kw_only=True):
+    id: str
+    kind: Literal["balloon", "drone"]
+    position: Vec3
+    velocity: Vec3
+    radius: float
+    destroyed: bool = False
+
+
+class GroundTruth(msgspec.Struct, kw_only=True):
+    header: Header
+    step: int
+    uavs: list[VehicleTruth] = []
+    targets: list[TargetTruth] = []
+
+
+class SimEvent(msgspec.Struct, kw_only=True):
+    """Something that happened: take-off, landing, target destroyed, fault injected, restart."""
+
+    header: Header
+    kind: str
+    subject: str
+    detail: str = ""
+
+
+class ServiceHealth(msgspec.Struct, kw_only=True):
+    """Answer to a health query on falconry/<uav>/health/<service>."""
+
+    header: Header
+    uav: str
+    service: str
+    pid: int
+    uptime: float  # s of wall time
+    state: str
+    received: dict[str, int] = {}
+    published: dict[str, int] = {}
+    decode_errors: dict[str, int] = {}
+    handler_errors: int = 0
+    lockstep_timeouts: int = 0
+
+
+ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (
+    PointCloud,
+    Odometry,
+    Detections,
+    LabelSet,
+    VoxelMap,
+    Tracks,
+    MissionCommand,
+    TrajectoryReference,
+    UavStatus,
+    SimClock,
+    StepAck,
+    WorldModel,
+    GroundTruth,
+    SimEvent,
+    ServiceHealth,
+)

@@ -1,0 +1,1 @@
+"""Runtime shared by every service: Zenoh profiles, clocks, lockstep gate, service base."""

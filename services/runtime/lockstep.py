@@ -1,0 +1,99 @@
+"""Deterministic lockstep: which received messages a service may process at tick k.
+
+Every publisher numbers its messages per key expression (header.seq). At tick k a
+service processes exactly:
+- for keys its same-UAV upstream services publish, everything up to the seq that
+  upstream's acknowledgement of tick k names (dataflow order inside one tick);
+- for every other key, everything up to the seq the simulator's clock tick k names
+  (what all services had published when tick k-1 was complete; feedback edges).
+Messages beyond those bounds wait for a later tick, so the result does not depend on
+how fast messages happen to arrive. Pure logic: no Zenoh, no clocks.
+"""
+from __future__ import annotations
+
+from collections import deque
+from typing import Callable, Generic, Hashable, Iterable, TypeVar
+
+Item = TypeVar("Item")
+
+
+class LockstepGate(Generic[Item]):
+    def __init__(
+        self,
+        upstream: Iterable[str],
+        wants: Callable[[str], bool],
+        order: Callable[[str], Hashable] = lambda key: key,
+    ) -> None:
+        self.upstream = tuple(upstream)
+        self._wants = wants
+        self._order = order
+        self.step: int | None = None
+        self._clock_bounds: dict[str, int] = {}
+        self._acks: dict[str, dict[int, dict[str, int]]] = {}
+        self._fifo: dict[str, deque[tuple[int, Item]]] = {}
+        self._released: dict[str, int] = {}
+        self.first_tick = True
+
+    # -- inputs -------------------------------------------------------------
+    def hold(self, key: str, seq: int, item: Item) -> None:
+        self._fifo.setdefault(key, deque()).append((seq, item))
+
+    def begin(self, step: int, clock_bounds: dict[str, int]) -> None:
+        self.step = step
+        self._clock_bounds = clock_bounds
+
+    def record_ack(self, service: str, step: int, published: dict[str, int]) -> None:
+        acks = self._acks.setdefault(service, {})
+        acks[step] = published
+        for old in [s for s in acks if s < step - 2]:
+            del acks[old]
+
+    # -- decisions ----------------------------------------------------------
+    def bounds(self, alive_upstream: set[str]) -> dict[str, int]:
+        bounds = dict(self._clock_bounds)
+        for service in self.upstream:
+            if service in alive_upstream:
+                bounds.update(self._acks.get(service, {}).get(self.step, {}))
+        return bounds
+
+    def missing(self, alive_upstream: set[str]) -> list[str]:
+        """What tick `step` still waits for; empty when it can be processed."""
+        if self.step is None:
+            return ["clock tick"]
+        if self.first_tick:  # a (re)started service cannot have what was sent before it existed
+            return []
+        waits = [
+            f"ack of {service}"
+            for service in self.upstream
+            if service in alive_upstream and self.step not in self._acks.get(service, {})
+        ]
+        for key, bound in self.bounds(alive_upstream).items():
+            if bound <= self._released.get(key, 0) or not self._wants(key):
+                continue
+            if not any(seq == bound for seq, _ in self._fifo.get(key, ())):
+                waits.append(f"{key}#{bound}")
+        return waits
+
+    def release(self, alive_upstream: set[str]) -> list[tuple[str, Item]]:
+        """Pop the messages that belong to this tick, in a deterministic order."""
+        bounds = self.bounds(alive_upstream)
+        out: list[tuple[str, Item]] = []
+        for key in sorted(self._fifo, key=self._order):
+            fifo = self._fifo[key]
+            bound = bounds.get(key)
+            if bound is None:  # not from a lockstep participant: nothing to wait for
+                take = len(fifo)
+            else:
+                take = 0
+                for i, (seq, _) in enumerate(fifo):
+                    if seq == bound:
+                        take = i + 1  # a restarted publisher counts from 1 again
+                if take == 0:
+                    while take < len(fifo) and fifo[take][0] <= bound:
+                        take += 1
+            for _ in range(take):
+                seq, item = fifo.popleft()
+                self._released[key] = seq
+                out.append((key, item))
+        self.first_tick = False
+        return out

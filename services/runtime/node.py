@@ -1,0 +1,420 @@
+"""The service base every Falconry process is built on.
+
+A Node opens one Zenoh session and always closes it, declares typed publishers and
+subscribers, a liveliness token (falconry/<scope>/alive/<service>) and a health queryable,
+and runs a single-threaded loop: Zenoh callbacks only push raw payloads onto a queue
+(they never block or call Zenoh), and the loop decodes and dispatches them. A payload
+that fails to decode is counted and logged with its key expression, never raised.
+
+Time: the loop follows the simulator's clock ticks (or a local wall-clock ticker
+onboard) and calls `on_tick(now_ns)` after the inputs of that tick. In lockstep mode
+inputs are released by a LockstepGate and every tick is acknowledged, which makes a
+seeded run identical whatever the machine's load.
+
+Subclasses set `service`, optionally `upstream` and `params_type`, and override
+`setup`, `on_tick` and `on_shutdown`.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import signal
+import threading
+import time
+import traceback
+from dataclasses import dataclass
+from typing import Any, Callable, ClassVar, Generic, TypeVar
+
+import msgspec
+import zenoh
+
+from schemas import keys
+from schemas.messages import Header, ServiceHealth, SimClock, StepAck
+from services.runtime.clock import MissionClock, WallClock
+from services.runtime.lockstep import LockstepGate
+from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session
+
+M = TypeVar("M", bound=msgspec.Struct)
+POLL_S = 0.1  # how often the loop looks at stop requests when idle
+LOCKSTEP_TIMEOUT_S = 5.0
+
+
+class NoParams(msgspec.Struct, forbid_unknown_fields=True):
+    pass
+
+
+class TypedPublisher(Generic[M]):
+    """Stamps the header (sender, per-key seq, default stamp) and publishes msgpack bytes."""
+
+    def __init__(self, node: "Node", key: str, msg_type: type[M]) -> None:
+        self.key = key
+        self.msg_type = msg_type
+        self.seq = 0
+        self._node = node
+        self._encoder = msgspec.msgpack.Encoder()
+        self._publisher = node.session.declare_publisher(key)
+
+    def put(self, msg: M) -> None:
+        if not isinstance(msg, self.msg_type):
+            raise TypeError(f"{self.key} carries {self.msg_type.__name__}, not {type(msg).__name__}")
+        self.seq += 1
+        header: Header = msg.header  # type: ignore[attr-defined]
+        header.sender = self._node.sender
+        header.seq = self.seq
+        if header.stamp == 0:
+            header.stamp = self._node.clock.now_ns()
+        self._publisher.put(self._encoder.encode(msg))
+        self._node.counters.published[self.key] = self.seq
+
+    def undeclare(self) -> None:
+        self._publisher.undeclare()
+
+
+@dataclass
+class _Subscription:
+    index: int
+    key_expr: str
+    decoder: msgspec.msgpack.Decoder
+    handler: Callable[[Any, str], None]
+    internal: bool  # runtime plumbing (clock, acks): never gated
+
+
+class Counters:
+    def __init__(self) -> None:
+        self.received: dict[str, int] = {}
+        self.published: dict[str, int] = {}
+        self.decode_errors: dict[str, int] = {}
+        self.handler_errors = 0
+        self.lockstep_timeouts = 0
+
+
+class Node:
+    service: ClassVar[str] = ""
+    # Same-scope services whose output of tick k this service consumes in tick k (lockstep).
+    upstream: ClassVar[tuple[str, ...]] = ()
+    params_type: ClassVar[type[msgspec.Struct]] = NoParams
+
+    def __init__(
+        self,
+        uav: str | None,
+        zenoh_settings: ZenohSettings,
+        params: msgspec.Struct | None = None,
+        clock: str = "sim",
+        tick_hz: float = 20.0,
+        exit_with_parent: bool = False,
+    ) -> None:
+        if not self.service:
+            raise TypeError("a Node subclass must set `service`")
+        self.uav = uav
+        self.scope = keys.scope_of(self.service, uav)
+        self.sender = f"{self.scope}/{self.service}"
+        self.params = params if params is not None else self.params_type()
+        self.log = logging.getLogger(self.sender)
+        self.counters = Counters()
+        self.clock: MissionClock | WallClock = MissionClock() if clock == "sim" else WallClock()
+        self._clock_kind = clock
+        self._tick_period_ns = int(1e9 / tick_hz)
+        self._zenoh_settings = zenoh_settings
+        self._exit_with_parent = exit_with_parent
+        self._parent = os.getppid()
+        self._inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._subs: list[_Subscription] = []
+        self._zenoh_handles: list[Any] = []
+        self._publishers: list[TypedPublisher] = []
+        self._liveliness_handlers: list[tuple[str, Callable[[str, bool], None]]] = []
+        self._alive_upstream: set[str] = set()
+        self._lockstep: bool | None = None  # unknown until the first clock tick
+        self._pending: list[tuple[_Subscription, str, Any]] = []  # data before the first tick
+        self._wants_cache: dict[str, bool] = {}
+        self._gate: LockstepGate = LockstepGate(self.upstream, self._wants, self._order)
+        self._last_step = -1
+        self._started_wall = time.monotonic()
+        self.state = "starting"
+        self.session: zenoh.Session | None = None
+        self._declared = False
+        self._deferred_clock: SimClock | None = None
+        self._decode_log_budget = 20
+
+    # ------------------------------------------------------------------ API
+    def setup(self) -> None:
+        """Declare publishers and subscriptions; build the core."""
+
+    def on_tick(self, now_ns: int) -> None:
+        """Called once per clock tick, after that tick's inputs were handled."""
+
+    def on_shutdown(self) -> None:
+        """Called before the session closes (publish a last message, flush files)."""
+
+    def publisher(self, key: str, msg_type: type[M]) -> TypedPublisher[M]:
+        pub = TypedPublisher(self, key, msg_type)
+        self._publishers.append(pub)
+        return pub
+
+    def topic(self, name: str, uav: str | None = None) -> str:
+        """Key expression of a per-UAV topic of this node's UAV (or another one)."""
+        return keys.uav(uav or self.uav, name)
+
+    def subscribe(self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None]) -> None:
+        self._add_subscription(key_expr, msg_type, handler, internal=False)
+
+    def on_liveliness(self, key_expr: str, handler: Callable[[str, bool], None]) -> None:
+        """handler(key, alive) for every token matching key_expr, current ones included."""
+        self._liveliness_handlers.append((key_expr, handler))
+        if self._declared:
+            self._declare_liveliness_subscriber(key_expr, handler)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._inbox.put(("wake",))
+
+    @property
+    def lockstep(self) -> bool:
+        return bool(self._lockstep)
+
+    # ------------------------------------------------------------ plumbing
+    def _add_subscription(self, key_expr, msg_type, handler, internal: bool) -> None:
+        sub = _Subscription(len(self._subs), key_expr, msgspec.msgpack.Decoder(msg_type), handler, internal)
+        self._subs.append(sub)
+        self._wants_cache.clear()
+        if self._declared:
+            self._declare_subscriber(sub)
+
+    def _declare_subscriber(self, sub: _Subscription) -> None:
+        inbox = self._inbox
+
+        def on_sample(sample: zenoh.Sample, sub=sub) -> None:
+            inbox.put(("data", sub, str(sample.key_expr), sample.payload.to_bytes()))
+
+        self._zenoh_handles.append(self.session.declare_subscriber(sub.key_expr, on_sample))
+
+    def _declare_liveliness_subscriber(self, key_expr, handler) -> None:
+        inbox = self._inbox
+
+        def on_token(sample: zenoh.Sample) -> None:
+            inbox.put(("live", handler, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+
+        self._zenoh_handles.append(
+            self.session.liveliness().declare_subscriber(key_expr, on_token, history=True)
+        )
+
+    def _wants(self, key: str) -> bool:
+        hit = self._wants_cache.get(key)
+        if hit is None:
+            ke = zenoh.KeyExpr(key)
+            hit = any(not s.internal and zenoh.KeyExpr(s.key_expr).intersects(ke) for s in self._subs)
+            self._wants_cache[key] = hit
+        return hit
+
+    def _order(self, key: str) -> tuple[int, str]:
+        ke = zenoh.KeyExpr(key)
+        first = min((s.index for s in self._subs if zenoh.KeyExpr(s.key_expr).intersects(ke)), default=1 << 30)
+        return (first, key)
+
+    def _handle_signal(self, signum, frame) -> None:
+        self.stop()
+
+    # ---------------------------------------------------------------- run
+    def run(self) -> int:
+        """Serve until stopped (SIGTERM/SIGINT, stop(), or the parent process dying)."""
+        init_logging()
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, self._handle_signal)
+            signal.signal(signal.SIGINT, self._handle_signal)
+        self.session = open_session(self._zenoh_settings)
+        token = None
+        try:
+            if self._clock_kind == "sim":
+                self._add_subscription(keys.CLOCK, SimClock, self._on_clock, internal=True)
+            for service in self.upstream:
+                self._add_subscription(keys.ack(self.scope, service), StepAck, self._on_upstream_ack, internal=True)
+            self.on_liveliness(f"{keys.ROOT}/{self.scope}/alive/*", self._on_scope_liveliness)
+            self.setup()
+            for sub in self._subs:
+                self._declare_subscriber(sub)
+            for key_expr, handler in self._liveliness_handlers:
+                self._declare_liveliness_subscriber(key_expr, handler)
+            self._declared = True
+            self._ack_pub = self.publisher(keys.ack(self.scope, self.service), StepAck)
+            inbox = self._inbox
+            self._zenoh_handles.append(
+                self.session.declare_queryable(keys.health(self.scope, self.service), lambda q: inbox.put(("query", q)))
+            )
+            token = self.session.liveliness().declare_token(keys.alive(self.scope, self.service))
+            self.state = "running"
+            self.log.info("up (pid %d)", os.getpid())
+            self._loop()
+            self.state = "stopping"
+            self.on_shutdown()
+        finally:
+            if token is not None:
+                token.undeclare()
+            for handle in self._zenoh_handles:
+                try:
+                    handle.undeclare()
+                except Exception:
+                    pass
+            self.session.close()
+            self.session = None
+        self.log.info("stopped")
+        return 0
+
+    def _loop(self) -> None:
+        next_wall_tick = time.monotonic()
+        while not self._stop.is_set():
+            timeout = POLL_S
+            if self._clock_kind == "wall":
+                timeout = max(0.0, min(POLL_S, next_wall_tick - time.monotonic()))
+            try:
+                item = self._inbox.get(timeout=timeout)
+            except queue.Empty:
+                item = None
+            if item is not None:
+                self._dispatch(item)
+            if self._clock_kind == "wall" and time.monotonic() >= next_wall_tick:
+                next_wall_tick += self._tick_period_ns / 1e9
+                self._lockstep = False
+                self._flush_pending()
+                self._tick(self.clock.now_ns())
+            self._check_parent()
+
+    def _check_parent(self) -> None:
+        if self._exit_with_parent and os.getppid() != self._parent:
+            self.log.warning("parent process gone; stopping")
+            self._stop.set()
+
+    def _dispatch(self, item: tuple) -> None:
+        kind = item[0]
+        if kind == "data":
+            _, sub, key, payload = item
+            msg = self._decode(sub, key, payload)
+            if msg is None:
+                return
+            if sub.internal:
+                self._call(sub.handler, msg, key)
+            elif self._lockstep:
+                self._gate.hold(key, msg.header.seq, (sub, msg))
+            elif self._lockstep is None:
+                self._pending.append((sub, key, msg))
+            else:
+                self._call(sub.handler, msg, key)
+        elif kind == "live":
+            _, handler, key, alive = item
+            self._call(handler, key, alive)
+        elif kind == "query":
+            self._answer_health(item[1])
+
+    def _decode(self, sub: _Subscription, key: str, payload: bytes):
+        try:
+            msg = sub.decoder.decode(payload)
+        except (msgspec.DecodeError, msgspec.ValidationError, ValueError) as exc:
+            errors = self.counters.decode_errors
+            errors[key] = errors.get(key, 0) + 1
+            if self._decode_log_budget > 0 or errors[key] % 100 == 0:
+                self._decode_log_budget -= 1
+                self.log.warning("dropped undecodable payload on %s (%d bytes): %s", key, len(payload), exc)
+            return None
+        self.counters.received[key] = self.counters.received.get(key, 0) + 1
+        return msg
+
+    def _call(self, handler: Callable, *args) -> None:
+        try:
+            handler(*args)
+        except Exception:
+            self.counters.handler_errors += 1
+            self.log.error("handler %s failed:\n%s", getattr(handler, "__name__", handler), traceback.format_exc())
+
+    def _flush_pending(self) -> None:
+        pending, self._pending = self._pending, []
+        for sub, key, msg in pending:
+            if self._lockstep:
+                self._gate.hold(key, msg.header.seq, (sub, msg))
+            else:
+                self._call(sub.handler, msg, key)
+
+    # ------------------------------------------------------------- clock
+    def _on_clock(self, tick: SimClock, key: str) -> None:
+        while tick is not None:
+            self._process_tick(tick)
+            tick, self._deferred_clock = self._deferred_clock, None
+
+    def _process_tick(self, tick: SimClock) -> None:
+        if tick.step <= self._last_step:
+            return  # a re-sent tick we already processed
+        first = self._lockstep is None
+        self._lockstep = tick.lockstep
+        if first:
+            self._flush_pending()
+        self.clock.advance_to(tick.header.stamp)
+        if not tick.lockstep:
+            self._last_step = tick.step
+            self._tick(tick.header.stamp)
+            return
+        self._gate.begin(tick.step, tick.bounds)
+        self._wait_for_gate(tick.step)
+        if self._stop.is_set():
+            return
+        for key, (sub, msg) in self._gate.release(self._alive_upstream):
+            self._call(sub.handler, msg, key)
+        self._last_step = tick.step
+        self._tick(tick.header.stamp)
+        published = {p.key: p.seq for p in self._publishers if p.seq and p is not self._ack_pub}
+        self._ack_pub.put(StepAck(header=Header(stamp=tick.header.stamp), step=tick.step, published=published))
+
+    def _wait_for_gate(self, step: int) -> None:
+        deadline = time.monotonic() + LOCKSTEP_TIMEOUT_S
+        while missing := self._gate.missing(self._alive_upstream):
+            remaining = deadline - time.monotonic()
+            if self._stop.is_set() or self._deferred_clock is not None or remaining <= 0:
+                self.counters.lockstep_timeouts += 1
+                self.log.warning("tick %d: gave up waiting for %s", step, ", ".join(missing[:5]))
+                return
+            try:
+                item = self._inbox.get(timeout=min(remaining, POLL_S))
+            except queue.Empty:
+                self._check_parent()
+                continue
+            if item[0] == "data" and item[1].key_expr == keys.CLOCK:
+                newer = self._decode(item[1], item[2], item[3])
+                if newer is not None and newer.step > step:
+                    self._deferred_clock = newer  # the simulator moved on without us
+                continue
+            self._dispatch(item)
+
+    def _tick(self, now_ns: int) -> None:
+        self._call(self.on_tick, now_ns)
+
+    def _on_upstream_ack(self, ack: StepAck, key: str) -> None:
+        service = key.rsplit("/", 1)[-1]
+        self._gate.record_ack(service, ack.step, ack.published)
+
+    def _on_scope_liveliness(self, key: str, alive: bool) -> None:
+        parsed = keys.parse_alive(key)
+        if parsed and parsed[1] in self.upstream:
+            (self._alive_upstream.add if alive else self._alive_upstream.discard)(parsed[1])
+
+    # ------------------------------------------------------------- health
+    def health(self) -> ServiceHealth:
+        c = self.counters
+        return ServiceHealth(
+            header=Header(sender=self.sender, stamp=self.clock.now_ns()),
+            uav=self.scope,
+            service=self.service,
+            pid=os.getpid(),
+            uptime=time.monotonic() - self._started_wall,
+            state=self.state,
+            received=dict(c.received),
+            published=dict(c.published),
+            decode_errors=dict(c.decode_errors),
+            handler_errors=c.handler_errors,
+            lockstep_timeouts=c.lockstep_timeouts,
+        )
+
+    def _answer_health(self, query: zenoh.Query) -> None:
+        try:
+            query.reply(query.key_expr, msgspec.msgpack.encode(self.health()))
+        except Exception as exc:
+            self.log.warning("health reply failed: %s", exc)
+        finally:
+            query.drop()
