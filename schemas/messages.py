@@ -262,6 +262,7 @@ class ServiceHealth(msgspec.Struct, kw_only=True):
     decode_errors: dict[str, int] = {}
     handler_errors: int = 0
     lockstep_timeouts: int = 0
+    subscriptions: list[str] = []
 
 
 ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (

@@ -103,6 +103,7 @@ class Node:
         clock: str = "sim",
         tick_hz: float = 20.0,
         exit_with_parent: bool = False,
+        options: Any = None,
     ) -> None:
         if not self.service:
             raise TypeError("a Node subclass must set `service`")
@@ -110,6 +111,7 @@ class Node:
         self.scope = keys.scope_of(self.service, uav)
         self.sender = f"{self.scope}/{self.service}"
         self.params = params if params is not None else self.params_type()
+        self.options = options  # the parsed command line, for service-specific options
         self.log = logging.getLogger(self.sender)
         self.counters = Counters()
         self.clock: MissionClock | WallClock = MissionClock() if clock == "sim" else WallClock()
@@ -230,6 +232,8 @@ class Node:
             for service in self.upstream:
                 self._add_subscription(keys.ack(self.scope, service), StepAck, self._on_upstream_ack, internal=True)
             self.on_liveliness(f"{keys.ROOT}/{self.scope}/alive/*", self._on_scope_liveliness)
+            if self._clock_kind == "sim":
+                self.on_liveliness(keys.alive(keys.SIM, "simulator"), self._on_simulator_liveliness)
             self.setup()
             for sub in self._subs:
                 self._declare_subscriber(sub)
@@ -244,7 +248,7 @@ class Node:
             token = self.session.liveliness().declare_token(keys.alive(self.scope, self.service))
             self.state = "running"
             self.log.info("up (pid %d)", os.getpid())
-            self._loop()
+            self.serve()
             self.state = "stopping"
             self.on_shutdown()
         finally:
@@ -259,6 +263,24 @@ class Node:
             self.session = None
         self.log.info("stopped")
         return 0
+
+    def serve(self) -> None:
+        """The main loop; the simulator replaces it with its own clock-driving loop."""
+        self._loop()
+
+    def pump(self, timeout: float) -> bool:
+        """Handle at most one queued input; False when none came within `timeout`."""
+        try:
+            item = self._inbox.get(timeout=max(0.0, timeout))
+        except queue.Empty:
+            self._check_parent()
+            return False
+        self._dispatch(item)
+        return True
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
 
     def _loop(self) -> None:
         next_wall_tick = time.monotonic()
@@ -394,6 +416,13 @@ class Node:
         if parsed and parsed[1] in self.upstream:
             (self._alive_upstream.add if alive else self._alive_upstream.discard)(parsed[1])
 
+    def _on_simulator_liveliness(self, key: str, alive: bool) -> None:
+        if not alive and self._last_step >= 0:
+            # A restarted simulator counts ticks from 0 again: follow it.
+            self.log.warning("simulator gone; will follow its clock from the start when it returns")
+            self._last_step = -1
+            self._gate = LockstepGate(self.upstream, self._wants, self._order)
+
     # ------------------------------------------------------------- health
     def health(self) -> ServiceHealth:
         c = self.counters
@@ -409,6 +438,7 @@ class Node:
             decode_errors=dict(c.decode_errors),
             handler_errors=c.handler_errors,
             lockstep_timeouts=c.lockstep_timeouts,
+            subscriptions=[sub.key_expr for sub in self._subs],
         )
 
     def _answer_health(self, query: zenoh.Query) -> None:

@@ -33,6 +33,9 @@ class ZenohSettings:
     listen: list[str] = field(default_factory=list)
     config_file: str | None = None
     lease_ms: int | None = None  # shorter leases notice a cut link sooner
+    # None keeps Zenoh's default (large local messages go through /dev/shm); a long-lived
+    # in-process session such as a test's turns it off, since its segments go only at exit.
+    shared_memory: bool | None = None
 
     def as_args(self) -> list[str]:
         """Command-line arguments that reproduce these settings in a child process."""
@@ -88,6 +91,8 @@ def build(settings: ZenohSettings) -> zenoh.Config:
         _insert(config, "connect/endpoints", [DEFAULT_ROUTER])
     if settings.listen and config_file:
         _insert(config, "listen/endpoints", settings.listen)
+    if settings.shared_memory is not None:
+        _insert(config, "transport/shared_memory/enabled", settings.shared_memory)
     if settings.lease_ms:
         _insert(config, "transport/link/tx/lease", settings.lease_ms)
         _insert(config, "transport/link/tx/keep_alive", 4)

@@ -1,0 +1,153 @@
+"""What the launcher watches during `falconry sim`: it writes the ground-truth log and
+builds the progress line and the end-of-run summary from messages alone (truth, events,
+status, tracks, detections, liveliness)."""
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO, Iterator
+
+import msgspec
+
+from schemas import keys
+from schemas.messages import Detections, GroundTruth, SimClock, SimEvent, Tracks, UavStatus
+from services.runtime.clock import seconds
+
+_LENGTH = struct.Struct("<I")
+
+
+def write_record(stream: BinaryIO, payload: bytes) -> None:
+    stream.write(_LENGTH.pack(len(payload)) + payload)
+
+
+def read_truth_log(path: str | Path) -> Iterator[GroundTruth]:
+    """Ground-truth log: each record is a little-endian u32 length then a msgpack GroundTruth."""
+    decoder = msgspec.msgpack.Decoder(GroundTruth)
+    data = Path(path).read_bytes()
+    offset = 0
+    while offset + 4 <= len(data):
+        (length,) = _LENGTH.unpack_from(data, offset)
+        offset += 4
+        if offset + length > len(data):
+            break  # a record cut short by a crash
+        yield decoder.decode(data[offset:offset + length])
+        offset += length
+
+
+@dataclass
+class UavSummary:
+    distance: float = 0.0
+    max_height: float = 0.0
+    takeoff: float | None = None
+    landed: float | None = None
+    state: str = "?"
+    airborne: bool = False
+    alive: bool = True
+    detections: int = 0
+    confirmed_tracks: set[int] = field(default_factory=set)
+    last_position: tuple[float, float, float] | None = None
+
+
+class RunMonitor:
+    def __init__(self, truth_log: BinaryIO | None = None) -> None:
+        self.truth_log = truth_log
+        self.step = -1
+        self.mission_time = 0.0
+        self.rtf = 0.0
+        self.finished = False
+        self.started = False
+        self.uavs: dict[str, UavSummary] = {}
+        self.targets: dict[str, tuple[str, bool]] = {}
+        self.destroyed: list[tuple[float, str, str]] = []
+        self.events: list[SimEvent] = []
+        self.restarts: list[str] = []
+        self.decode = {
+            keys.CLOCK: msgspec.msgpack.Decoder(SimClock),
+            keys.TRUTH: msgspec.msgpack.Decoder(GroundTruth),
+            keys.EVENTS: msgspec.msgpack.Decoder(SimEvent),
+        }
+        self._status = msgspec.msgpack.Decoder(UavStatus)
+        self._tracks = msgspec.msgpack.Decoder(Tracks)
+        self._detections = msgspec.msgpack.Decoder(Detections)
+
+    def handle(self, key: str, payload: bytes) -> None:
+        try:
+            if key in self.decode:
+                msg = self.decode[key].decode(payload)
+                if key == keys.TRUTH and self.truth_log is not None:
+                    write_record(self.truth_log, payload)
+                getattr(self, f"_on_{key.rsplit('/', 1)[-1]}")(msg)
+                return
+            uav, topic = key.split("/")[1:3]
+            if topic == "status":
+                status = self._status.decode(payload)
+                self._uav(uav).state = status.state
+            elif topic == "tracks":
+                for track in self._tracks.decode(payload).tracks:
+                    if track.confirmed:
+                        self._uav(uav).confirmed_tracks.add(track.id)
+            elif topic == "detections":
+                det = self._detections.decode(payload)
+                self._uav(uav).detections += det.positions.shape[0] if det.positions.shape else 0
+        except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
+            pass  # not ours to police: the services count their own decode errors
+
+    def _uav(self, name: str) -> UavSummary:
+        return self.uavs.setdefault(name, UavSummary())
+
+    def _on_clock(self, tick: SimClock) -> None:
+        self.step = max(self.step, tick.step)
+        self.mission_time = seconds(tick.header.stamp)
+        self.rtf = tick.real_time_factor
+        self.finished = self.finished or tick.finished
+
+    def _on_truth(self, truth: GroundTruth) -> None:
+        t = seconds(truth.header.stamp)
+        for v in truth.uavs:
+            u = self._uav(v.name)
+            if u.last_position is not None:
+                u.distance += math.dist(u.last_position, v.position)
+            u.last_position = v.position
+            u.max_height = max(u.max_height, v.position[2])
+            u.airborne, u.alive = v.airborne, v.alive
+            if v.airborne and u.takeoff is None:
+                u.takeoff = t
+            if not v.airborne and u.takeoff is not None and u.landed is None:
+                u.landed = t
+        for target in truth.targets:
+            self.targets[target.id] = (target.kind, target.destroyed)
+
+    def _on_events(self, event: SimEvent) -> None:
+        self.events.append(event)
+        if event.kind == "mission_started":
+            self.started = True
+        elif event.kind == "target_destroyed":
+            self.destroyed.append((seconds(event.header.stamp), event.subject, event.detail))
+        elif event.kind == "service_restarted":
+            self.restarts.append(f"{event.subject} ({event.detail})")
+
+    def progress(self, duration: float) -> str:
+        airborne = sum(u.airborne for u in self.uavs.values())
+        tracks = sum(len(u.confirmed_tracks) for u in self.uavs.values())
+        return (f"t={self.mission_time:6.1f}/{duration:.0f} s  rtf {self.rtf:4.1f}x  "
+                f"airborne {airborne}/{len(self.uavs)}  destroyed {len(self.destroyed)}/{len(self.targets)}  "
+                f"confirmed tracks {tracks}")
+
+    def summary(self) -> dict:
+        return {
+            "finished": self.finished,
+            "mission_time": round(self.mission_time, 3),
+            "real_time_factor": round(self.rtf, 2),
+            "targets": len(self.targets),
+            "destroyed": [{"t": round(t, 2), "target": tid, "by": uav} for t, tid, uav in self.destroyed],
+            "restarts": list(self.restarts),
+            "uavs": {
+                name: {"distance_m": round(u.distance, 1), "max_height_m": round(u.max_height, 2),
+                       "takeoff_s": u.takeoff, "landed_s": u.landed, "final_state": u.state,
+                       "detections": u.detections, "confirmed_tracks": len(u.confirmed_tracks)}
+                for name, u in sorted(self.uavs.items())
+            },
+            "events": [f"{seconds(e.header.stamp):.2f} {e.kind} {e.subject} {e.detail}".rstrip() for e in self.events],
+        }

@@ -1,0 +1,187 @@
+"""`falconry sim`: a whole multi-UAV mission on this machine.
+
+The launcher opens the run's hub session (embedded profile: it listens on a free
+loopback port and every service connects to it, then they mesh peer to peer), starts
+the simulator and the six services of every UAV as separate processes, restarts any
+that crash, prints progress, and at the end stops everything and prints a summary.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import queue
+import sys
+import time
+from pathlib import Path
+
+import msgspec
+import zenoh
+
+from schemas import keys
+from schemas.messages import Header, SimEvent
+from services.launcher.monitor import RunMonitor
+from services.launcher.params import ParamsError, read_tables
+from services.launcher.supervisor import Supervisor, clean_shared_memory, describe_exit
+from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session
+from services.simulator.options import add_simulator_options
+from services.simulator.scenario import ScenarioError, load_scenario
+
+WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, "falconry/*/status", "falconry/*/tracks", "falconry/*/detections")
+
+
+def add_parser(commands) -> None:
+    from services.launcher.cli import add_zenoh_options
+
+    p = commands.add_parser(
+        "sim", help="run a simulated multi-UAV mission (simulator + every service of every UAV)",
+        description="Start the simulator and every per-UAV service as separate processes on an embedded "
+                    "local Zenoh, supervise them (a crashed service is restarted), show progress and print "
+                    "a summary. Ctrl-C stops everything cleanly.",
+    )
+    add_simulator_options(p, positional_scenario=True)
+    run = p.add_argument_group("run")
+    run.add_argument("--port", type=int, default=0,
+                     help="loopback port of the run's hub (default: a free port, so runs never collide)")
+    run.add_argument("--config", metavar="FILE", help="TOML service parameters, one [service] table each")
+    run.add_argument("--truth-log", metavar="FILE",
+                     help="write every ground-truth message (u32 length + msgpack) to FILE")
+    run.add_argument("--summary-json", metavar="FILE", help="also write the summary as JSON to FILE")
+    run.add_argument("--log-file", metavar="FILE", help="write every service's log lines to FILE")
+    run.add_argument("--quiet", action="store_true",
+                     help="do not echo service logs (progress, restarts and the summary still print)")
+    run.add_argument("--progress", type=float, default=10.0, metavar="S",
+                     help="print a progress line every S seconds of mission time (default 10; 0 = never)")
+    run.add_argument("--wall-timeout", type=float, default=0.0, metavar="S",
+                     help="give up after S seconds of wall time (default: no limit)")
+    add_zenoh_options(p, "Embedded default: the launcher listens on --port and services connect to it.")
+    p.set_defaults(handler=run_sim)
+
+
+def run_sim(args: argparse.Namespace) -> int:
+    from services.launcher.cli import CliError
+
+    try:
+        scenario = load_scenario(args.scenario)
+        read_tables(args.config)
+    except (ScenarioError, ParamsError) as exc:
+        raise CliError(str(exc)) from None
+    for name, value in (("--duration", args.duration), ("--rtf", args.rtf), ("--tick", args.tick)):
+        if value is not None and value <= 0:
+            raise CliError(f"{name} must be positive")
+    uavs = keys.uav_names(args.uavs or scenario.uavs)
+    duration = args.duration if args.duration is not None else scenario.duration
+    seed = args.seed if args.seed is not None else scenario.seed
+
+    started_wall = time.time()
+    embedded = args.zenoh_profile == "embedded" and not args.zenoh_config
+    port = args.port or free_port()
+    hub = f"tcp/127.0.0.1:{port}"
+    hub_settings = ZenohSettings(profile=args.zenoh_profile, connect=list(args.connect),
+                                 listen=[hub] if embedded else list(args.listen),
+                                 config_file=args.zenoh_config, lease_ms=args.lease_ms)
+    child_zenoh = ZenohSettings(profile=args.zenoh_profile, connect=[hub] if embedded else list(args.connect),
+                                config_file=args.zenoh_config, lease_ms=args.lease_ms).as_args()
+
+    base = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "run"]
+    common = ["--exit-with-parent", *child_zenoh] + (["--config", args.config] if args.config else [])
+    sim_argv = base + ["simulator", *common, "--scenario", args.scenario, "--uavs", str(len(uavs)),
+                       "--seed", str(seed), "--duration", str(duration), "--rtf", str(args.rtf),
+                       "--tick", str(args.tick)] + (["--lockstep"] if args.lockstep else [])
+
+    init_logging()
+    session = open_session(hub_settings)
+    inbox: queue.SimpleQueue = queue.SimpleQueue()
+    subscribers = [session.declare_subscriber(k, lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes())))
+                   for k in WATCHED]
+    events_pub = session.declare_publisher(keys.EVENTS)
+    encoder = msgspec.msgpack.Encoder()
+    restart_seq = [0]
+
+    truth_file = open(args.truth_log, "wb") if args.truth_log else None
+    monitor = RunMonitor(truth_file)
+
+    def on_restart(name: str, code: int, _when: float) -> None:
+        restart_seq[0] += 1
+        events_pub.put(encoder.encode(SimEvent(
+            header=Header(sender="sim/launcher", seq=restart_seq[0], stamp=int(monitor.mission_time * 1e9)),
+            kind="service_restarted", subject=name, detail=describe_exit(code))))
+
+    supervisor = Supervisor(echo=not args.quiet, on_restart=on_restart,
+                            log_file=Path(args.log_file) if args.log_file else None)
+    mode = "lockstep" if args.lockstep else f"real time x{args.rtf:g}"
+    supervisor.say(f"{scenario.name}: {len(uavs)} UAVs, seed {seed}, {duration:g} s of mission time, {mode}, "
+                   f"zenoh {hub if embedded else args.zenoh_profile}")
+    outcome = "finished"
+    try:
+        supervisor.start("sim/simulator", sim_argv)
+        for uav in uavs:
+            for service in keys.UAV_SERVICES:
+                supervisor.start(f"{uav}/{service}", base + [service, "--uav", uav, *common])
+        next_progress = args.progress
+        while not monitor.finished:
+            try:
+                key, payload = inbox.get(timeout=0.1)
+                monitor.handle(key, payload)
+            except queue.Empty:
+                pass
+            supervisor.poll()
+            if args.progress and monitor.mission_time >= next_progress:
+                supervisor.say(monitor.progress(duration))
+                next_progress += args.progress
+            sim_child = supervisor.children["sim/simulator"]
+            if sim_child.failed:
+                outcome = "simulator failed"
+                break
+            if args.wall_timeout and time.time() - started_wall > args.wall_timeout:
+                outcome = f"wall timeout ({args.wall_timeout:g} s)"
+                break
+        while True:  # the last messages (final truth, events) may still be queued
+            try:
+                monitor.handle(*inbox.get_nowait())
+            except queue.Empty:
+                break
+    except KeyboardInterrupt:
+        outcome = "interrupted"
+    finally:
+        killed = supervisor.stop_all()
+        for sub in subscribers:
+            sub.undeclare()
+        events_pub.undeclare()
+        session.close()
+        if truth_file:
+            truth_file.close()
+        clean_shared_memory(started_wall - 1.0)
+
+    summary = monitor.summary()
+    summary.update(outcome=outcome, scenario=scenario.name, seed=seed, lockstep=args.lockstep,
+                   wall_time=round(time.time() - started_wall, 2), killed_at_shutdown=killed,
+                   failed_services=[c.name for c in supervisor.children.values() if c.failed])
+    print_summary(summary, len(uavs), duration)
+    if args.summary_json:
+        Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
+    if outcome == "interrupted":
+        return 130
+    return 0 if outcome == "finished" and not summary["failed_services"] else 1
+
+
+def print_summary(s: dict, uav_count: int, duration: float) -> None:
+    lines = [
+        "",
+        f"=== Falconry run summary: {s['scenario']}, {uav_count} UAVs, seed {s['seed']}, "
+        f"{'lockstep' if s['lockstep'] else 'real time'} ===",
+        f"outcome: {s['outcome']}; mission time {s['mission_time']:.1f}/{duration:g} s in {s['wall_time']:.1f} s "
+        f"wall (real-time factor {s['mission_time'] / max(s['wall_time'], 1e-9):.2f}x)",
+        f"targets destroyed: {len(s['destroyed'])}/{s['targets']}"
+        + "".join(f"\n  t={d['t']:.1f} s {d['target']} by {d['by']}" for d in s["destroyed"]),
+    ]
+    for name, u in s["uavs"].items():
+        took = f"took off t={u['takeoff_s']:.1f} s" if u["takeoff_s"] is not None else "never took off"
+        landed = f", landed t={u['landed_s']:.1f} s" if u["landed_s"] is not None else ""
+        lines.append(f"{name}: {u['final_state']}; {took}{landed}; flew {u['distance_m']:.0f} m, max height "
+                     f"{u['max_height_m']:.1f} m; {u['detections']} detections, {u['confirmed_tracks']} confirmed tracks")
+    lines.append("restarts: " + (", ".join(s["restarts"]) if s["restarts"] else "none"))
+    if s["failed_services"]:
+        lines.append("gave up on: " + ", ".join(s["failed_services"]))
+    if s["killed_at_shutdown"]:
+        lines.append("needed SIGKILL at shutdown: " + ", ".join(s["killed_at_shutdown"]))
+    print("\n".join(lines), flush=True)

@@ -1,0 +1,183 @@
+"""Starts service processes, prefixes their output, restarts the ones that crash, and
+stops all of them (SIGTERM, then SIGKILL after a grace period) leaving nothing behind.
+
+Children are separate interpreters started with subprocess (exec, never a bare fork of
+this process: Zenoh is not fork-safe), each in its own session so a terminal Ctrl-C
+reaches only the launcher, which then shuts them down in order.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, TextIO
+
+MAX_RESTARTS = 5  # within RESTART_WINDOW_S; beyond that the service is given up on
+RESTART_WINDOW_S = 60.0
+
+
+@dataclass
+class Child:
+    name: str
+    argv: list[str]
+    process: subprocess.Popen | None = None
+    started: float = 0.0
+    restarts: list[float] = field(default_factory=list)
+    failed: bool = False
+    reader: threading.Thread | None = None
+
+
+class Supervisor:
+    def __init__(self, out: TextIO = sys.stdout, echo: bool = True,
+                 on_restart: Callable[[str, int, float], None] | None = None,
+                 log_file: Path | None = None) -> None:
+        self.children: dict[str, Child] = {}
+        self._out = out
+        self._echo = echo
+        self._lock = threading.Lock()
+        self._stopping = False
+        self._on_restart = on_restart
+        self._log = open(log_file, "a", buffering=1) if log_file else None
+        self.width = 10
+
+    def start(self, name: str, argv: list[str]) -> None:
+        child = self.children.setdefault(name, Child(name, argv))
+        self.width = max(self.width, len(name))
+        self._spawn(child)
+
+    def _spawn(self, child: Child) -> None:
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        child.process = subprocess.Popen(
+            child.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+            start_new_session=True, env=env, text=True, bufsize=1, errors="replace",
+        )
+        child.started = time.monotonic()
+        child.reader = threading.Thread(target=self._pump_output, args=(child, child.process), daemon=True)
+        child.reader.start()
+
+    def _pump_output(self, child: Child, process: subprocess.Popen) -> None:
+        for line in process.stdout:
+            self.say(line.rstrip("\n"), child.name)
+        process.stdout.close()
+
+    def say(self, text: str, source: str = "launcher") -> None:
+        line = f"[{source:>{self.width}}] {text}"
+        with self._lock:
+            if self._log:
+                self._log.write(line + "\n")
+            if self._echo or source == "launcher":
+                print(line, file=self._out, flush=True)
+
+    def poll(self) -> None:
+        """Restart children that exited while the run is still going."""
+        if self._stopping:
+            return
+        for child in self.children.values():
+            if child.failed or child.process is None or child.process.poll() is None:
+                continue
+            code = child.process.returncode
+            now = time.monotonic()
+            child.restarts = [t for t in child.restarts if now - t < RESTART_WINDOW_S]
+            if len(child.restarts) >= MAX_RESTARTS:
+                child.failed = True
+                self.say(f"{child.name} exited ({describe_exit(code)}) {MAX_RESTARTS} times within "
+                         f"{RESTART_WINDOW_S:.0f} s; giving up on it")
+                continue
+            child.restarts.append(now)
+            self._spawn(child)
+            self.say(f"restarted {child.name} after it exited ({describe_exit(code)})")
+            if self._on_restart:
+                self._on_restart(child.name, code, now)
+
+    def pid(self, name: str) -> int | None:
+        child = self.children.get(name)
+        return child.process.pid if child and child.process else None
+
+    def stop_all(self, grace: float = 2.0) -> list[str]:
+        """SIGTERM everyone, SIGKILL what is still there after `grace` s; returns the killed ones."""
+        self._stopping = True
+        running = [c for c in self.children.values() if c.process and c.process.poll() is None]
+        for child in running:
+            _signal_group(child.process, signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        for child in running:
+            try:
+                child.process.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass
+        killed = []
+        for child in self.children.values():
+            if child.process and child.process.poll() is None:
+                killed.append(child.name)
+                _signal_group(child.process, signal.SIGKILL)
+                child.process.wait()
+            elif child.process:
+                _signal_group(child.process, signal.SIGKILL)  # grandchildren of a child, if any
+        for child in self.children.values():
+            if child.reader:
+                child.reader.join(timeout=1.0)
+        if self._log:
+            self._log.close()
+            self._log = None
+        return killed
+
+
+def _signal_group(process: subprocess.Popen, sig: int) -> None:
+    try:
+        os.killpg(process.pid, sig)
+    except (ProcessLookupError, PermissionError):
+        pass
+
+
+def describe_exit(code: int) -> str:
+    if code < 0:
+        try:
+            return signal.Signals(-code).name
+        except ValueError:
+            return f"signal {-code}"
+    return f"exit code {code}"
+
+
+def clean_shared_memory(created_after: float) -> list[str]:
+    """Remove Zenoh shared-memory segments this run created that no live process maps."""
+    shm = Path("/dev/shm")
+    if not shm.is_dir():
+        return []
+    candidates = [p for p in shm.glob("*.zenoh") if _mtime(p) >= created_after]
+    if not candidates:
+        return []
+    mapped = _mapped_shm_names()
+    removed = []
+    for path in candidates:
+        if path.name not in mapped:
+            try:
+                path.unlink()
+                removed.append(path.name)
+            except OSError:
+                pass
+    return removed
+
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return 0.0
+
+
+def _mapped_shm_names() -> set[str]:
+    names = set()
+    for maps in Path("/proc").glob("[0-9]*/maps"):
+        try:
+            text = maps.read_text()
+        except OSError:
+            continue
+        for line in text.splitlines():
+            if "/dev/shm/" in line and line.endswith(".zenoh"):
+                names.add(line.rsplit("/", 1)[-1])
+    return names

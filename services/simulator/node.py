@@ -1,0 +1,243 @@
+"""Simulator node: owns the mission clock and drives the run.
+
+Each tick it applies the trajectory references the planners sent, advances the world,
+publishes odometry, ground truth and events, then the clock tick. In lockstep mode it
+waits for every live service's acknowledgement of the tick before the next one, and
+tells the services (in the tick's `bounds`) exactly which messages belong to it; in
+real-time mode it paces ticks at the requested real-time factor.
+
+Before the first tick it waits until every service of every UAV is alive (automatic
+start); a service that dies is no longer waited for, and is waited for again once its
+liveliness token returns.
+"""
+from __future__ import annotations
+
+import math
+import time
+
+import msgspec
+import numpy as np
+
+from schemas import keys
+from schemas.arrays import from_numpy, to_numpy
+from schemas.messages import (
+    GroundTruth,
+    Header,
+    Odometry,
+    Pose,
+    SimClock,
+    SimEvent,
+    StepAck,
+    TargetTruth,
+    TrajectoryReference,
+    VehicleTruth,
+    WorldModel,
+)
+from services.runtime.clock import seconds, to_ns
+from services.runtime.lockstep import LockstepGate
+from services.runtime.node import Node
+from services.simulator.core import Simulation
+from services.simulator.scenario import load_scenario
+
+RESEND_S = 0.5  # re-send a tick nobody acknowledged (a service may have joined late)
+ACK_TIMEOUT_S = 10.0
+
+
+class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
+    startup_timeout: float = 60.0  # s of wall time to wait for every service before starting anyway
+    world_period: float = 1.0  # s of mission time between WorldModel re-publications
+    odometry_position_sigma: float = 0.0  # m; noise models come with the full simulator
+
+
+def heading_quaternion(heading: float) -> tuple[float, float, float, float]:
+    return (math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2))
+
+
+class SimulatorNode(Node):
+    service = "simulator"
+    params_type = SimulatorParams
+
+    def __init__(self, uav, zenoh_settings, **kwargs) -> None:
+        super().__init__(uav, zenoh_settings, **kwargs)
+        opts = self.options
+        self.scenario = load_scenario(getattr(opts, "scenario", "mbzirc"))
+        self.uav_names = keys.uav_names(getattr(opts, "uavs", None) or self.scenario.uavs)
+        self.seed = opts.seed if getattr(opts, "seed", None) is not None else self.scenario.seed
+        duration = getattr(opts, "duration", None)
+        self.duration = duration if duration is not None else self.scenario.duration
+        self.run_lockstep = bool(getattr(opts, "lockstep", False))
+        self.rtf = float(getattr(opts, "rtf", 1.0) or 1.0)
+        self.tick_s = float(getattr(opts, "tick", 0.05) or 0.05)
+        if self.duration <= 0 or self.rtf <= 0 or self.tick_s <= 0:
+            raise ValueError("--duration, --rtf and --tick must be positive")
+        self._clock_kind = "master"  # this node makes the clock; it never follows one
+        self.sim = Simulation(self.scenario, self.uav_names, self.seed)
+        self._alive: set[str] = set()
+        self._acks: dict[str, StepAck] = {}
+        self._sim_gate: LockstepGate = LockstepGate((), self._wants, self._order)
+
+    # -------------------------------------------------------------- wiring
+    def setup(self) -> None:
+        self.clock_pub = self.publisher(keys.CLOCK, SimClock)
+        self.world_pub = self.publisher(keys.WORLD, WorldModel)
+        self.truth_pub = self.publisher(keys.TRUTH, GroundTruth)
+        self.events_pub = self.publisher(keys.EVENTS, SimEvent)
+        self.odometry_pubs = {u: self.publisher(keys.uav(u, "odometry"), Odometry) for u in self.uav_names}
+        for u in self.uav_names:
+            self.subscribe(keys.uav(u, "trajectory"), TrajectoryReference, self.on_trajectory)
+        self._add_subscription(keys.ALL_ACKS, StepAck, self._on_ack, internal=True)
+        self.on_liveliness(keys.ALL_ALIVE, self._on_alive)
+
+    def _on_alive(self, key: str, alive: bool) -> None:
+        parsed = keys.parse_alive(key)
+        if parsed is None or parsed == (keys.SIM, self.service):
+            return
+        name = f"{parsed[0]}/{parsed[1]}"
+        if alive:
+            self._alive.add(name)
+        else:
+            self._alive.discard(name)
+            self._acks.pop(name, None)
+
+    def _on_ack(self, ack: StepAck, key: str) -> None:
+        parts = key.split("/")
+        self._acks[f"{parts[1]}/{parts[3]}"] = ack
+
+    def on_trajectory(self, msg: TrajectoryReference, key: str) -> None:
+        uav = key.split("/")[1]
+        p = msg.profile
+        self.sim.set_reference(uav, msg.start, msg.dt, np.array(to_numpy(msg.positions)),
+                               np.array(to_numpy(msg.headings)), p.max_speed, p.max_acceleration,
+                               p.max_heading_rate, p.max_vertical_speed)
+
+    # --------------------------------------------------------------- loop
+    def expected_services(self) -> set[str]:
+        return {f"{u}/{s}" for u in self.uav_names for s in keys.UAV_SERVICES}
+
+    def serve(self) -> None:
+        self._lockstep = self.run_lockstep  # trajectories are gated by acknowledgements in lockstep
+        self.publish_world()
+        if not self.wait_for_team():
+            return
+        self.event("mission_started", "sim", f"{self.scenario.name}, {len(self.uav_names)} UAVs, seed {self.seed}, "
+                   f"{'lockstep' if self.run_lockstep else f'real time x{self.rtf:g}'}")
+        steps = int(round(self.duration / self.tick_s))
+        wall_start = time.monotonic()
+        for step in range(steps + 1):
+            if self.stopping:
+                return
+            if step > 0:
+                for key, (sub, msg) in self._sim_gate.release(self._alive):
+                    self._call(sub.handler, msg, key)
+                for kind, subject, detail in self.sim.step(self.tick_s):
+                    self.event(kind, subject, detail)
+            now = to_ns(step * self.tick_s)
+            self.clock.advance_to(now)
+            self.publish_state(step, now)
+            rtf = seconds(now) / max(time.monotonic() - wall_start, 1e-9)
+            tick = SimClock(header=Header(stamp=now), step=step, dt=self.tick_s, lockstep=self.run_lockstep,
+                            real_time_factor=rtf, bounds=self.bounds(), finished=step == steps)
+            self.clock_pub.put(tick)
+            if self.run_lockstep:
+                self.wait_for_acks(tick)
+            else:
+                self.pace(wall_start + seconds(now) / self.rtf + self.tick_s / self.rtf)
+        self.event("mission_finished", "sim", f"{seconds(self.clock.now_ns()):.1f} s of mission time")
+        while not self.stopping:  # stay reachable (health queries) until the launcher stops us
+            self.pump(0.2)
+
+    def wait_for_team(self) -> bool:
+        expected = self.expected_services()
+        deadline = time.monotonic() + self.params.startup_timeout
+        next_world = time.monotonic() + 1.0
+        while not expected <= self._alive:
+            if self.stopping:
+                return False
+            if time.monotonic() > deadline:
+                self.log.warning("starting without %s", ", ".join(sorted(expected - self._alive)))
+                return True
+            if time.monotonic() > next_world:
+                self.publish_world()
+                next_world += 1.0
+            self.pump(0.05)
+        return True
+
+    def bounds(self) -> dict[str, int]:
+        merged: dict[str, int] = {}
+        for name in sorted(self._acks):
+            merged.update(self._acks[name].published)
+        for pub in self._publishers:
+            if pub.seq and pub is not self.clock_pub and pub is not self._ack_pub:
+                merged[pub.key] = pub.seq
+        return merged
+
+    def wait_for_acks(self, tick: SimClock) -> None:
+        started = time.monotonic()
+        resend = started + RESEND_S
+        while True:
+            waiting = [n for n in sorted(self._alive) if (a := self._acks.get(n)) is None or a.step < tick.step]
+            if not waiting or self.stopping:
+                break
+            now = time.monotonic()
+            if now - started > ACK_TIMEOUT_S:
+                self.counters.lockstep_timeouts += 1
+                self.log.warning("tick %d: no acknowledgement from %s; going on", tick.step, ", ".join(waiting))
+                break
+            if now > resend:
+                self.clock_pub.put(tick)
+                resend = now + RESEND_S
+            self.pump(0.05)
+        self._sim_gate.begin(tick.step + 1, self.bounds())
+        self._sim_gate.first_tick = False
+        deadline = time.monotonic() + ACK_TIMEOUT_S
+        while self._sim_gate.missing(set()) and not self.stopping and time.monotonic() < deadline:
+            self.pump(0.05)
+
+    def pace(self, wall_deadline: float) -> None:
+        while not self.stopping:
+            remaining = wall_deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            if self.pump(min(remaining, 0.05)):
+                continue
+
+    def _dispatch(self, item: tuple) -> None:
+        if item[0] == "data" and not item[1].internal and self._lockstep:
+            msg = self._decode(item[1], item[2], item[3])
+            if msg is not None:
+                self._sim_gate.hold(item[2], msg.header.seq, (item[1], msg))
+            return
+        super()._dispatch(item)
+
+    # ------------------------------------------------------------ output
+    def publish_world(self) -> None:
+        sc = self.scenario
+        self.world_pub.put(WorldModel(
+            header=Header(stamp=self.clock.now_ns()), scenario=sc.name, arena=[tuple(p) for p in sc.arena],
+            min_height=sc.min_height, max_height=sc.max_height, obstacles=self.sim.obstacles(),
+            uavs=list(self.uav_names), seed=self.seed, duration=self.duration))
+
+    def publish_state(self, step: int, now: int) -> None:
+        if step % max(1, int(round(self.params.world_period / self.tick_s))) == 0:
+            self.publish_world()
+        vehicles = self.sim.vehicles()
+        for v in vehicles:
+            pos = tuple(float(x) for x in v.position)
+            self.odometry_pubs[v.name].put(Odometry(
+                header=Header(stamp=now), pose=Pose(position=pos, orientation=heading_quaternion(v.heading)),
+                velocity=tuple(float(x) for x in v.velocity), covariance=from_numpy(np.eye(6) * 1e-4)))
+        self.truth_pub.put(GroundTruth(
+            header=Header(stamp=now), step=step,
+            uavs=[VehicleTruth(name=v.name, position=tuple(float(x) for x in v.position),
+                               velocity=tuple(float(x) for x in v.velocity), heading=float(v.heading),
+                               airborne=bool(v.airborne), alive=bool(v.alive)) for v in vehicles],
+            targets=[TargetTruth(id=t.id, kind=t.kind, position=tuple(float(x) for x in t.position),
+                                 velocity=tuple(float(x) for x in t.velocity), radius=float(t.radius),
+                                 destroyed=bool(t.destroyed)) for t in self.sim.targets()]))
+
+    def event(self, kind: str, subject: str, detail: str = "") -> None:
+        self.log.info("event %s %s %s", kind, subject, detail)
+        self.events_pub.put(SimEvent(header=Header(stamp=self.clock.now_ns()), kind=kind, subject=subject, detail=detail))
+
+
+NODE = SimulatorNode

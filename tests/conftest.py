@@ -1,0 +1,120 @@
+"""Shared fixtures: real Zenoh sessions on per-test loopback ports, real service processes,
+and a check that every test leaves no processes and no Zenoh shared-memory files behind."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from services.launcher.supervisor import _mapped_shm_names
+from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != "Z" and not _is_multiprocessing_helper(stat.parent):
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _is_multiprocessing_helper(proc: Path) -> bool:
+    """multiprocessing's spawn start method keeps one resource tracker per interpreter."""
+    try:
+        return b"resource_tracker" in (proc / "cmdline").read_bytes()
+    except OSError:
+        return False
+
+
+def _shm_files() -> set[str]:
+    return {p.name for p in Path("/dev/shm").glob("*zenoh*")} if Path("/dev/shm").is_dir() else set()
+
+
+@pytest.fixture(scope="session", autouse=True)
+def zenoh_runtime_warmed():
+    """Zenoh keeps one /dev/shm segment per process until the interpreter exits; create ours
+    before any test's baseline so the leak check sees only what tests leave behind."""
+    init_logging()
+    open_session(ZenohSettings(listen=["tcp/127.0.0.1:0"], shared_memory=False)).close()
+
+
+@pytest.fixture(autouse=True)
+def leaves_nothing_behind(zenoh_runtime_warmed):
+    before_shm = _shm_files()
+    yield
+    deadline = time.monotonic() + 5.0
+    while _children(os.getpid()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    leftovers = _children(os.getpid())
+    for pid in leftovers:
+        os.kill(pid, signal.SIGKILL)
+    assert not leftovers, f"test left child processes behind: {leftovers}"
+    # Only segments no live process maps are leaks (other runs on the machine may own the rest).
+    deadline = time.monotonic() + 3.0
+    while (orphans := (_shm_files() - before_shm) - _mapped_shm_names()) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not orphans, f"test left /dev/shm files: {orphans}"
+
+
+@pytest.fixture
+def port() -> int:
+    return free_port()
+
+
+@pytest.fixture
+def hub(port):
+    """A Zenoh peer session listening on this test's own loopback port: (session, endpoint)."""
+    init_logging()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    session = open_session(ZenohSettings(listen=[endpoint], shared_memory=False))
+    yield session, endpoint
+    session.close()
+
+
+def falconry_argv(*args: str) -> list[str]:
+    return [sys.executable, "-m", "services.launcher", *args]
+
+
+class Processes:
+    """Service processes started for one test; all stopped (and reaped) at teardown."""
+
+    def __init__(self) -> None:
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, *args: str, **kwargs) -> subprocess.Popen:
+        kwargs.setdefault("stdout", subprocess.PIPE)
+        kwargs.setdefault("stderr", subprocess.STDOUT)
+        proc = subprocess.Popen(falconry_argv(*args), cwd=REPO, text=True, **kwargs)
+        self.procs.append(proc)
+        return proc
+
+    def stop_all(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGTERM)
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+            if proc.stdout:
+                proc.stdout.close()
+
+
+@pytest.fixture
+def processes():
+    procs = Processes()
+    yield procs
+    procs.stop_all()
