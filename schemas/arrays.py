@@ -44,7 +44,8 @@ def from_numpy(array: np.ndarray) -> Array:
     array = np.asarray(array)
     wire = _wire_dtype(array.dtype)
     array = np.ascontiguousarray(array, dtype=wire)
-    return Array(dtype=wire.str, shape=list(array.shape), data=memoryview(array).cast("B"))
+    data = memoryview(array).cast("B") if array.size else memoryview(b"")  # cast() rejects empty views
+    return Array(dtype=wire.str, shape=list(array.shape), data=data)
 
 
 def to_numpy(array: Array) -> np.ndarray:

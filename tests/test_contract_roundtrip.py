@@ -71,3 +71,9 @@ def test_big_endian_input_is_sent_little_endian():
     wire = from_numpy(arr)
     assert wire.dtype == "<f8"
     assert np.array_equal(to_numpy(wire), arr)
+
+
+def test_empty_arrays_travel():
+    empty = from_numpy(np.zeros((0, 3), dtype=np.float64))
+    decoded = msgspec.msgpack.Decoder(Array).decode(msgspec.msgpack.encode(empty))
+    assert to_numpy(decoded).shape == (0, 3)

@@ -13,6 +13,13 @@ class CliError(Exception):
     """A user mistake: reported as one line on stderr with exit code 2."""
 
 
+class Parser(argparse.ArgumentParser):
+    """One-line errors (argparse would print the whole usage first)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
 def add_zenoh_options(parser: argparse.ArgumentParser, embedded_hint: str) -> None:
     group = parser.add_argument_group("zenoh")
     group.add_argument("--zenoh-profile", choices=PROFILES, default="embedded",
@@ -35,7 +42,7 @@ def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
 def build_parser() -> argparse.ArgumentParser:
     from services.launcher import health_cmd, run_cmd, sim_cmd
 
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="falconry",
         description="Falconry: a team of autonomous LiDAR interceptor UAVs as services over Zenoh.",
         epilog="Run `falconry COMMAND --help` for the options of each command.",

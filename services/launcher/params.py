@@ -44,4 +44,4 @@ def params_for(service: str, params_type: type[msgspec.Struct], path: str | Path
         return msgspec.convert(table, params_type)
     except msgspec.ValidationError as exc:
         text = str(exc).replace("`$.", f"`{service}.").replace("`$`", f"`{service}`")
-        raise ParamsError(f"{path}: {text}") from None
+        raise ParamsError(f"{path}: [{service}] {text}") from None

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import queue
+import signal
 import sys
 import time
 from pathlib import Path
@@ -112,6 +113,7 @@ def run_sim(args: argparse.Namespace) -> int:
     supervisor.say(f"{scenario.name}: {len(uavs)} UAVs, seed {seed}, {duration:g} s of mission time, {mode}, "
                    f"zenoh {hub if embedded else args.zenoh_profile}")
     outcome = "finished"
+    signal.signal(signal.SIGTERM, _interrupt)  # `kill`, `timeout` and compose stop us like Ctrl-C does
     try:
         supervisor.start("sim/simulator", sim_argv)
         for uav in uavs:
@@ -162,6 +164,10 @@ def run_sim(args: argparse.Namespace) -> int:
     if outcome == "interrupted":
         return 130
     return 0 if outcome == "finished" and not summary["failed_services"] else 1
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def print_summary(s: dict, uav_count: int, duration: float) -> None:

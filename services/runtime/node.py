@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Generic, TypeVar
 
 import msgspec
+import numpy as np
 import zenoh
 
 from schemas import keys
@@ -44,6 +45,13 @@ class NoParams(msgspec.Struct, forbid_unknown_fields=True):
     pass
 
 
+def _numpy_scalars(obj: Any) -> Any:
+    """numpy scalars (np.float64 from a core) go out as the plain numbers they are."""
+    if isinstance(obj, np.generic):
+        return obj.item()
+    raise NotImplementedError(f"cannot encode {type(obj).__name__}")
+
+
 class TypedPublisher(Generic[M]):
     """Stamps the header (sender, per-key seq, default stamp) and publishes msgpack bytes."""
 
@@ -52,19 +60,21 @@ class TypedPublisher(Generic[M]):
         self.msg_type = msg_type
         self.seq = 0
         self._node = node
-        self._encoder = msgspec.msgpack.Encoder()
+        self._encoder = msgspec.msgpack.Encoder(enc_hook=_numpy_scalars)
         self._publisher = node.session.declare_publisher(key)
 
     def put(self, msg: M) -> None:
         if not isinstance(msg, self.msg_type):
             raise TypeError(f"{self.key} carries {self.msg_type.__name__}, not {type(msg).__name__}")
-        self.seq += 1
         header: Header = msg.header  # type: ignore[attr-defined]
         header.sender = self._node.sender
-        header.seq = self.seq
+        header.seq = self.seq + 1
         if header.stamp == 0:
             header.stamp = self._node.clock.now_ns()
-        self._publisher.put(self._encoder.encode(msg))
+        payload = self._encoder.encode(msg)
+        # Count it only once it is sure to go out: lockstep peers wait for every seq we count.
+        self.seq += 1
+        self._publisher.put(payload)
         self._node.counters.published[self.key] = self.seq
 
     def undeclare(self) -> None:
@@ -388,7 +398,9 @@ class Node:
         deadline = time.monotonic() + LOCKSTEP_TIMEOUT_S
         while missing := self._gate.missing(self._alive_upstream):
             remaining = deadline - time.monotonic()
-            if self._stop.is_set() or self._deferred_clock is not None or remaining <= 0:
+            if self._stop.is_set():
+                return
+            if self._deferred_clock is not None or remaining <= 0:
                 self.counters.lockstep_timeouts += 1
                 self.log.warning("tick %d: gave up waiting for %s", step, ", ".join(missing[:5]))
                 return

@@ -1,0 +1,135 @@
+"""Polygon geometry for the job manager: area, point-in-polygon, and the split of the
+arena into equal-area working areas, one per UAV (seed 004, §3.5.4).
+
+Pure numpy. Polygons are (K, 2) vertex arrays, simple (possibly non-convex), without
+a repeated closing vertex (one is tolerated and dropped).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+_BISECTION_STEPS = 100
+
+
+def _as_polygon(polygon: np.ndarray) -> np.ndarray:
+    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    if len(poly) > 1 and np.array_equal(poly[0], poly[-1]):
+        poly = poly[:-1]
+    if len(poly) < 3:
+        raise ValueError(f"a polygon needs at least 3 vertices, got {len(poly)}")
+    return poly
+
+
+def signed_area(polygon: np.ndarray) -> float:
+    """Shoelace area: positive when the vertices run counter-clockwise."""
+    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+def polygon_area(polygon: np.ndarray) -> float:
+    return abs(signed_area(polygon))
+
+
+def counter_clockwise(polygon: np.ndarray) -> np.ndarray:
+    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    return poly[::-1].copy() if signed_area(poly) < 0 else poly
+
+
+def point_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray | bool:
+    """Even-odd rule for (N, 2) points (a bool array) or one (2,) point (a bool).
+    Points exactly on an edge may fall either way."""
+    poly = _as_polygon(polygon)
+    pts = np.asarray(points, dtype=np.float64)
+    single = pts.ndim == 1
+    pts = pts.reshape(-1, 2)
+    ax, ay = poly[:, 0], poly[:, 1]
+    bx, by = np.roll(ax, -1), np.roll(ay, -1)
+    px, py = pts[:, :1], pts[:, 1:]  # (N, 1) against (K,) edges
+    straddles = (ay > py) != (by > py)
+    dy = np.where(by != ay, by - ay, 1.0)  # non-straddling edges are masked out below
+    x_cross = ax + (py - ay) * (bx - ax) / dy
+    inside = np.count_nonzero(straddles & (px < x_cross), axis=1) % 2 == 1
+    return bool(inside[0]) if single else inside
+
+
+def clip_x(polygon: np.ndarray, cut: float, keep_left: bool = True) -> np.ndarray:
+    """Sutherland–Hodgman clip against the half-plane x <= cut (or x >= cut).
+
+    A non-convex polygon cut into several pieces comes back as one polygon whose pieces
+    are joined by zero-width bridges along x = cut; its area is still exact. Returns an
+    empty (0, 2) array when nothing is left."""
+    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    if len(poly) == 0:
+        return poly
+    outside_by = poly[:, 0] - cut if keep_left else cut - poly[:, 0]
+    inside = outside_by <= 0.0
+    nxt = np.roll(poly, -1, axis=0)
+    outside_next = np.roll(outside_by, -1)
+    inside_next = np.roll(inside, -1)
+    crosses = inside != inside_next
+    denom = np.where(crosses, outside_by - outside_next, 1.0)
+    t = np.where(crosses, outside_by / denom, 0.0)
+    crossing = poly + t[:, None] * (nxt - poly)
+    crossing[crosses, 0] = cut  # exactly on the line, whatever the rounding
+    # Per edge p→q the algorithm emits [crossing if it crosses] then [q if q is inside].
+    candidates = np.stack([crossing, nxt], axis=1)  # (K, 2 slots, 2)
+    emit = np.stack([crosses, inside_next], axis=1)
+    return _drop_repeats(candidates[emit])
+
+
+def _drop_repeats(poly: np.ndarray, tol: float = 1e-12) -> np.ndarray:
+    if len(poly) < 2:
+        return poly
+    step = np.abs(poly - np.roll(poly, 1, axis=0)).max(axis=1)
+    keep = step > tol
+    if not keep.any():
+        return poly[:1]
+    return poly[keep]
+
+
+def _left_area(poly: np.ndarray, cut: float) -> float:
+    return polygon_area(clip_x(poly, cut, keep_left=True))
+
+
+def equal_area_cuts(polygon: np.ndarray, parts: int) -> np.ndarray:
+    """The parts−1 vertical lines x = c that split the polygon into equal areas, found by
+    bisection on the (monotone) area left of the line."""
+    poly = _as_polygon(polygon)
+    if parts < 1:
+        raise ValueError(f"parts must be >= 1, got {parts}")
+    total = polygon_area(poly)
+    x_min, x_max = float(poly[:, 0].min()), float(poly[:, 0].max())
+    tol = 1e-10 * max(x_max - x_min, 1.0)
+    cuts = np.empty(parts - 1)
+    lo_start = x_min
+    for k in range(1, parts):
+        target = total * k / parts
+        lo, hi = lo_start, x_max  # cuts increase with k, so the previous one bounds this one
+        for _ in range(_BISECTION_STEPS):
+            mid = 0.5 * (lo + hi)
+            if _left_area(poly, mid) < target:
+                lo = mid
+            else:
+                hi = mid
+            if hi - lo <= tol:
+                break
+        cuts[k - 1] = 0.5 * (lo + hi)
+        lo_start = cuts[k - 1]
+    return cuts
+
+
+def split_area(polygon: np.ndarray, parts: int) -> list[np.ndarray]:
+    """Split a simple polygon into `parts` pieces of equal area by vertical cuts,
+    ordered by x (west to east), each counter-clockwise."""
+    poly = _as_polygon(polygon)
+    cuts = equal_area_cuts(poly, parts)
+    pieces = []
+    remainder = poly
+    for cut in cuts:
+        pieces.append(counter_clockwise(clip_x(remainder, cut, keep_left=True)))
+        remainder = clip_x(remainder, cut, keep_left=False)
+    pieces.append(counter_clockwise(remainder))
+    return pieces

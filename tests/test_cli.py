@@ -1,0 +1,59 @@
+"""The command line explains itself and turns user mistakes into one-line errors (exit 2)."""
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from tests.conftest import REPO, falconry_argv
+
+
+def falconry(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
+    return subprocess.run(falconry_argv(*args), cwd=REPO, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("command", [(), ("sim",), ("run",), ("health",)])
+def test_help_explains_every_option(command):
+    result = falconry(*command, "--help")
+    assert result.returncode == 0
+    lines = result.stdout.splitlines()
+    options = [line.split()[0] for line in lines if line.strip().startswith("--")]
+    assert options, result.stdout
+    for line in lines:  # every option line carries an explanation (on it or on the next line)
+        if line.strip().startswith("--") and len(line.split()) < 3:
+            following = lines[lines.index(line) + 1]
+            assert following.startswith(" " * 10) and following.strip(), f"undocumented option: {line}"
+
+
+@pytest.mark.parametrize("args, expected", [
+    (("sim", "no_such_scenario"), "unknown scenario"),
+    (("sim", "/tmp/definitely/missing.toml"), "missing.toml"),
+    (("sim", "--uavs", "7"), "invalid choice"),
+    (("sim", "--duration", "-3"), "--duration must be positive"),
+    (("sim", "--bogus-option"), "unrecognized arguments"),
+    (("run", "tracker"), "give --uav"),
+    (("run", "simulator", "--uav", "uav1"), "takes no --uav"),
+    (("run", "tracker", "--uav", "UAV 1"), "invalid UAV name"),
+    (("run", "warp_drive", "--uav", "uav1"), "invalid choice"),
+    (("run", "tracker", "--uav", "uav1", "--config", "/nonexistent.toml"), "config file not found"),
+    (("run", "tracker", "--uav", "uav1", "--zenoh-config", "/nonexistent.json5"), "zenoh config file not found"),
+    (("health",), "--connect"),
+    (("frobnicate",), "invalid choice"),
+])
+def test_user_mistakes_give_one_line_and_exit_2(args, expected):
+    result = falconry(*args)
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    error_lines = [line for line in result.stderr.splitlines() if "error" in line]
+    assert len(error_lines) == 1 and expected in error_lines[0], result.stderr
+
+
+def test_bad_parameter_file_names_table_and_field(tmp_path):
+    config = tmp_path / "params.toml"
+    config.write_text("[tracker]\nno_such_param = 3\n")
+    result = falconry("run", "tracker", "--uav", "uav1", "--config", str(config))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "no_such_param" in result.stderr and "tracker" in result.stderr
+    config.write_text("[warp]\nx = 1\n")
+    result = falconry("sim", "--config", str(config))
+    assert result.returncode == 2 and "unknown table [warp]" in result.stderr

@@ -1,0 +1,169 @@
+"""Simulated LiDAR: exact ray-primitive hits, scan shape, masking and determinism."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from schemas.messages import Obstacle, TargetTruth
+from services.sensor_driver import core
+from services.sensor_driver.core import (
+    Primitives,
+    beam_directions,
+    cast,
+    primitives_from_obstacles,
+    scan,
+    target_spheres,
+)
+
+MM = 1e-3
+
+
+def unit(*v) -> np.ndarray:
+    v = np.asarray(v, dtype=float).reshape(-1, 3)
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def hit_points(origin, directions, primitives) -> np.ndarray:
+    """World hit points; rows of misses are NaN."""
+    ranges = cast(np.asarray(origin, float), directions, primitives)
+    points = np.asarray(origin) + directions * np.nan_to_num(ranges, posinf=0.0)[:, None]
+    return np.where(np.isfinite(ranges)[:, None], points, np.nan)
+
+
+def test_ray_plane():
+    d = unit([1, 0, -1], [0, 2, -1], [1, 0, 0], [0, 0, 1])
+    r = cast(np.array([0.0, 0.0, 5.0]), d, Primitives(planes=np.array([0.5])))
+    assert abs(r[0] - 4.5 * math.sqrt(2)) < MM and abs(r[1] - 4.5 * math.sqrt(5)) < MM
+    assert np.isinf(r[2]) and np.isinf(r[3])
+
+
+def test_ray_sphere():
+    prims = Primitives(spheres=np.array([[10.0, 0.0, 2.0, 0.3]]))
+    d = unit([1, 0, 0.2], [1, 0.02, 0.2], [1, 0.2, 0.2], [-1, 0, 0])
+    r = cast(np.zeros(3), d, prims)
+    along = math.sqrt(104)  # straight at the centre: the near surface is 0.3 m before it
+    assert abs(r[0] - (along - 0.3)) < MM
+    # Off-centre ray: analytic near root of |o + t d - c|² = r².
+    dd = d[1]
+    b = dd @ np.array([10.0, 0.0, 2.0])
+    expected = b - math.sqrt(b * b - (104 - 0.09))
+    assert abs(r[1] - expected) < MM
+    assert np.isinf(r[2]) and np.isinf(r[3])
+    # From inside the sphere the ray hits the far side.
+    inside = cast(np.array([10.0, 0.0, 2.0]), unit([0, 0, 1]), prims)
+    assert abs(inside[0] - 0.3) < MM
+
+
+def test_ray_box():
+    prims = Primitives(boxes=np.array([[5.0, -1.0, 0.0, 7.0, 1.0, 3.0]]))  # x 5..7, y -1..1, z 0..3
+    front = hit_points([0.0, 0.0, 1.0], unit([1, 0, 0], [1, 0.1, 0.3]), prims)
+    assert np.allclose(front, [[5.0, 0.0, 1.0], [5.0, 0.5, 2.5]], atol=MM)
+    roof = hit_points([6.0, 0.0, 5.0], unit([0.1, 0, -1]), prims)
+    assert np.allclose(roof, [[6.2, 0.0, 3.0]], atol=MM)
+    side = hit_points([6.0, -5.0, 1.0], unit([0, 1, 0]), prims)
+    assert np.allclose(side, [[6.0, -1.0, 1.0]], atol=MM)
+    misses = unit([1, 0.5, 0], [0, 1, 0], [1, 0, 0.8], [-1, 0, 0])  # beside, beside, over the top, away
+    assert np.isinf(cast(np.array([0.0, 0.0, 1.0]), misses, prims)).all()
+
+
+def test_ray_cylinder():
+    prims = Primitives(cylinders=np.array([[10.0, 0.0, 0.0, 0.5, 4.0]]))  # pole at x=10, r 0.5, 0..4 m
+    origin = [0.0, 0.0, 2.0]
+    d = unit([1, 0, 0], [10, 0.3, 0], [1, 0, 0.5], [1, 0, 0.21])
+    p = hit_points(origin, d, prims)
+    assert np.allclose(p[0], [9.5, 0.0, 2.0], atol=MM)
+    y = 0.03  # along y = 0.03 x: x² - 20x + 100 + (0.03x)² = 0.25, nearer root
+    a, b, c = 1 + y * y, -20.0, 99.75
+    x = (-b - math.sqrt(b * b - 4 * a * c)) / (2 * a)
+    assert np.allclose(p[1], [x, y * x, 2.0], atol=MM)
+    assert np.isinf(cast(np.array(origin), d[2:3], prims)).all()  # passes over the top (z = 6.75 at x = 9.5)
+    assert np.allclose(p[3], [9.5, 0.0, 2.0 + 0.21 * 9.5], atol=MM)
+    top = hit_points([10.2, 0.0, 9.0], unit([0, 0, -1]), prims)  # straight down onto the cap
+    assert np.allclose(top[0], [10.2, 0.0, 4.0], atol=MM)
+
+
+def test_ray_cone():
+    prims = Primitives(cones=np.array([[10.0, 0.0, 0.0, 2.0, 8.0]]))  # radius 2 at z 0, apex at z 8
+    p = hit_points([0.0, 0.0, 4.0], unit([1, 0, 0]), prims)  # at z 4 the radius is 1
+    assert np.allclose(p[0], [9.0, 0.0, 4.0], atol=MM)
+    apex = hit_points([10.0, 0.0, 12.0], unit([0, 0, -1]), prims)
+    assert np.allclose(apex[0], [10.0, 0.0, 8.0], atol=MM)
+    assert np.isinf(cast(np.array([0.0, 0.0, 7.0]), unit([1, 0.2, 0]), prims)).all()
+
+
+def test_culling_matches_brute_force():
+    obstacles = [Obstacle(kind="plane", center=(0, 0, 0)),
+                 Obstacle(kind="box", center=(5, 5, 2), size=(3, 2, 4)),
+                 Obstacle(kind="cylinder", center=(-4, 3, 0), radius=0.6, height=5),
+                 Obstacle(kind="cone", center=(0, -6, 0), radius=2, height=6),
+                 Obstacle(kind="sphere", center=(-3, -3, 4), radius=0.3)]
+    prims = primitives_from_obstacles(obstacles)
+    rng = np.random.default_rng(0)
+    d = unit(*rng.normal(size=(20000, 3)))
+    origin = np.array([0.5, 0.2, 3.0])
+    brute = np.full(len(d), np.inf)
+    with np.errstate(all="ignore"):
+        brute = np.minimum(brute, core._hit_plane(origin, d, 0.0))
+        brute = np.minimum(brute, core._hit_box(origin, d, prims.boxes[0]))
+        brute = np.minimum(brute, core._hit_cylinder(origin, d, prims.cylinders[0]))
+        brute = np.minimum(brute, core._hit_cone(origin, d, prims.cones[0]))
+        brute = np.minimum(brute, core._hit_sphere(origin, d, prims.spheres[0]))
+    assert np.array_equal(cast(origin, d, prims), brute)
+    assert np.isfinite(brute).sum() > 10000
+
+
+def test_beam_directions():
+    d = beam_directions(32, 512, 90.0)
+    assert d.shape == (32, 512, 3)
+    assert np.allclose(np.linalg.norm(d, axis=-1), 1.0)
+    elevation = np.degrees(np.arcsin(d[:, 0, 2]))
+    assert abs(elevation[0] - 45) < 1e-9 and abs(elevation[-1] + 45) < 1e-9 and np.all(np.diff(elevation) < 0)
+    assert np.allclose(d[:, 0, 1], 0.0) and np.all(d[:, 0, 0] > 0)  # column 0 looks along +x
+    assert np.allclose(d[:, 128, 0], 0.0) and np.all(d[:, 128, 1] > 0)  # a quarter turn later: +y
+
+
+def test_scan_of_ground_from_5m():
+    directions = beam_directions(32, 512, 90.0)
+    prims = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))])
+    origin = np.array([3.0, 4.0, 5.0])
+    unlimited = scan(origin, 0.7, directions, prims, np.random.default_rng(1), max_range=1e9)
+    assert unlimited.shape == (32, 512, 3) and unlimited.dtype == np.float32
+    pointing_up = directions[..., 2] >= 0
+    assert np.array_equal(np.isnan(unlimited).any(axis=-1), pointing_up)
+    assert np.array_equal(np.isnan(unlimited).all(axis=-1), pointing_up)  # no partial NaN points
+    assert pointing_up[:16].all() and not pointing_up[16:].any()  # the upper half of the rows
+    hits = unlimited[~pointing_up]
+    assert np.abs(hits[:, 2]).max() < 0.06  # on the ground up to range noise (sigma 1 cm)
+    # With the 50 m limit the shallow downward beams lose their far returns as well.
+    limited = scan(origin, 0.7, directions, prims, np.random.default_rng(1))
+    expected = pointing_up | (5.0 / np.maximum(-directions[..., 2], 1e-12) > 50.0)
+    assert np.array_equal(np.isnan(limited).any(axis=-1), expected)
+    assert expected.sum() > pointing_up.sum()
+
+
+def test_scan_rotates_with_heading_and_masks_body():
+    directions = beam_directions(8, 64, 60.0)
+    wall = primitives_from_obstacles([Obstacle(kind="box", center=(0, 10, 0), size=(40, 1, 40))])
+    points = scan(np.zeros(3), math.pi / 2, directions, wall, np.random.default_rng(0), range_noise=0.0)
+    # Column 0 points along the heading (+y), straight at the wall face at y = 9.5.
+    assert np.allclose(points[4, 0, 1], 9.5, atol=MM)
+    # A return closer than the carrier body (0.4 m) is dropped, even above min_range.
+    near = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, -0.18))])  # 0.36 m at -30°
+    points = scan(np.zeros(3), 0.0, directions, near, np.random.default_rng(0), range_noise=0.0)
+    assert np.isnan(points[-1, :, :]).all()
+
+
+def test_scan_is_seeded_and_targets_are_spheres():
+    targets = [TargetTruth(id="b", kind="balloon", position=(8.0, 0.0, 5.0), velocity=(0, 0, 0), radius=0.3),
+               TargetTruth(id="x", kind="balloon", position=(0.0, 8.0, 5.0), velocity=(0, 0, 0), radius=0.3,
+                           destroyed=True)]
+    spheres = target_spheres(targets)
+    assert spheres.shape == (1, 4)
+    prims = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))]).with_spheres(spheres)
+    directions = beam_directions(32, 512, 90.0)
+    a = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, prims, np.random.default_rng([1, 0, 7]))
+    b = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, prims, np.random.default_rng([1, 0, 7]))
+    assert np.array_equal(a, b, equal_nan=True)
+    on_balloon = np.linalg.norm(a - np.array([8.0, 0.0, 5.0], np.float32), axis=-1) < 0.35
+    assert on_balloon.sum() >= 2

@@ -1,0 +1,153 @@
+"""Simulator core: reference tracking within limits, events, balloon destruction, determinism."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from services.simulator.core import Simulation
+from services.simulator.scenario import parse_scenario
+
+DT = 0.05
+LIMITS = dict(max_speed=4.0, max_acceleration=1.5, max_heading_rate=0.5, max_vertical_speed=1.0)
+
+
+def scenario(**extra):
+    data = {
+        "name": "unit",
+        "arena": [[-50, -50], [50, -50], [50, 50], [-50, 50]],
+        "starts": [[0.0, 0.0, 0.0], [0.0, 10.0, 0.0]],
+        "balloons": [{"pole": [20.0, 0.0], "height": 4.7, "name": "red"}],  # centre at z = 5.0
+        "drones": [{"center": [0.0, 0.0, 8.0], "radius": 6.0, "speed": 2.0, "phase": 0.5}],
+        "obstacles": [{"kind": "box", "center": [-20.0, -20.0, 2.0], "size": [4.0, 4.0, 4.0]}],
+    }
+    data.update(extra)
+    return parse_scenario(data, "unit.toml")
+
+
+def fly(sim: Simulation, seconds: float):
+    """Step the sim; returns (positions (T, 3), velocities (T, 3), headings (T,), events) of uav1."""
+    positions, velocities, headings, events = [], [], [], []
+    for _ in range(int(round(seconds / DT))):
+        events += sim.step(DT)
+        v = sim.vehicles()[0]
+        positions.append(v.position)
+        velocities.append(v.velocity)
+        headings.append(v.heading)
+    return np.array(positions), np.array(velocities), np.array(headings), events
+
+
+def test_reaches_reference_within_limits():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    sim.set_reference("uav1", 0, 1.0, np.array([[10.0, 0.0, 5.0]]), np.array([1.0]), **LIMITS)
+    p, v, heading, events = fly(sim, 30.0)
+    assert np.linalg.norm(p[-1] - [10.0, 0.0, 5.0]) < 0.02
+    assert abs(heading[-1] - 1.0) < 1e-6
+    assert np.linalg.norm(v[:, :2], axis=1).max() <= LIMITS["max_speed"] + 1e-9
+    assert np.abs(v[:, 2]).max() <= LIMITS["max_vertical_speed"] + 1e-9
+    # Sampled at 20 Hz the average acceleration over a sample can only be smaller than the peak.
+    acceleration = np.linalg.norm(np.diff(np.vstack([np.zeros(3), v]), axis=0), axis=1) / DT
+    assert acceleration.max() <= LIMITS["max_acceleration"] + 1e-9
+    assert acceleration.max() > 0.9 * LIMITS["max_acceleration"]  # the limit actually bound
+    assert np.abs(np.diff(np.unwrap(heading))).max() <= LIMITS["max_heading_rate"] * DT + 1e-9
+    assert p[:, 0].max() < 10.5  # braking-aware approach: no big overshoot
+    assert events == [("takeoff", "uav1", "")]
+    other = sim.vehicles()[1]
+    assert np.array_equal(other.position, [0.0, 10.0, 0.0]) and not other.airborne
+
+
+def test_time_sampled_reference_is_followed():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    sim.set_reference("uav1", 0, 1.0, np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 2.0], [0.0, 0.0, 2.0]]),
+                      np.zeros(3), **LIMITS)
+    # Before the first step the UAV is on the ground; halfway through second 1 the reference is at 1 m.
+    p, *_ = fly(sim, 0.5)
+    assert 0.1 < p[-1, 2] < 0.5  # tracking lags a ramp of 2 m/s capped at 1 m/s vertical
+    p, *_ = fly(sim, 10.0)
+    assert abs(p[-1, 2] - 2.0) < 0.01
+    assert sim.time_ns == 10_500_000_000
+
+
+def test_takeoff_and_landing_events():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    sim.set_reference("uav1", 0, 1.0, np.array([[0.0, 0.0, 3.0]]), np.zeros(1), **LIMITS)
+    _, _, _, events = fly(sim, 10.0)
+    assert events == [("takeoff", "uav1", "")] and sim.vehicles()[0].airborne
+    sim.set_reference("uav1", sim.time_ns, 1.0, np.array([[0.0, 0.0, 0.0]]), np.zeros(1), **LIMITS)
+    p, _, _, events = fly(sim, 10.0)
+    assert events == [("landed", "uav1", "")] and not sim.vehicles()[0].airborne
+    assert p[:, 2].min() >= 0.0  # never below ground
+
+
+def test_resting_uav_does_not_slide():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    sim.set_reference("uav1", 0, 1.0, np.array([[10.0, 0.0, 0.0]]), np.zeros(1), **LIMITS)
+    p, _, _, events = fly(sim, 3.0)
+    assert np.array_equal(p[-1], [0.0, 0.0, 0.0]) and events == []
+
+
+def test_flying_through_balloon_destroys_it_once():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    path = np.array([[0.0, 0.0, 5.0], [30.0, 0.0, 5.0]])
+    sim.set_reference("uav1", 0, 1.0, path[:1], np.zeros(1), **LIMITS)
+    fly(sim, 8.0)
+    assert not sim.targets()[0].destroyed
+    sim.set_reference("uav1", sim.time_ns, 10.0, path, np.zeros(2), **LIMITS)  # 3 m/s through the balloon
+    _, _, _, events = fly(sim, 15.0)
+    assert events == [("target_destroyed", "red", "uav1")]
+    balloon = next(t for t in sim.targets() if t.id == "red")
+    assert balloon.destroyed and balloon.kind == "balloon"
+    assert np.allclose(balloon.position, [20.0, 0.0, 5.0])
+
+
+def test_killed_uav_falls_and_ignores_reference():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    sim.set_reference("uav1", 0, 1.0, np.array([[0.0, 0.0, 5.0]]), np.zeros(1), **LIMITS)
+    fly(sim, 10.0)
+    sim.kill("uav1")
+    sim.set_reference("uav1", sim.time_ns, 1.0, np.array([[0.0, 0.0, 9.0]]), np.zeros(1), **LIMITS)
+    p, v, _, events = fly(sim, 3.0)
+    assert events == [("landed", "uav1", "crashed")]
+    state = sim.vehicles()[0]
+    assert not state.alive and state.position[2] == 0.0 and np.array_equal(state.velocity, np.zeros(3))
+
+
+def test_drone_circles_deterministically():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    sim.step(math.pi)  # a quarter of the way round: speed / radius = 1/3 rad/s -> angle 0.5 + π/3
+    drone = next(t for t in sim.targets() if t.kind == "drone")
+    angle = 0.5 + math.pi / 3
+    assert np.allclose(drone.position, [6 * math.cos(angle), 6 * math.sin(angle), 8.0], atol=1e-6)
+    assert np.allclose(drone.velocity, [-2 * math.sin(angle), 2 * math.cos(angle), 0.0], atol=1e-6)
+    assert drone.id == "drone1" and drone.radius == 0.325 and not drone.destroyed
+
+
+def test_obstacles_include_ground_and_poles():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    kinds = [(o.kind, o.name) for o in sim.obstacles()]
+    assert kinds == [("plane", "ground"), ("box", ""), ("cylinder", "red_pole")]
+    pole = sim.obstacles()[2]
+    assert pole.radius == 0.05 and pole.height == 4.7 and pole.center == (20.0, 0.0, 0.0)
+
+
+def test_unknown_uav_rejected():
+    sim = Simulation(scenario(), ["uav1", "uav2"], seed=1)
+    with pytest.raises(KeyError):
+        sim.kill("uav9")
+
+
+def run_mission(seed: int) -> np.ndarray:
+    sim = Simulation(scenario(), ["uav1", "uav2", "uav3"], seed=seed)
+    t = np.linspace(0, 1, 40)[:, None]
+    sim.set_reference("uav1", 0, 0.5, np.hstack([25 * t, 3 * t, 2 + 3 * t]), 3 * t[:, 0], **LIMITS)
+    sim.set_reference("uav2", 1_000_000_000, 0.25, np.hstack([-10 * t, 10 + 5 * t, 4 + 0 * t]), -t[:, 0], **LIMITS)
+    rows = []
+    for _ in range(400):
+        sim.step(DT)
+        rows.append(np.concatenate([np.concatenate([v.position, v.velocity, [v.heading]]) for v in sim.vehicles()]))
+    return np.array(rows)
+
+
+def test_determinism():
+    assert np.array_equal(run_mission(7), run_mission(7))

@@ -1,0 +1,40 @@
+"""Helpers for tests that drive whole `falconry sim` runs."""
+from __future__ import annotations
+
+import json
+import socket
+import time
+from pathlib import Path
+
+from services.runtime.zenoh_config import ZenohSettings, open_session
+
+
+def wait_for_port(port: int, timeout: float = 20.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        with socket.socket() as s:
+            if s.connect_ex(("127.0.0.1", port)) == 0:
+                return
+        time.sleep(0.05)
+    raise AssertionError(f"nothing listens on {port}")
+
+
+def join_run(port: int):
+    """A session of our own on a running `falconry sim` (like a partner or a ground station)."""
+    wait_for_port(port)
+    return open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"], shared_memory=False))
+
+
+def processes_mentioning(text: str) -> list[int]:
+    pids = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if text.encode() in cmdline.read_bytes():
+                pids.append(int(cmdline.parent.name))
+        except OSError:
+            pass
+    return pids
+
+
+def read_summary(path: Path) -> dict:
+    return json.loads(path.read_text())
