@@ -22,7 +22,6 @@ Usage: .venv/bin/python benchmarks/transport.py [--quick]
 from __future__ import annotations
 
 import argparse
-import glob
 import importlib.metadata
 import multiprocessing
 import os
@@ -33,6 +32,7 @@ import time
 import traceback
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Callable
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a plain checkout works too
@@ -43,6 +43,7 @@ import zenoh  # noqa: E402
 
 from schemas.arrays import from_numpy, to_numpy  # noqa: E402
 from schemas.messages import Header, PointCloud, Pose, SimEvent  # noqa: E402
+from services.runtime import shm as shm_segments  # noqa: E402
 from services.runtime.node import TypedPublisher  # noqa: E402
 from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session  # noqa: E402
 
@@ -103,46 +104,23 @@ def cloud_message() -> PointCloud:
 MESSAGES = {"small": small_message, "cloud": cloud_message}
 
 
-class _PublisherHost:
+def publisher_host(session: zenoh.Session, sender: str) -> SimpleNamespace:
     """The few Node attributes TypedPublisher reads, so the benchmark runs the real publish code."""
-
-    class _Counters:
-        def __init__(self) -> None:
-            self.published: dict[str, int] = {}
-
-    class _Clock:
-        def now_ns(self) -> int:
-            return 1
-
-    def __init__(self, session: zenoh.Session, sender: str) -> None:
-        self.session = session
-        self.sender = sender
-        self.clock = self._Clock()
-        self.counters = self._Counters()
+    return SimpleNamespace(session=session, sender=sender, clock=SimpleNamespace(now_ns=lambda: 1),
+                           counters=SimpleNamespace(published={}))
 
 
-class ReusedBufferPublisher(TypedPublisher):
-    """Proposed TypedPublisher.put: encode into one bytearray the publisher keeps.
+class ReusedBufferEncoder:
+    """Swapped in for a TypedPublisher's encoder (diagnostic): msgspec encodes into one
+    bytearray kept for every message. Safe: zenoh-python copies the payload before put returns."""
 
-    Reuse is safe because zenoh-python copies a bytearray payload into its own buffer
-    before put() returns."""
-
-    def __init__(self, node: Any, key: str, msg_type: type) -> None:
-        super().__init__(node, key, msg_type)
+    def __init__(self) -> None:
+        self._encoder = msgspec.msgpack.Encoder()
         self._buffer = bytearray()
 
-    def put(self, msg: Any) -> None:
-        if not isinstance(msg, self.msg_type):
-            raise TypeError(f"{self.key} carries {self.msg_type.__name__}, not {type(msg).__name__}")
-        self.seq += 1
-        header = msg.header
-        header.sender = self._node.sender
-        header.seq = self.seq
-        if header.stamp == 0:
-            header.stamp = self._node.clock.now_ns()
+    def encode(self, msg: Any) -> bytearray:
         self._encoder.encode_into(msg, self._buffer)
-        self._publisher.put(self._buffer)
-        self._node.counters.published[self.key] = self.seq
+        return self._buffer
 
 
 def _typed_receiver(msg_type: type) -> Callable[[bytes], Any]:
@@ -162,7 +140,7 @@ class Endpoint:
     bench/*/<in> whose callback does exactly what Node's does (to_bytes, queue)."""
 
     def __init__(self, session: zenoh.Session, out: str, into: str) -> None:
-        host = _PublisherHost(session, f"bench/{out}")
+        host = publisher_host(session, f"bench/{out}")
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.send: dict[str, Callable[[Any], None]] = {}
         self.receive: dict[str, Callable[[bytes], Any]] = {}
@@ -170,8 +148,9 @@ class Endpoint:
         for case in CASES:
             key = f"{ROOT}/{case.name}/{out}"
             if case.typed:
-                publisher_cls = ReusedBufferPublisher if case.reuse_buffer else TypedPublisher
-                publisher = publisher_cls(host, key, MSG_TYPES[case.size])
+                publisher = TypedPublisher(host, key, MSG_TYPES[case.size])
+                if case.reuse_buffer:
+                    publisher._encoder = ReusedBufferEncoder()
                 self.receive[case.name] = _typed_receiver(MSG_TYPES[case.size])
             else:
                 publisher = session.declare_publisher(key)
@@ -241,15 +220,17 @@ def pinger_main(port: int, link: str, plans: dict[str, Plan], conn) -> None:
         endpoint = Endpoint(session, out="ping", into="pong")
         wait_for_echo(endpoint)
         samples: dict[str, list[tuple[float, float, float]]] = {case.name: [] for case in CASES}
-        lost = dict.fromkeys(samples, 0)
+        lost = {name: [0, 0] for name in samples}  # [no answer in time, answered late]
         for size, plan in plans.items():
             cases = [case for case in CASES if case.size == size]
             for case in cases:
                 ping(endpoint, case, typed[size] if case.typed else bare[size], plan.warmup, [])
             for _ in range(plan.rounds):
                 for case in cases:
-                    lost[case.name] += ping(endpoint, case, typed[size] if case.typed else bare[size],
-                                            plan.block, samples[case.name])
+                    missed, late = ping(endpoint, case, typed[size] if case.typed else bare[size],
+                                        plan.block, samples[case.name])
+                    lost[case.name][0] += missed
+                    lost[case.name][1] += late
         endpoint.stop_publisher.put(b"stop")
         conn.send(("result", (samples, lost, encoded_len)))
     except Exception:
@@ -267,12 +248,15 @@ def _close(session, endpoint, conn) -> None:
     conn.send(("shm", shm))
 
 
-def _drain(inbox: queue.SimpleQueue) -> None:
+def _drain(inbox: queue.SimpleQueue) -> int:
+    """Empties the inbox; returns how many (late) replies were in it."""
+    count = 0
     while True:
         try:
             inbox.get_nowait()
+            count += 1
         except queue.Empty:
-            return
+            return count
 
 
 def wait_for_echo(endpoint: Endpoint, deadline_s: float = 15.0) -> None:
@@ -290,14 +274,15 @@ def wait_for_echo(endpoint: Endpoint, deadline_s: float = 15.0) -> None:
     raise RuntimeError("the echo process never answered")
 
 
-def ping(endpoint: Endpoint, case: Case, message: Any, count: int, samples: list[tuple[float, float, float]]) -> int:
-    """Appends (one-way = round trip / 2, time in send, time in receive), µs; returns how many
-    pings got no answer."""
+def ping(endpoint: Endpoint, case: Case, message: Any, count: int, samples: list[tuple[float, float, float]]
+         ) -> tuple[int, int]:
+    """Appends (one-way = round trip / 2, time in send, time in receive), µs. Returns how many
+    pings got no answer within REPLY_TIMEOUT_S, and how many of those answers came later."""
     send, receive, inbox = endpoint.send[case.name], endpoint.receive[case.name], endpoint.inbox
-    lost = 0
+    lost = late = in_a_row = 0
     clock = time.perf_counter_ns
     for _ in range(count):
-        _drain(inbox)
+        late += _drain(inbox)
         start = clock()
         send(message)
         sent = clock()
@@ -305,18 +290,22 @@ def ping(endpoint: Endpoint, case: Case, message: Any, count: int, samples: list
             _, payload = inbox.get(timeout=REPLY_TIMEOUT_S)
         except queue.Empty:
             lost += 1
+            in_a_row += 1
+            if in_a_row == 3:
+                raise RuntimeError(f"{case.name}: 3 pings in a row unanswered; the echo process is gone")
             continue
+        in_a_row = 0
         arrived = clock()
         receive(payload)
         done = clock()
         samples.append(((done - start) / 2e3, (sent - start) / 1e3, (done - arrived) / 1e3))
-    return lost
+    return lost, late
 
 
 @dataclass
 class LinkResult:
     samples: dict[str, np.ndarray]  # per case, rows of (one-way, send, receive) µs
-    lost: dict[str, int]
+    lost: dict[str, list[int]]  # per case: [no answer within REPLY_TIMEOUT_S, of which answered late]
     encoded_len: dict[str, int]
     port: int
     shm_mapped: list[str]  # zenoh segments the two processes had mapped
@@ -365,33 +354,12 @@ def run_link(link: str, plans: dict[str, Plan]) -> LinkResult:
             if process.is_alive():
                 process.terminate()
                 process.join(timeout=5.0)
-    removed = remove_orphaned_segments(set(shm))
+            while conn.poll(0):  # a failed run still reports its segments on the way out
+                got, value = conn.recv()
+                if got == "shm":
+                    shm.extend(value)
+        removed = shm_segments.remove_orphans({Path(p) for p in shm})
     return LinkResult({name: np.asarray(s).reshape(-1, 3) for name, s in samples.items()}, lost, encoded_len, port, sorted(set(shm)), removed)
-
-
-def remove_orphaned_segments(paths: set[str]) -> list[str]:
-    """Zenoh leaves a per-process SHM segment behind at exit and deletes such orphans only when
-    the next SHM-enabled session starts. Apply its own rule (no process holds the file open)
-    now, to the segments our children mapped, so the run leaves nothing in /dev/shm."""
-    held = set()
-    for fd_dir in glob.glob("/proc/[0-9]*/fd"):
-        try:
-            fds = os.listdir(fd_dir)
-        except OSError:
-            continue  # a process that just ended, or one we may not look into
-        for fd in fds:
-            try:
-                held.add(os.readlink(f"{fd_dir}/{fd}"))
-            except OSError:
-                continue
-    removed = []
-    for path in sorted(paths - held):
-        try:
-            os.unlink(path)
-            removed.append(path)
-        except FileNotFoundError:
-            pass
-    return removed
 
 
 # ----------------------------------------------------------- in-process parts
@@ -433,13 +401,18 @@ def print_link(link: str, result: LinkResult) -> None:
         rows = result.samples[case.name]
         size = result.encoded_len[case.size]
         if rows.shape[0] == 0:
-            print(f"  {case.name:<18} {size:>9} {0:>5} {result.lost[case.name]:>4}  no samples")
+            print(f"  {case.name:<18} {size:>9} {0:>5} {result.lost[case.name][0]:>4}  no samples")
             continue
         p50, p90, p99 = np.percentile(rows[:, 0], [50, 90, 99])
         send, recv = np.median(rows[:, 1]), np.median(rows[:, 2])
-        print(f"  {case.name:<18} {size:>9} {rows.shape[0]:>5} {result.lost[case.name]:>4} "
+        print(f"  {case.name:<18} {size:>9} {rows.shape[0]:>5} {result.lost[case.name][0]:>4} "
               f"{p50:>8.1f} {p90:>8.1f} {p99:>8.1f} {send:>7.1f} {recv:>7.1f}")
     print("  (µs: one-way = round trip / 2; send = put() incl. encode, recv = decode after to_bytes, medians)")
+    missed = sum(m for m, _ in result.lost.values())
+    if missed:
+        late = sum(late for _, late in result.lost.values())
+        print(f"  {missed} pings unanswered within {REPLY_TIMEOUT_S:.0f} s, {late} answered later: the rest were dropped "
+              f"(Zenoh's default congestion control drops a message it cannot queue in time)")
 
     def ratio(typed: str, bare: str) -> float:
         return float(np.median(result.samples[typed][:, 0]) / np.median(result.samples[bare][:, 0]))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from services.launcher.supervisor import _mapped_shm_names
+from services.runtime import shm
 from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session
 
 REPO = Path(__file__).resolve().parent.parent
@@ -37,10 +37,6 @@ def _is_multiprocessing_helper(proc: Path) -> bool:
         return False
 
 
-def _shm_files() -> set[str]:
-    return {p.name for p in Path("/dev/shm").glob("*zenoh*")} if Path("/dev/shm").is_dir() else set()
-
-
 @pytest.fixture(scope="session", autouse=True)
 def zenoh_runtime_warmed():
     """Zenoh keeps one /dev/shm segment per process until the interpreter exits; create ours
@@ -51,7 +47,7 @@ def zenoh_runtime_warmed():
 
 @pytest.fixture(autouse=True)
 def leaves_nothing_behind(zenoh_runtime_warmed):
-    before_shm = _shm_files()
+    before_shm = shm.segments()
     yield
     deadline = time.monotonic() + 5.0
     while _children(os.getpid()) and time.monotonic() < deadline:
@@ -60,10 +56,8 @@ def leaves_nothing_behind(zenoh_runtime_warmed):
     for pid in leftovers:
         os.kill(pid, signal.SIGKILL)
     assert not leftovers, f"test left child processes behind: {leftovers}"
-    # Only segments no live process maps are leaks (other runs on the machine may own the rest).
-    deadline = time.monotonic() + 3.0
-    while (orphans := (_shm_files() - before_shm) - _mapped_shm_names()) and time.monotonic() < deadline:
-        time.sleep(0.1)
+    # Segments of ended processes are removed by whoever supervised them (launcher, Processes).
+    orphans = shm.orphans(shm.segments() - before_shm)
     assert not orphans, f"test left /dev/shm files: {orphans}"
 
 
@@ -91,6 +85,7 @@ class Processes:
 
     def __init__(self) -> None:
         self.procs: list[subprocess.Popen] = []
+        self.segments_before = shm.segments()
 
     def start(self, *args: str, **kwargs) -> subprocess.Popen:
         kwargs.setdefault("stdout", subprocess.PIPE)
@@ -111,6 +106,7 @@ class Processes:
                 proc.wait()
             if proc.stdout:
                 proc.stdout.close()
+        shm.remove_orphans(shm.segments() - self.segments_before)
 
 
 @pytest.fixture

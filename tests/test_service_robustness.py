@@ -7,6 +7,7 @@ import time
 import msgspec
 
 from schemas import keys
+from schemas.catalogue import CATALOGUE
 from schemas.messages import Header, SimClock
 from tests.tools.health import health, wait_healthy
 
@@ -46,5 +47,17 @@ def test_services_count_garbage_and_keep_working(hub, processes):
             assert after.decode_errors.get(key, 0) >= len(GARBAGE) - 1, (name, key, after.decode_errors)
         assert after.received.get(keys.CLOCK, 0) >= 1, f"{name} did not process a valid tick after garbage"
         assert after.handler_errors == 0, name
+        assert_catalogued(name[1], after.subscriptions)
         print(f"{name[0]}/{name[1]}: {sum(after.decode_errors.values())} bad payloads counted on "
               f"{len(subscribed)} keys, still running")
+
+
+def assert_catalogued(service: str, subscriptions: list[str]) -> None:
+    """The README's catalogue (generated from schemas.catalogue) names this service as a subscriber."""
+    for key in subscriptions:
+        if "/ack/" in key or key == keys.CLOCK:
+            continue
+        pattern = key.replace("/uav1/", "/<uav>/").replace("/*/", "/<uav>/")
+        entry = next((e for e in CATALOGUE if e.key == pattern), None)
+        assert entry is not None, f"{service} subscribes to {key}, which the catalogue does not list"
+        assert service in entry.subscribers, f"catalogue: {entry.key} does not list {service} as a subscriber"

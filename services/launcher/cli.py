@@ -40,7 +40,7 @@ def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from services.launcher import health_cmd, run_cmd, sim_cmd
+    from services.launcher import health_cmd, params_cmd, run_cmd, sim_cmd
 
     parser = Parser(
         prog="falconry",
@@ -53,6 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim_cmd.add_parser(commands)
     run_cmd.add_parser(commands)
     health_cmd.add_parser(commands)
+    params_cmd.add_parser(commands)
     return parser
 
 

@@ -1,7 +1,7 @@
 """Service parameters from a TOML file: one table per service, e.g.
 
     [tracker]
-    buffer_scans = 10
+    radius_max = 5.0
 
 Every table is validated against that service's `params_type`; errors name the file,
 the table and the field.

@@ -22,7 +22,8 @@ from schemas import keys
 from schemas.messages import Header, SimEvent
 from services.launcher.monitor import RunMonitor
 from services.launcher.params import ParamsError, read_tables
-from services.launcher.supervisor import Supervisor, clean_shared_memory, describe_exit
+from services.launcher.supervisor import Supervisor, describe_exit
+from services.runtime import shm
 from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session
 from services.simulator.options import add_simulator_options
 from services.simulator.scenario import ScenarioError, load_scenario
@@ -74,12 +75,16 @@ def run_sim(args: argparse.Namespace) -> int:
     seed = args.seed if args.seed is not None else scenario.seed
 
     started_wall = time.time()
+    segments_before = shm.segments()
     embedded = args.zenoh_profile == "embedded" and not args.zenoh_config
     port = args.port or free_port()
     hub = f"tcp/127.0.0.1:{port}"
     hub_settings = ZenohSettings(profile=args.zenoh_profile, connect=list(args.connect),
                                  listen=[hub] if embedded else list(args.listen),
-                                 config_file=args.zenoh_config, lease_ms=args.lease_ms)
+                                 config_file=args.zenoh_config, lease_ms=args.lease_ms,
+                                 # the launcher carries no bulk data, and its process-wide segments
+                                 # would outlive the run's clean-up below
+                                 shared_memory=False)
     child_zenoh = ZenohSettings(profile=args.zenoh_profile, connect=[hub] if embedded else list(args.connect),
                                 config_file=args.zenoh_config, lease_ms=args.lease_ms).as_args()
 
@@ -152,7 +157,7 @@ def run_sim(args: argparse.Namespace) -> int:
         session.close()
         if truth_file:
             truth_file.close()
-        clean_shared_memory(started_wall - 1.0)
+        shm.remove_orphans(shm.segments() - segments_before)
 
     summary = monitor.summary()
     summary.update(outcome=outcome, scenario=scenario.name, seed=seed, lockstep=args.lockstep,

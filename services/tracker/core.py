@@ -27,7 +27,6 @@ H = np.hstack([np.eye(3), np.zeros((3, 6))])  # eq. 30: the measurement is the p
 
 
 class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
-    buffer_scans: int = 10  # point-cloud buffer of Alg. 2 (used once tracking runs on point clouds)
     # Process noise, per second of prediction (eq. 31): variances of position, velocity, acceleration.
     q_position: float = 0.01
     q_velocity: float = 0.8

@@ -1,0 +1,55 @@
+"""`falconry params`: every service's parameters with their defaults, as a TOML file
+you can edit and pass back with --config."""
+from __future__ import annotations
+
+import argparse
+
+import msgspec
+
+from schemas import keys
+from services.launcher.registry import node_class
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
+def render(services: list[str]) -> str:
+    blocks = []
+    for service in services:
+        params_type = node_class(service).params_type
+        lines = [f"[{service}]"]
+        defaults = params_type()
+        for field in msgspec.structs.fields(params_type):
+            lines.append(f"{field.name} = {_toml_value(getattr(defaults, field.name))}")
+        if len(lines) == 1:
+            lines.append("# (no parameters)")
+        blocks.append("\n".join(lines))
+    return "\n\n".join(blocks) + "\n"
+
+
+def add_parser(commands) -> None:
+    p = commands.add_parser(
+        "params", help="print every service's parameters and defaults (TOML for --config)",
+        description="Print the parameters of the named services (default: all) with their default values, "
+                    "as TOML tables. Edit and pass the file to `falconry sim --config` or `falconry run --config`.",
+    )
+    p.add_argument("services", nargs="*", metavar="SERVICE",
+                   help="services to show (default: all): " + ", ".join(keys.SERVICES))
+    p.set_defaults(handler=run_params)
+
+
+def run_params(args: argparse.Namespace) -> int:
+    from services.launcher.cli import CliError
+
+    unknown = [s for s in args.services if s not in keys.SERVICES]
+    if unknown:
+        raise CliError(f"unknown service {unknown[0]!r} (choose from {', '.join(keys.SERVICES)})")
+    print(render(args.services or list(keys.SERVICES)), end="")
+    return 0
