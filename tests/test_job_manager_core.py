@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from services.job_manager.areas import clip_x, point_in_polygon, polygon_area, signed_area, split_area
+from services.geometry import point_in_polygon, polygon_area, signed_area
+from services.job_manager.areas import clip_x, split_area
 from services.job_manager.core import NS, JobManager, JobManagerParams, State
 
 RECT = np.array([[0.0, 0.0], [90.0, 0.0], [90.0, 40.0], [0.0, 40.0]])

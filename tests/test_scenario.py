@@ -6,12 +6,11 @@ import math
 import numpy as np
 import pytest
 
+from services.geometry import point_in_polygon, signed_area
 from services.simulator.scenario import (
     ScenarioError,
     builtin_scenarios,
     load_scenario,
-    points_in_polygon,
-    signed_area,
     start_poses,
 )
 
@@ -132,5 +131,5 @@ def test_invalid_toml(tmp_path):
 
 def test_points_in_non_convex_polygon():
     notched = np.array([[0, 0], [10, 0], [10, 10], [6, 10], [6, 5], [4, 5], [4, 10], [0, 10]], float)
-    inside = points_in_polygon(np.array([[1, 1], [5, 7], [5, 3], [9, 9], [11, 1], [-math.pi, 2]]), notched)
+    inside = point_in_polygon(np.array([[1, 1], [5, 7], [5, 3], [9, 9], [11, 1], [-math.pi, 2]]), notched)
     assert inside.tolist() == [True, False, True, True, False, False]

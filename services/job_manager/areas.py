@@ -8,51 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.geometry import as_polygon, counter_clockwise, polygon_area
+
 _BISECTION_STEPS = 100
-
-
-def _as_polygon(polygon: np.ndarray) -> np.ndarray:
-    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
-    if len(poly) > 1 and np.array_equal(poly[0], poly[-1]):
-        poly = poly[:-1]
-    if len(poly) < 3:
-        raise ValueError(f"a polygon needs at least 3 vertices, got {len(poly)}")
-    return poly
-
-
-def signed_area(polygon: np.ndarray) -> float:
-    """Shoelace area: positive when the vertices run counter-clockwise."""
-    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
-    if len(poly) < 3:
-        return 0.0
-    x, y = poly[:, 0], poly[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
-
-
-def polygon_area(polygon: np.ndarray) -> float:
-    return abs(signed_area(polygon))
-
-
-def counter_clockwise(polygon: np.ndarray) -> np.ndarray:
-    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
-    return poly[::-1].copy() if signed_area(poly) < 0 else poly
-
-
-def point_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray | bool:
-    """Even-odd rule for (N, 2) points (a bool array) or one (2,) point (a bool).
-    Points exactly on an edge may fall either way."""
-    poly = _as_polygon(polygon)
-    pts = np.asarray(points, dtype=np.float64)
-    single = pts.ndim == 1
-    pts = pts.reshape(-1, 2)
-    ax, ay = poly[:, 0], poly[:, 1]
-    bx, by = np.roll(ax, -1), np.roll(ay, -1)
-    px, py = pts[:, :1], pts[:, 1:]  # (N, 1) against (K,) edges
-    straddles = (ay > py) != (by > py)
-    dy = np.where(by != ay, by - ay, 1.0)  # non-straddling edges are masked out below
-    x_cross = ax + (py - ay) * (bx - ax) / dy
-    inside = np.count_nonzero(straddles & (px < x_cross), axis=1) % 2 == 1
-    return bool(inside[0]) if single else inside
 
 
 def clip_x(polygon: np.ndarray, cut: float, keep_left: bool = True) -> np.ndarray:
@@ -97,7 +55,7 @@ def _left_area(poly: np.ndarray, cut: float) -> float:
 def equal_area_cuts(polygon: np.ndarray, parts: int) -> np.ndarray:
     """The parts−1 vertical lines x = c that split the polygon into equal areas, found by
     bisection on the (monotone) area left of the line."""
-    poly = _as_polygon(polygon)
+    poly = as_polygon(polygon)
     if parts < 1:
         raise ValueError(f"parts must be >= 1, got {parts}")
     total = polygon_area(poly)
@@ -124,7 +82,7 @@ def equal_area_cuts(polygon: np.ndarray, parts: int) -> np.ndarray:
 def split_area(polygon: np.ndarray, parts: int) -> list[np.ndarray]:
     """Split a simple polygon into `parts` pieces of equal area by vertical cuts,
     ordered by x (west to east), each counter-clockwise."""
-    poly = _as_polygon(polygon)
+    poly = as_polygon(polygon)
     cuts = equal_area_cuts(poly, parts)
     pieces = []
     remainder = poly

@@ -62,6 +62,8 @@ from typing import Literal
 import msgspec
 import numpy as np
 
+from services.geometry import deepest_point, point_in_polygon, polygon_self_intersection, signed_area
+
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 POLE_RADIUS = 0.05
 START_SPACING = 5.0
@@ -172,7 +174,7 @@ def start_poses(scenario: Scenario, count: int) -> list[Vec3]:
     behind = np.arange(1, int((x0 - lo) // START_SPACING) + 1)
     offsets = np.concatenate([ahead, -behind]) * START_SPACING
     spots = np.column_stack([x0 + offsets, np.full(len(offsets), y0)])
-    for x, y in spots[points_in_polygon(spots, arena)]:
+    for x, y in spots[point_in_polygon(spots, arena)]:
         if len(poses) >= count:
             break
         if all(math.hypot(p[0] - x, p[1] - y) >= 1.0 for p in poses):
@@ -180,82 +182,6 @@ def start_poses(scenario: Scenario, count: int) -> list[Vec3]:
     if len(poses) < count:
         raise ScenarioError(f"starts: no room in the arena to place {count} UAVs automatically")
     return poses
-
-
-# ---------------------------------------------------------------- geometry
-def points_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """Even-odd test of (N, 2) points against a simple polygon (M, 2); vectorised over points."""
-    points = np.asarray(points, dtype=float).reshape(-1, 2)
-    polygon = np.asarray(polygon, dtype=float)
-    px, py = points[:, 0:1], points[:, 1:2]
-    ax, ay = polygon[:, 0], polygon[:, 1]
-    bx, by = np.roll(ax, -1), np.roll(ay, -1)
-    straddles = (ay > py) != (by > py)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x_cross = ax + (py - ay) * (bx - ax) / (by - ay)
-    crossings = straddles & (px < x_cross)
-    return (np.count_nonzero(crossings, axis=1) % 2) == 1
-
-
-def signed_area(polygon: np.ndarray) -> float:
-    x, y = polygon[:, 0], polygon[:, 1]
-    return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
-
-
-def deepest_point(polygon: np.ndarray, step: float = 1.0) -> tuple[float, float]:
-    """The grid point inside the polygon furthest from its edges (a safe spot for a default start)."""
-    lo, hi = polygon.min(axis=0), polygon.max(axis=0)
-    gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + step, step), np.arange(lo[1], hi[1] + step, step))
-    grid = np.column_stack([gx.ravel(), gy.ravel()])
-    grid = grid[points_in_polygon(grid, polygon)]
-    if len(grid) == 0:
-        centre = polygon.mean(axis=0)
-        return float(centre[0]), float(centre[1])
-    a, b = polygon, np.roll(polygon, -1, axis=0)
-    ab = b - a
-    t = np.clip(((grid[:, None, :] - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
-    nearest = a + t[..., None] * ab
-    clearance = np.linalg.norm(grid[:, None, :] - nearest, axis=-1).min(axis=1)
-    best = grid[int(np.argmax(clearance))]
-    return float(best[0]), float(best[1])
-
-
-def _cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
-    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
-
-
-def _segments_touch(p1, p2, q1, q2, eps: float = 1e-9) -> bool:
-    d1, d2 = _cross(q1, q2, p1), _cross(q1, q2, p2)
-    d3, d4 = _cross(p1, p2, q1), _cross(p1, p2, q2)
-    if ((d1 > eps and d2 < -eps) or (d1 < -eps and d2 > eps)) and (
-        (d3 > eps and d4 < -eps) or (d3 < -eps and d4 > eps)
-    ):
-        return True
-
-    def on_segment(a, b, c, d) -> bool:  # c collinear with a-b: is it within the segment's box?
-        return abs(d) <= eps and min(a[0], b[0]) - eps <= c[0] <= max(a[0], b[0]) + eps and \
-            min(a[1], b[1]) - eps <= c[1] <= max(a[1], b[1]) + eps
-
-    return on_segment(q1, q2, p1, d1) or on_segment(q1, q2, p2, d2) or \
-        on_segment(p1, p2, q1, d3) or on_segment(p1, p2, q2, d4)
-
-
-def polygon_self_intersection(polygon: np.ndarray) -> tuple[int, int] | None:
-    """Indices (i, j) of two edges that cross or overlap (edge i runs from point i to i+1), or None."""
-    n = len(polygon)
-    for i in range(n):
-        a, b = polygon[i], polygon[(i + 1) % n]
-        for j in range(i + 1, n):
-            c, d = polygon[j], polygon[(j + 1) % n]
-            if j == i + 1 or (i == 0 and j == n - 1):
-                # Neighbours share a vertex; they only overlap when they fold back on each other.
-                e1, e2 = b - a, d - c
-                if abs(e1[0] * e2[1] - e1[1] * e2[0]) <= 1e-9 and float(np.dot(e1, e2)) < 0:
-                    return i, j
-                continue
-            if _segments_touch(a, b, c, d):
-                return i, j
-    return None
 
 
 # -------------------------------------------------------------- validation
@@ -276,16 +202,16 @@ def _validated(s: Scenario) -> Scenario:
         if b.height <= 0 or b.radius <= 0:
             field = "height" if b.height <= 0 else "radius"
             raise ScenarioError(f"balloons[{i}].{field}: must be > 0, got {getattr(b, field)}")
-        if not points_in_polygon(np.array([b.pole]), arena)[0]:
+        if not point_in_polygon(np.array([b.pole]), arena)[0]:
             raise ScenarioError(f"balloons[{i}].pole: {tuple(b.pole)} is outside the arena")
     for i, d in enumerate(s.drones):
         if d.radius <= 0 or d.body_radius <= 0:
             field = "radius" if d.radius <= 0 else "body_radius"
             raise ScenarioError(f"drones[{i}].{field}: must be > 0, got {getattr(d, field)}")
-        if not points_in_polygon(np.array([d.center[:2]]), arena)[0]:
+        if not point_in_polygon(np.array([d.center[:2]]), arena)[0]:
             raise ScenarioError(f"drones[{i}].center: {tuple(d.center[:2])} is outside the arena")
     for i, start in enumerate(s.starts):
-        if not points_in_polygon(np.array([start[:2]]), arena)[0]:
+        if not point_in_polygon(np.array([start[:2]]), arena)[0]:
             raise ScenarioError(f"starts[{i}]: {tuple(start[:2])} is outside the arena")
     ids = s.balloon_ids() + s.drone_ids()
     duplicates = sorted({t for t in ids if ids.count(t) > 1})

@@ -1,0 +1,108 @@
+"""Plane polygon geometry shared by the services (arena, working areas, scan areas).
+
+Pure numpy. Polygons are (K, 2) vertex arrays, simple (possibly non-convex), without a
+repeated closing vertex (one is tolerated and dropped).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_polygon(polygon: np.ndarray) -> np.ndarray:
+    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    if len(poly) > 1 and np.array_equal(poly[0], poly[-1]):
+        poly = poly[:-1]
+    if len(poly) < 3:
+        raise ValueError(f"a polygon needs at least 3 vertices, got {len(poly)}")
+    return poly
+
+
+def signed_area(polygon: np.ndarray) -> float:
+    """Shoelace area: positive when the vertices run counter-clockwise."""
+    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(np.roll(x, -1), y))
+
+
+def polygon_area(polygon: np.ndarray) -> float:
+    return abs(signed_area(polygon))
+
+
+def counter_clockwise(polygon: np.ndarray) -> np.ndarray:
+    poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
+    return poly[::-1].copy() if signed_area(poly) < 0 else poly
+
+
+def point_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray | bool:
+    """Even-odd rule for (N, 2) points (a bool array) or one (2,) point (a bool).
+    Points exactly on an edge may fall either way."""
+    poly = as_polygon(polygon)
+    pts = np.asarray(points, dtype=np.float64)
+    single = pts.ndim == 1
+    pts = pts.reshape(-1, 2)
+    ax, ay = poly[:, 0], poly[:, 1]
+    bx, by = np.roll(ax, -1), np.roll(ay, -1)
+    px, py = pts[:, :1], pts[:, 1:]  # (N, 1) against (K,) edges
+    straddles = (ay > py) != (by > py)
+    dy = np.where(by != ay, by - ay, 1.0)  # non-straddling edges are masked out below
+    x_cross = ax + (py - ay) * (bx - ax) / dy
+    inside = np.count_nonzero(straddles & (px < x_cross), axis=1) % 2 == 1
+    return bool(inside[0]) if single else inside
+
+
+def deepest_point(polygon: np.ndarray, step: float = 1.0) -> tuple[float, float]:
+    """The grid point inside the polygon furthest from its edges (a safe spot for a default start)."""
+    lo, hi = polygon.min(axis=0), polygon.max(axis=0)
+    gx, gy = np.meshgrid(np.arange(lo[0], hi[0] + step, step), np.arange(lo[1], hi[1] + step, step))
+    grid = np.column_stack([gx.ravel(), gy.ravel()])
+    grid = grid[point_in_polygon(grid, polygon)]
+    if len(grid) == 0:
+        centre = polygon.mean(axis=0)
+        return float(centre[0]), float(centre[1])
+    a, b = polygon, np.roll(polygon, -1, axis=0)
+    ab = b - a
+    t = np.clip(((grid[:, None, :] - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
+    nearest = a + t[..., None] * ab
+    clearance = np.linalg.norm(grid[:, None, :] - nearest, axis=-1).min(axis=1)
+    best = grid[int(np.argmax(clearance))]
+    return float(best[0]), float(best[1])
+
+
+def _cross(o: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    return float((a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]))
+
+
+def _segments_touch(p1, p2, q1, q2, eps: float = 1e-9) -> bool:
+    d1, d2 = _cross(q1, q2, p1), _cross(q1, q2, p2)
+    d3, d4 = _cross(p1, p2, q1), _cross(p1, p2, q2)
+    if ((d1 > eps and d2 < -eps) or (d1 < -eps and d2 > eps)) and (
+        (d3 > eps and d4 < -eps) or (d3 < -eps and d4 > eps)
+    ):
+        return True
+
+    def on_segment(a, b, c, d) -> bool:  # c collinear with a-b: is it within the segment's box?
+        return abs(d) <= eps and min(a[0], b[0]) - eps <= c[0] <= max(a[0], b[0]) + eps and \
+            min(a[1], b[1]) - eps <= c[1] <= max(a[1], b[1]) + eps
+
+    return on_segment(q1, q2, p1, d1) or on_segment(q1, q2, p2, d2) or \
+        on_segment(p1, p2, q1, d3) or on_segment(p1, p2, q2, d4)
+
+
+def polygon_self_intersection(polygon: np.ndarray) -> tuple[int, int] | None:
+    """Indices (i, j) of two edges that cross or overlap (edge i runs from point i to i+1), or None."""
+    n = len(polygon)
+    for i in range(n):
+        a, b = polygon[i], polygon[(i + 1) % n]
+        for j in range(i + 1, n):
+            c, d = polygon[j], polygon[(j + 1) % n]
+            if j == i + 1 or (i == 0 and j == n - 1):
+                # Neighbours share a vertex; they only overlap when they fold back on each other.
+                e1, e2 = b - a, d - c
+                if abs(e1[0] * e2[1] - e1[1] * e2[0]) <= 1e-9 and float(np.dot(e1, e2)) < 0:
+                    return i, j
+                continue
+            if _segments_touch(a, b, c, d):
+                return i, j
+    return None
