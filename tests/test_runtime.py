@@ -1,0 +1,73 @@
+"""Runtime behaviour of a single service process: profiles, clocks, shutdown."""
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import time
+
+import msgspec
+import pytest
+
+from schemas import keys
+from schemas.messages import Tracks
+from services.runtime.zenoh_config import ZenohConfigError, ZenohSettings, build
+from tests.tools.health import wait_healthy
+
+
+def test_profiles_and_overrides(tmp_path, monkeypatch):
+    embedded = build(ZenohSettings(connect=["tcp/127.0.0.1:7000"]))
+    assert json.loads(embedded.get_json("mode")) == "peer"
+    assert json.loads(embedded.get_json("scouting/multicast/enabled")) is False
+    assert json.loads(embedded.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7000"]
+    router = build(ZenohSettings(profile="router"))
+    assert json.loads(router.get_json("mode")) == "client"
+    assert json.loads(router.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7447"]
+    leased = build(ZenohSettings(lease_ms=1500))
+    assert json.loads(leased.get_json("transport/link/tx/lease")) == 1500
+
+    custom = tmp_path / "zenoh.json5"
+    custom.write_text('{ mode: "client", connect: { endpoints: ["tcp/10.1.2.3:7447"] } }')
+    monkeypatch.setenv("ZENOH_CONFIG", str(custom))
+    from_env = build(ZenohSettings())
+    assert json.loads(from_env.get_json("mode")) == "client"
+    assert json.loads(from_env.get_json("connect/endpoints")) == ["tcp/10.1.2.3:7447"]
+    monkeypatch.delenv("ZENOH_CONFIG")
+
+    custom.write_text("{ this is not json5")
+    with pytest.raises(ZenohConfigError, match="invalid"):
+        build(ZenohSettings(config_file=str(custom)))
+    with pytest.raises(ZenohConfigError, match="unknown zenoh profile"):
+        build(ZenohSettings(profile="mesh"))
+
+
+def test_wall_clock_service_ticks_without_a_simulator_and_stops_within_2s(hub, processes):
+    session, endpoint = hub
+    tracks: queue.SimpleQueue = queue.SimpleQueue()
+    sub = session.declare_subscriber(keys.uav("uav1", "tracks"), lambda s: tracks.put(s.payload.to_bytes()))
+    try:
+        proc = processes.start("run", "tracker", "--uav", "uav1", "--clock", "wall", "--connect", endpoint)
+        wait_healthy(session, [("uav1", "tracker")])
+        # with no detections the tracker still says it is alive once per second of (wall) time
+        first = msgspec.msgpack.Decoder(Tracks).decode(tracks.get(timeout=5))
+        assert first.tracks == [] and abs(first.header.stamp / 1e9 - time.time()) < 5
+        started = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=5)
+        took = time.monotonic() - started
+        print(f"tracker stopped {took * 1000:.0f} ms after SIGTERM, exit code {code}")
+        assert code == 0 and took < 2.0
+    finally:
+        sub.undeclare()
+
+
+@pytest.mark.parametrize("service", ["simulator", "classifier", "job_manager"])
+def test_sigint_stops_a_service_within_2s(hub, processes, service):
+    session, endpoint = hub
+    uav = [] if service == "simulator" else ["--uav", "uav1"]
+    proc = processes.start("run", service, *uav, "--connect", endpoint)
+    wait_healthy(session, [("sim" if service == "simulator" else "uav1", service)])
+    started = time.monotonic()
+    proc.send_signal(signal.SIGINT)
+    code = proc.wait(timeout=5)
+    assert code == 0 and time.monotonic() - started < 2.0
