@@ -60,6 +60,7 @@ CLOCK = sim("clock")
 WORLD = sim("world")
 TRUTH = sim("truth")
 EVENTS = sim("events")
+FAULTS = sim("faults")
 
 
 def parse_alive(key: str) -> tuple[str, str] | None:

@@ -48,6 +48,18 @@ class PointCloud(msgspec.Struct, kw_only=True):
     max_range: float = 0.0
 
 
+class PointTruth(msgspec.Struct, kw_only=True):
+    """Evaluation only, never read by perception: what each ray of the PointCloud with the same
+    stamp hit. `hits` is int32 (height, width): -1 no return, 0 the static world, k >= 1 the
+    target `targets[k - 1]`."""
+
+    header: Header
+    width: int
+    height: int
+    hits: Array
+    targets: list[str] = []
+
+
 class Odometry(msgspec.Struct, kw_only=True):
     """Estimated state of one UAV. `covariance` is float64 6×6 over (x, y, z, roll, pitch, yaw)."""
 
@@ -248,6 +260,23 @@ class SimEvent(msgspec.Struct, kw_only=True):
     detail: str = ""
 
 
+FaultKind = Literal[
+    "lidar_silent", "lidar_nan", "lidar_garbage", "odometry_jump", "kill", "link_cut", "freeze"
+]
+
+
+class FaultCommand(msgspec.Struct, kw_only=True):
+    """A scheduled fault the simulator injects at its mission time: the sensor driver acts on
+    LiDAR faults, the simulator on odometry jumps, the launcher on process and link faults."""
+
+    header: Header
+    kind: FaultKind
+    uav: str
+    service: str = ""  # for "kill" / "freeze": one service, or "" for all of the UAV's processes
+    duration: float = 0.0  # s of mission time; 0 = until the end of the run
+    offset: Vec3 = (0.0, 0.0, 0.0)  # for "odometry_jump", m
+
+
 class ServiceHealth(msgspec.Struct, kw_only=True):
     """Answer to a health query on falconry/<uav>/health/<service>."""
 
@@ -281,4 +310,6 @@ ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (
     GroundTruth,
     SimEvent,
     ServiceHealth,
+    PointTruth,
+    FaultCommand,
 )
