@@ -11,8 +11,11 @@ import re
 ROOT = "falconry"
 SIM = "sim"  # the run-wide segment used in place of a UAV name
 UAV_SERVICES = ("sensor_driver", "classifier", "mapper", "tracker", "job_manager", "planner")
+# Evaluation-only detector that replaces the classifier: noisy detections made from the LiDAR
+# points that really hit a target (simulation only; `falconry sim --detector oracle`).
+ORACLE = "oracle"
 SIM_SERVICES = ("simulator",)
-SERVICES = SIM_SERVICES + UAV_SERVICES
+SERVICES = SIM_SERVICES + UAV_SERVICES + (ORACLE,)
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 

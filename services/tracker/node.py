@@ -7,6 +7,7 @@ Later versions also subscribe falconry/<uav>/points and falconry/<uav>/map (Alg.
 """
 from __future__ import annotations
 
+from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, Track, Tracks
 from services.runtime.clock import to_ns
@@ -16,7 +17,7 @@ from services.tracker.core import TrackerCore, TrackerParams
 
 class TrackerNode(Node):
     service = "tracker"
-    upstream = ("classifier",)
+    upstream = ("classifier", keys.ORACLE)  # whichever detector runs
     params_type = TrackerParams
 
     def setup(self) -> None:
