@@ -70,3 +70,20 @@ def test_first_tick_after_joining_does_not_wait():
     gate = LockstepGate(("classifier",), wants=lambda key: True)
     gate.begin(10, {"falconry/uav1/points": 400})
     assert gate.missing(UP) == []
+
+
+def test_fault_windows_silence_only_the_faulted_services_for_their_duration():
+    from schemas.messages import FaultCommand, Header
+    from services.runtime.lockstep import FaultWindows
+
+    windows = FaultWindows()
+    windows.add(FaultCommand(header=Header(stamp=10_000_000_000), kind="freeze", uav="uav2", service="tracker",
+                             duration=3.0))
+    windows.add(FaultCommand(header=Header(stamp=20_000_000_000), kind="link_cut", uav="uav1", duration=0.0))
+    windows.add(FaultCommand(header=Header(stamp=5_000_000_000), kind="lidar_silent", uav="uav1", duration=9.0))
+    names = {"uav1/classifier", "uav2/tracker", "uav2/mapper"}
+    assert windows.unaffected(names, 9.9) == names
+    assert windows.unaffected(names, 10.0) == {"uav1/classifier", "uav2/mapper"}
+    assert windows.unaffected(names, 13.0) == names  # the freeze is over
+    assert windows.unaffected(names, 20.0) == {"uav2/tracker", "uav2/mapper"}  # cut for good
+    assert windows.unaffected(names, 1e6) == {"uav2/tracker", "uav2/mapper"}

@@ -63,6 +63,7 @@ class RunMonitor:
         self.destroyed: list[tuple[float, str, str]] = []
         self.events: list[SimEvent] = []
         self.restarts: list[str] = []
+        self.faults: list[str] = []
         self.decode = {
             keys.CLOCK: msgspec.msgpack.Decoder(SimClock),
             keys.TRUTH: msgspec.msgpack.Decoder(GroundTruth),
@@ -127,6 +128,8 @@ class RunMonitor:
             self.destroyed.append((seconds(event.header.stamp), event.subject, event.detail))
         elif event.kind == "service_restarted":
             self.restarts.append(f"{event.subject} ({event.detail})")
+        elif event.kind.startswith("fault_"):
+            self.faults.append(f"t={seconds(event.header.stamp):.1f} s {event.kind} {event.subject}: {event.detail}")
 
     def progress(self, duration: float) -> str:
         airborne = sum(u.airborne for u in self.uavs.values())
@@ -143,6 +146,7 @@ class RunMonitor:
             "targets": len(self.targets),
             "destroyed": [{"t": round(t, 2), "target": tid, "by": uav} for t, tid, uav in self.destroyed],
             "restarts": list(self.restarts),
+            "faults": list(self.faults),
             "uavs": {
                 name: {"distance_m": round(u.distance, 1), "max_height_m": round(u.max_height, 2),
                        "takeoff_s": u.takeoff, "landed_s": u.landed, "final_state": u.state,

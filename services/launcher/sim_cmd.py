@@ -19,12 +19,15 @@ import msgspec
 import zenoh
 
 from schemas import keys
-from schemas.messages import Header, SimEvent
+from schemas.messages import FaultCommand, Header, SimEvent
+from services.launcher import netns
+from services.launcher.faults import FaultExecutor
 from services.launcher.monitor import RunMonitor
+from services.launcher.plan import DETECTORS, plan_run
 from services.launcher.params import ParamsError, read_tables
 from services.launcher.supervisor import Supervisor, describe_exit
 from services.runtime import shm
-from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session
+from services.runtime.zenoh_config import free_port, init_logging, open_session
 from services.simulator.options import add_simulator_options
 from services.simulator.scenario import ScenarioError, load_scenario
 
@@ -42,6 +45,12 @@ def add_parser(commands) -> None:
     )
     add_simulator_options(p, positional_scenario=True)
     run = p.add_argument_group("run")
+    run.add_argument("--detector", choices=DETECTORS, default="classifier",
+                     help="classifier: the LiDAR perception pipeline (default); oracle: noisy detections made "
+                          "only from LiDAR points that really hit a target (evaluation, simulation only)")
+    run.add_argument("--isolate", action="store_true",
+                     help="run each UAV's processes in its own network namespace (root; automatic when the "
+                          "scenario schedules link_cut faults)")
     run.add_argument("--port", type=int, default=0,
                      help="loopback port of the run's hub (default: a free port, so runs never collide)")
     run.add_argument("--config", metavar="FILE", help="TOML service parameters, one [service] table each")
@@ -74,63 +83,65 @@ def run_sim(args: argparse.Namespace) -> int:
     duration = args.duration if args.duration is not None else scenario.duration
     seed = args.seed if args.seed is not None else scenario.seed
 
+    needs_network = args.isolate or any(f.kind == "link_cut" for f in getattr(scenario, "faults", []))
+    if needs_network and (why := netns.available()):
+        raise CliError(f"{'--isolate' if args.isolate else 'the scenario schedules link_cut faults, which'} "
+                       f"needs per-UAV network namespaces, but {why}")
+
     started_wall = time.time()
     segments_before = shm.segments()
-    embedded = args.zenoh_profile == "embedded" and not args.zenoh_config
     port = args.port or free_port()
-    hub = f"tcp/127.0.0.1:{port}"
-    hub_settings = ZenohSettings(profile=args.zenoh_profile, connect=list(args.connect),
-                                 listen=[hub] if embedded else list(args.listen),
-                                 config_file=args.zenoh_config, lease_ms=args.lease_ms,
-                                 # the launcher carries no bulk data, and its process-wide segments
-                                 # would outlive the run's clean-up below
-                                 shared_memory=False)
-    child_zenoh = ZenohSettings(profile=args.zenoh_profile, connect=[hub] if embedded else list(args.connect),
-                                config_file=args.zenoh_config, lease_ms=args.lease_ms).as_args()
-
-    base = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "run"]
-    common = ["--exit-with-parent", *child_zenoh] + (["--config", args.config] if args.config else [])
-    sim_argv = base + ["simulator", *common, "--scenario", args.scenario, "--uavs", str(len(uavs)),
-                       "--seed", str(seed), "--duration", str(duration), "--rtf", str(args.rtf),
-                       "--tick", str(args.tick)] + (["--lockstep"] if args.lockstep else [])
-
+    network = netns.UavNetwork(port, uavs) if needs_network else None
+    plan = plan_run(args, uavs, seed, duration, port, network)
+    if network:
+        network.setup()
     init_logging()
-    session = open_session(hub_settings)
+    session = open_session(plan.hub_settings)
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     subscribers = [session.declare_subscriber(k, lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes())))
-                   for k in WATCHED]
+                   for k in WATCHED + (keys.FAULTS,)]
     events_pub = session.declare_publisher(keys.EVENTS)
     encoder = msgspec.msgpack.Encoder()
-    restart_seq = [0]
+    fault_decoder = msgspec.msgpack.Decoder(FaultCommand)
+    event_seq = [0]
 
     truth_file = open(args.truth_log, "wb") if args.truth_log else None
     monitor = RunMonitor(truth_file)
 
-    def on_restart(name: str, code: int, _when: float) -> None:
-        restart_seq[0] += 1
+    def report(kind: str, subject: str, detail: str) -> None:
+        event_seq[0] += 1
         events_pub.put(encoder.encode(SimEvent(
-            header=Header(sender="sim/launcher", seq=restart_seq[0], stamp=int(monitor.mission_time * 1e9)),
-            kind="service_restarted", subject=name, detail=describe_exit(code))))
+            header=Header(sender="sim/launcher", seq=event_seq[0], stamp=int(monitor.mission_time * 1e9)),
+            kind=kind, subject=subject, detail=detail)))
+
+    def on_restart(name: str, code: int, _when: float) -> None:
+        report("service_restarted", name, describe_exit(code))
 
     supervisor = Supervisor(echo=not args.quiet, on_restart=on_restart,
                             log_file=Path(args.log_file) if args.log_file else None)
     mode = "lockstep" if args.lockstep else f"real time x{args.rtf:g}"
     supervisor.say(f"{scenario.name}: {len(uavs)} UAVs, seed {seed}, {duration:g} s of mission time, {mode}, "
-                   f"zenoh {hub if embedded else args.zenoh_profile}")
+                   f"detector {args.detector}, zenoh {plan.hub_label}"
+                   + (f", UAVs in network namespaces on {network.prefix}.0/24" if network else ""))
+    faults = FaultExecutor(supervisor, network, report)
     outcome = "finished"
     signal.signal(signal.SIGTERM, _interrupt)  # `kill`, `timeout` and compose stop us like Ctrl-C does
     try:
-        supervisor.start("sim/simulator", sim_argv)
-        for uav in uavs:
-            for service in keys.UAV_SERVICES:
-                supervisor.start(f"{uav}/{service}", base + [service, "--uav", uav, *common])
+        for name, argv in plan.children.items():
+            supervisor.start(name, argv)
         next_progress = args.progress
         while not monitor.finished:
             try:
                 key, payload = inbox.get(timeout=0.1)
-                monitor.handle(key, payload)
+                if key == keys.FAULTS:
+                    faults.start(fault_decoder.decode(payload), monitor.mission_time)
+                else:
+                    monitor.handle(key, payload)
             except queue.Empty:
                 pass
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                pass
+            faults.tick(monitor.mission_time)
             supervisor.poll()
             if args.progress and monitor.mission_time >= next_progress:
                 supervisor.say(monitor.progress(duration))
@@ -150,6 +161,7 @@ def run_sim(args: argparse.Namespace) -> int:
     except KeyboardInterrupt:
         outcome = "interrupted"
     finally:
+        faults.end_all()
         killed = supervisor.stop_all()
         for sub in subscribers:
             sub.undeclare()
@@ -157,10 +169,12 @@ def run_sim(args: argparse.Namespace) -> int:
         session.close()
         if truth_file:
             truth_file.close()
+        if network:
+            network.teardown()
         shm.remove_orphans(shm.segments() - segments_before)
 
     summary = monitor.summary()
-    summary.update(outcome=outcome, scenario=scenario.name, seed=seed, lockstep=args.lockstep,
+    summary.update(outcome=outcome, scenario=scenario.name, seed=seed, lockstep=args.lockstep, detector=args.detector,
                    wall_time=round(time.time() - started_wall, 2), killed_at_shutdown=killed,
                    failed_services=[c.name for c in supervisor.children.values() if c.failed])
     print_summary(summary, len(uavs), duration)
@@ -179,7 +193,7 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
     lines = [
         "",
         f"=== Falconry run summary: {s['scenario']}, {uav_count} UAVs, seed {s['seed']}, "
-        f"{'lockstep' if s['lockstep'] else 'real time'} ===",
+        f"{'lockstep' if s['lockstep'] else 'real time'}, detector {s['detector']} ===",
         f"outcome: {s['outcome']}; mission time {s['mission_time']:.1f}/{duration:g} s in {s['wall_time']:.1f} s "
         f"wall (real-time factor {s['mission_time'] / max(s['wall_time'], 1e-9):.2f}x)",
         f"targets destroyed: {len(s['destroyed'])}/{s['targets']}"
@@ -191,6 +205,8 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         lines.append(f"{name}: {u['final_state']}; {took}{landed}; flew {u['distance_m']:.0f} m, max height "
                      f"{u['max_height_m']:.1f} m; {u['detections']} detections, {u['confirmed_tracks']} confirmed tracks")
     lines.append("restarts: " + (", ".join(s["restarts"]) if s["restarts"] else "none"))
+    injected = [f for f in s["faults"] if "fault_injected" in f]
+    lines.append(f"faults injected: {len(injected)}" + "".join(f"\n  {f}" for f in s["faults"]))
     if s["failed_services"]:
         lines.append("gave up on: " + ", ".join(s["failed_services"]))
     if s["killed_at_shutdown"]:

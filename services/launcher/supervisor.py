@@ -29,6 +29,7 @@ class Child:
     started: float = 0.0
     restarts: list[float] = field(default_factory=list)
     failed: bool = False
+    held: bool = False  # killed by a fault and kept down until released
     reader: threading.Thread | None = None
 
 
@@ -78,7 +79,7 @@ class Supervisor:
         if self._stopping:
             return
         for child in self.children.values():
-            if child.failed or child.process is None or child.process.poll() is None:
+            if child.failed or child.held or child.process is None or child.process.poll() is None:
                 continue
             code = child.process.returncode
             now = time.monotonic()
@@ -93,6 +94,24 @@ class Supervisor:
             self.say(f"restarted {child.name} after it exited ({describe_exit(code)})")
             if self._on_restart:
                 self._on_restart(child.name, code, now)
+
+    def send(self, name: str, sig: int) -> None:
+        child = self.children[name]
+        if child.process is not None and child.process.poll() is None:
+            _signal_group(child.process, sig)
+
+    def kill(self, name: str, hold: bool = False) -> None:
+        """SIGKILL a child (a fault); with hold, it is not restarted until release()."""
+        self.children[name].held = hold
+        self.send(name, signal.SIGKILL)
+
+    def release(self, name: str) -> None:
+        child = self.children[name]
+        if child.held:
+            child.held = False
+            if child.process is not None and child.process.poll() is not None and not self._stopping:
+                self._spawn(child)
+                self.say(f"started {child.name} again after its fault ended")
 
     def pid(self, name: str) -> int | None:
         child = self.children.get(name)

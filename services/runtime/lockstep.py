@@ -97,3 +97,27 @@ class LockstepGate(Generic[Item]):
                 out.append((key, item))
         self.first_tick = False
         return out
+
+
+class FaultWindows:
+    """Which services a scheduled fault keeps from acknowledging ticks (killed, frozen or cut
+    off), so lockstep neither waits for them nor blocks on them. Times are mission seconds."""
+
+    SILENCING = ("kill", "freeze", "link_cut")
+
+    def __init__(self) -> None:
+        self._windows: list[tuple[str, str, float, float]] = []  # uav, service ("" = all), start, end
+
+    def add(self, command) -> None:
+        if command.kind in self.SILENCING:
+            start = command.header.stamp / 1e9
+            end = start + command.duration if command.duration > 0 else float("inf")
+            self._windows.append((command.uav, command.service, start, end))
+
+    def silenced(self, uav: str, service: str, now: float) -> bool:
+        return any(u == uav and s in ("", service) and start <= now < end
+                   for u, s, start, end in self._windows)
+
+    def unaffected(self, names: set[str], now: float) -> set[str]:
+        """Of "<uav>/<service>" names, those no fault silences at `now`."""
+        return {n for n in names if not self.silenced(*n.split("/", 1), now)}

@@ -31,9 +31,9 @@ import numpy as np
 import zenoh
 
 from schemas import keys
-from schemas.messages import Header, ServiceHealth, SimClock, StepAck
+from schemas.messages import FaultCommand, Header, ServiceHealth, SimClock, StepAck
 from services.runtime.clock import MissionClock, WallClock
-from services.runtime.lockstep import LockstepGate
+from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session
 
 M = TypeVar("M", bound=msgspec.Struct)
@@ -149,6 +149,7 @@ class Node:
         self.session: zenoh.Session | None = None
         self._declared = False
         self._deferred_clock: SimClock | None = None
+        self._fault_windows = FaultWindows()
         self._decode_log_budget = 20
 
     # ------------------------------------------------------------------ API
@@ -243,6 +244,8 @@ class Node:
                 self._add_subscription(keys.CLOCK, SimClock, self._on_clock, internal=True)
             for service in self.upstream:
                 self._add_subscription(keys.ack(self.scope, service), StepAck, self._on_upstream_ack, internal=True)
+            if self.upstream:
+                self._add_subscription(keys.FAULTS, FaultCommand, self._on_fault, internal=True)
             self.on_liveliness(f"{keys.ROOT}/{self.scope}/alive/*", self._on_scope_liveliness)
             if self._clock_kind == "sim":
                 self.on_liveliness(keys.alive(keys.SIM, "simulator"), self._on_simulator_liveliness)
@@ -385,11 +388,13 @@ class Node:
             self._last_step = tick.step
             self._tick(tick.header.stamp)
             return
+        if self._last_step >= 0 and tick.step != self._last_step + 1:
+            self._gate.first_tick = True  # we missed ticks (cut off, frozen): what was sent then is gone
         self._gate.begin(tick.step, tick.bounds)
         self._wait_for_gate(tick.step)
         if self._stop.is_set():
             return
-        for key, (sub, msg) in self._gate.release(self._alive_upstream):
+        for key, (sub, msg) in self._gate.release(self._answering_upstream()):
             self._call(sub.handler, msg, key)
         self._last_step = tick.step
         self._tick(tick.header.stamp)
@@ -398,7 +403,7 @@ class Node:
 
     def _wait_for_gate(self, step: int) -> None:
         deadline = time.monotonic() + LOCKSTEP_TIMEOUT_S
-        while missing := self._gate.missing(self._alive_upstream):
+        while missing := self._gate.missing(self._answering_upstream()):
             remaining = deadline - time.monotonic()
             if self._stop.is_set():
                 return
@@ -424,6 +429,15 @@ class Node:
     def _on_upstream_ack(self, ack: StepAck, key: str) -> None:
         service = key.rsplit("/", 1)[-1]
         self._gate.record_ack(service, ack.step, ack.published)
+
+    def _on_fault(self, command: FaultCommand, key: str) -> None:
+        if command.uav == self.scope:
+            self._fault_windows.add(command)
+
+    def _answering_upstream(self) -> set[str]:
+        """Upstream services that are alive and not silenced by a scheduled fault right now."""
+        now = self.clock.now_ns() / 1e9
+        return {s for s in self._alive_upstream if not self._fault_windows.silenced(self.scope, s, now)}
 
     def _on_scope_liveliness(self, key: str, alive: bool) -> None:
         parsed = keys.parse_alive(key)

@@ -21,6 +21,7 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import (
+    FaultCommand,
     GroundTruth,
     Header,
     Odometry,
@@ -34,7 +35,7 @@ from schemas.messages import (
     WorldModel,
 )
 from services.runtime.clock import seconds, to_ns
-from services.runtime.lockstep import LockstepGate
+from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.node import Node
 from services.simulator.core import Simulation
 from services.simulator.scenario import load_scenario
@@ -73,6 +74,8 @@ class SimulatorNode(Node):
         self._clock_kind = "master"  # this node makes the clock; it never follows one
         self.sim = Simulation(self.scenario, self.uav_names, self.seed)
         self._alive: set[str] = set()
+        self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
+        self._fault_windows = FaultWindows()
         self._acks: dict[str, StepAck] = {}
         self._sim_gate: LockstepGate = LockstepGate((), self._wants, self._order)
 
@@ -82,6 +85,7 @@ class SimulatorNode(Node):
         self.world_pub = self.publisher(keys.WORLD, WorldModel)
         self.truth_pub = self.publisher(keys.TRUTH, GroundTruth)
         self.events_pub = self.publisher(keys.EVENTS, SimEvent)
+        self.faults_pub = self.publisher(keys.FAULTS, FaultCommand)
         self.odometry_pubs = {u: self.publisher(keys.uav(u, "odometry"), Odometry) for u in self.uav_names}
         for u in self.uav_names:
             self.subscribe(keys.uav(u, "trajectory"), TrajectoryReference, self.on_trajectory)
@@ -133,6 +137,7 @@ class SimulatorNode(Node):
                     self.event(kind, subject, detail)
             now = to_ns(step * self.tick_s)
             self.clock.advance_to(now)
+            self.inject_faults(now)
             self.publish_state(step, now)
             rtf = seconds(now) / max(time.monotonic() - wall_start, 1e-9)
             tick = SimClock(header=Header(stamp=now), step=step, dt=self.tick_s, lockstep=self.run_lockstep,
@@ -175,7 +180,9 @@ class SimulatorNode(Node):
         started = time.monotonic()
         resend = started + RESEND_S
         while True:
-            waiting = [n for n in sorted(self._alive) if (a := self._acks.get(n)) is None or a.step < tick.step]
+            # a frozen, cut-off or killed service cannot answer: not waiting is part of the fault
+            expected = self._fault_windows.unaffected(self._alive, seconds(tick.header.stamp))
+            waiting = [n for n in sorted(expected) if (a := self._acks.get(n)) is None or a.step < tick.step]
             if not waiting or self.stopping:
                 break
             now = time.monotonic()
@@ -208,6 +215,24 @@ class SimulatorNode(Node):
                 self._sim_gate.hold(item[2], msg.header.seq, (item[1], msg))
             return
         super()._dispatch(item)
+
+    # ------------------------------------------------------------ faults
+    def inject_faults(self, now: int) -> None:
+        while self._pending_faults and to_ns(self._pending_faults[0].time) <= now:
+            spec = self._pending_faults.pop(0)
+            if spec.uav not in self.uav_names:
+                self.log.warning("fault for %s skipped: no such UAV in this run", spec.uav)
+                continue
+            command = FaultCommand(header=Header(stamp=now), kind=spec.kind, uav=spec.uav,
+                                   service=spec.service, duration=spec.duration, offset=tuple(spec.offset))
+            self._fault_windows.add(command)
+            if spec.kind == "odometry_jump":
+                self.sim.jump_odometry(spec.uav, np.asarray(spec.offset, dtype=float))
+            elif spec.kind == "kill" and not spec.service:
+                self.sim.emergency_land(spec.uav)  # the flight controller's failsafe when its computer dies
+            self.faults_pub.put(command)
+            target = "/".join(filter(None, (spec.uav, spec.service)))
+            self.event("fault_injected", target, f"{spec.kind}" + (f" for {spec.duration:g} s" if spec.duration else ""))
 
     # ------------------------------------------------------------ output
     def publish_world(self) -> None:
