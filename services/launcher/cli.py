@@ -5,7 +5,6 @@ import argparse
 import logging
 import sys
 
-from schemas import keys
 from services.runtime.zenoh_config import PROFILES, ZenohConfigError, ZenohSettings
 
 
@@ -54,6 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     run_cmd.add_parser(commands)
     health_cmd.add_parser(commands)
     params_cmd.add_parser(commands)
+    from services.launcher import record_cmd, replay_cmd  # TEMP-RECORDER
+    record_cmd.add_parser(commands)  # TEMP-RECORDER
+    replay_cmd.add_parser(commands)  # TEMP-RECORDER
     return parser
 
 

@@ -11,12 +11,10 @@ import argparse
 import json
 import queue
 import signal
-import sys
 import time
 from pathlib import Path
 
 import msgspec
-import zenoh
 
 from schemas import keys
 from schemas.messages import FaultCommand, Header, SimEvent

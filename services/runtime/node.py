@@ -23,82 +23,24 @@ import signal
 import threading
 import time
 import traceback
-from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, Generic, TypeVar
+from typing import Any, Callable, ClassVar
 
 import msgspec
-import numpy as np
 import zenoh
 
 from schemas import keys
 from schemas.messages import FaultCommand, Header, ServiceHealth, SimClock, StepAck
 from services.runtime.clock import MissionClock, WallClock
 from services.runtime.lockstep import FaultWindows, LockstepGate
+from services.runtime.typed import Counters, M, Subscription, TypedPublisher
 from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session
 
-M = TypeVar("M", bound=msgspec.Struct)
 POLL_S = 0.1  # how often the loop looks at stop requests when idle
 LOCKSTEP_TIMEOUT_S = 5.0
 
 
 class NoParams(msgspec.Struct, forbid_unknown_fields=True):
     pass
-
-
-def _numpy_scalars(obj: Any) -> Any:
-    """numpy scalars (np.float64 from a core) go out as the plain numbers they are."""
-    if isinstance(obj, np.generic):
-        return obj.item()
-    raise NotImplementedError(f"cannot encode {type(obj).__name__}")
-
-
-class TypedPublisher(Generic[M]):
-    """Stamps the header (sender, per-key seq, default stamp) and publishes msgpack bytes."""
-
-    def __init__(self, node: "Node", key: str, msg_type: type[M]) -> None:
-        self.key = key
-        self.msg_type = msg_type
-        self.seq = 0
-        self._node = node
-        self._encoder = msgspec.msgpack.Encoder(enc_hook=_numpy_scalars)
-        # Block rather than drop when the link is congested: a lockstep peer waits for every
-        # counted seq, and a dropped 1.5 MB cloud showed up under load in the benchmark.
-        self._publisher = node.session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
-
-    def put(self, msg: M) -> None:
-        if not isinstance(msg, self.msg_type):
-            raise TypeError(f"{self.key} carries {self.msg_type.__name__}, not {type(msg).__name__}")
-        header: Header = msg.header  # type: ignore[attr-defined]
-        header.sender = self._node.sender
-        header.seq = self.seq + 1
-        if header.stamp == 0:
-            header.stamp = self._node.clock.now_ns()
-        payload = self._encoder.encode(msg)
-        # Count it only once it is sure to go out: lockstep peers wait for every seq we count.
-        self.seq += 1
-        self._publisher.put(payload)
-        self._node.counters.published[self.key] = self.seq
-
-    def undeclare(self) -> None:
-        self._publisher.undeclare()
-
-
-@dataclass
-class _Subscription:
-    index: int
-    key_expr: str
-    decoder: msgspec.msgpack.Decoder
-    handler: Callable[[Any, str], None]
-    internal: bool  # runtime plumbing (clock, acks): never gated
-
-
-class Counters:
-    def __init__(self) -> None:
-        self.received: dict[str, int] = {}
-        self.published: dict[str, int] = {}
-        self.decode_errors: dict[str, int] = {}
-        self.handler_errors = 0
-        self.lockstep_timeouts = 0
 
 
 class Node:
@@ -134,13 +76,13 @@ class Node:
         self._parent = os.getppid()
         self._inbox: queue.SimpleQueue = queue.SimpleQueue()
         self._stop = threading.Event()
-        self._subs: list[_Subscription] = []
+        self._subs: list[Subscription] = []
         self._zenoh_handles: list[Any] = []
         self._publishers: list[TypedPublisher] = []
         self._liveliness_handlers: list[tuple[str, Callable[[str, bool], None]]] = []
         self._alive_upstream: set[str] = set()
         self._lockstep: bool | None = None  # unknown until the first clock tick
-        self._pending: list[tuple[_Subscription, str, Any]] = []  # data before the first tick
+        self._pending: list[tuple[Subscription, str, Any]] = []  # data before the first tick
         self._wants_cache: dict[str, bool] = {}
         self._gate: LockstepGate = LockstepGate(self.upstream, self._wants, self._order)
         self._last_step = -1
@@ -190,13 +132,13 @@ class Node:
 
     # ------------------------------------------------------------ plumbing
     def _add_subscription(self, key_expr, msg_type, handler, internal: bool) -> None:
-        sub = _Subscription(len(self._subs), key_expr, msgspec.msgpack.Decoder(msg_type), handler, internal)
+        sub = Subscription(len(self._subs), key_expr, msgspec.msgpack.Decoder(msg_type), handler, internal)
         self._subs.append(sub)
         self._wants_cache.clear()
         if self._declared:
             self._declare_subscriber(sub)
 
-    def _declare_subscriber(self, sub: _Subscription) -> None:
+    def _declare_subscriber(self, sub: Subscription) -> None:
         inbox = self._inbox
 
         def on_sample(sample: zenoh.Sample, sub=sub) -> None:
@@ -342,7 +284,7 @@ class Node:
         elif kind == "query":
             self._answer_health(item[1])
 
-    def _decode(self, sub: _Subscription, key: str, payload: bytes):
+    def _decode(self, sub: Subscription, key: str, payload: bytes):
         try:
             msg = sub.decoder.decode(payload)
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError) as exc:
