@@ -189,6 +189,7 @@ class SimClock(msgspec.Struct, kw_only=True):
     real_time_factor: float = 1.0
     bounds: dict[str, int] = {}
     finished: bool = False
+    alive: list[str] = []  # "<scope>/<service>" whose liveliness the simulator saw, sorted
 
 
 class StepAck(msgspec.Struct, kw_only=True):

@@ -1,6 +1,7 @@
 """Whole runs of `falconry sim`: supervision, liveliness, lockstep determinism, summaries."""
 from __future__ import annotations
 
+import json
 import os
 import queue
 import signal
@@ -69,10 +70,11 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
 
 
 def run_lockstep(tmp_path, name: str, seed: int, duration: float) -> tuple[bytes, dict]:
-    truth, summary = tmp_path / f"{name}.truth", tmp_path / f"{name}.json"
+    truth, summary, digests = tmp_path / f"{name}.truth", tmp_path / f"{name}.json", tmp_path / f"{name}.digests"
     result = subprocess.run(
         falconry_argv("sim", "mbzirc", "--uavs", "2", "--lockstep", "--seed", str(seed), "--duration", str(duration),
-                      "--quiet", "--truth-log", str(truth), "--summary-json", str(summary), "--wall-timeout", "240"),
+                      "--quiet", "--truth-log", str(truth), "--summary-json", str(summary), "--wall-timeout", "240",
+                      "--digest-json", str(digests)),
         capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     return truth.read_bytes(), read_summary(summary)
@@ -81,6 +83,12 @@ def run_lockstep(tmp_path, name: str, seed: int, duration: float) -> tuple[bytes
 def test_lockstep_runs_with_the_same_seed_give_identical_ground_truth(tmp_path):
     first, s1 = run_lockstep(tmp_path, "a", seed=7, duration=20)
     second, s2 = run_lockstep(tmp_path, "b", seed=7, duration=20)
+    # not only the truth: every message every service published (clock aside) is the same
+    digests_a, digests_b = (json.loads((tmp_path / f"{n}.digests").read_text()) for n in "ab")
+    differing = sorted(k for k in digests_a.keys() | digests_b.keys() if digests_a.get(k) != digests_b.get(k))
+    assert not differing, f"lockstep runs differ on {differing}"
+    assert any("/points" in k for k in digests_a) and any("/tracks" in k for k in digests_a)
+    print(f"{len(digests_a)} key expressions, {sum(c for c, _ in digests_a.values())} messages identical")
     records = list(read_truth_log(tmp_path / "a.truth"))
     assert len(records) == 401, len(records)  # ticks 0..400 of 50 ms
     assert any(u.airborne for r in records for u in r.uavs), "the UAVs never flew: nothing was compared"

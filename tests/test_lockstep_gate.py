@@ -5,9 +5,7 @@ UP = {"classifier"}
 
 
 def make_gate():
-    gate = LockstepGate(("classifier",), wants=lambda key: key.startswith("falconry/uav1/"))
-    gate.first_tick = False
-    return gate
+    return LockstepGate(("classifier",), wants=lambda key: key.startswith("falconry/uav1/"), joining=False)
 
 
 def test_waits_for_upstream_ack_and_named_messages():
@@ -50,9 +48,11 @@ def test_restarted_publisher_counting_from_one_again_is_released():
     gate.record_ack("classifier", 1, {})
     assert [i for _, i in gate.release(UP)] == ["old"]
     gate.begin(2, {"falconry/uav1/map": 2})
-    gate.hold("falconry/uav1/map", 1, "new1")
-    gate.hold("falconry/uav1/map", 2, "new2")
     gate.record_ack("classifier", 2, {})
+    assert gate.missing(UP) == ["falconry/uav1/map#2"]  # the new incarnation's #2, not the old one
+    gate.hold("falconry/uav1/map", 1, "new1")
+    assert gate.missing(UP) == ["falconry/uav1/map#2"]
+    gate.hold("falconry/uav1/map", 2, "new2")
     assert gate.missing(UP) == []
     assert [i for _, i in gate.release(UP)] == ["new1", "new2"]
 
@@ -66,10 +66,21 @@ def test_release_order_is_by_key_not_arrival():
     assert [i for _, i in gate.release(UP)] == ["a", "b"]
 
 
-def test_first_tick_after_joining_does_not_wait():
-    gate = LockstepGate(("classifier",), wants=lambda key: True)
-    gate.begin(10, {"falconry/uav1/points": 400})
-    assert gate.missing(UP) == []
+def test_joining_mid_run_does_not_wait_but_the_first_step_of_a_run_does():
+    late = LockstepGate(("classifier",), wants=lambda key: True)
+    late.begin(10, {"falconry/uav1/points": 400})
+    assert late.missing(UP) == []
+    at_start = LockstepGate(("classifier",), wants=lambda key: True)
+    at_start.begin(0, {"falconry/sim/truth": 1})
+    assert set(at_start.missing(UP)) == {"ack of classifier", "falconry/sim/truth#1"}
+    at_start.hold("falconry/sim/truth", 1, "truth1")
+    at_start.record_ack("classifier", 0, {})
+    assert at_start.missing(UP) == []
+    assert [i for _, i in at_start.release(UP)] == ["truth1"]
+    late.release(UP)
+    late.rejoin()  # missed ticks (a cut link): the next one waits for nothing again
+    late.begin(30, {"falconry/uav1/points": 900})
+    assert late.missing(UP) == []
 
 
 def test_fault_windows_silence_only_the_faulted_services_for_their_duration():

@@ -69,14 +69,14 @@ def test_clockwise_arena_is_reoriented(tmp_path):
 
 
 def test_unknown_name_lists_builtins():
-    with pytest.raises(ScenarioError, match=r"unknown scenario 'foo' \(built-in: mbzirc"):
+    with pytest.raises(ScenarioError, match=r"unknown scenario 'foo' \(built-in: intruder, mbzirc, sparse, takeoff;"):
         load_scenario("foo")
     with pytest.raises(ScenarioError, match="not found"):
         load_scenario("/nonexistent/x.toml")
 
 
 def test_unknown_field(tmp_path):
-    assert error_of(tmp_path, "wind = 3\n" + GOOD) == "t.toml: wind: unknown field"
+    assert error_of(tmp_path, "gravity = 3\n" + GOOD) == "t.toml: gravity: unknown field"
     nested = GOOD.replace("height = 3.0", "height = 3.0\ncolour = 'red'")
     assert error_of(tmp_path, nested) == "t.toml: balloons[0].colour: unknown field"
 
@@ -133,3 +133,116 @@ def test_points_in_non_convex_polygon():
     notched = np.array([[0, 0], [10, 0], [10, 10], [6, 10], [6, 5], [4, 5], [4, 10], [0, 10]], float)
     inside = point_in_polygon(np.array([[1, 1], [5, 7], [5, 3], [9, 9], [11, 1], [-math.pi, 2]]), notched)
     assert inside.tolist() == [True, False, True, True, False, False]
+
+
+# ---------------------------------------------------------------- issue 3: built-ins, UAVs, faults
+def test_every_builtin_loads_and_runs_a_few_steps():
+    from services.simulator.core import Simulation
+
+    assert builtin_scenarios() == ["intruder", "mbzirc", "sparse", "takeoff"]
+    for name in builtin_scenarios():
+        s = load_scenario(name)
+        sim = Simulation(s, [f"uav{i + 1}" for i in range(s.uavs)], s.seed)
+        for _ in range(4):
+            sim.step(0.05)
+        assert len(sim.targets()) == len(s.balloons) + len(s.drones)
+    assert load_scenario("mbzirc").wind.speed > 0
+    intruder = load_scenario("intruder")
+    assert any(d.path == "waypoints" and d.speed == 4.0 for d in intruder.drones)
+    assert any(d.path == "random" for d in intruder.drones)
+    assert sum(o.kind == "box" for o in intruder.obstacles) >= 2
+
+
+def test_sparse_target_stays_10_to_35_m_from_the_observer():
+    from services.simulator.paths import MARGIN, DronePath
+
+    s = load_scenario("sparse")
+    assert s.uav_spec("uav1").sensor == "mid360" and s.airspace
+    # The observer's working area shrinks to the line y = 2, x 2..4 (see the scenario's comment).
+    observer = np.array([[x, 2.0, z] for x in (2.0, 3.0, 4.0) for z in (0.0, 2.5, 5.0)])
+    low, high = np.array(s.drones[0].box[0]) + MARGIN, np.array(s.drones[0].box[1]) - MARGIN
+    corners = np.array([[x, y, z] for x in (low[0], high[0]) for y in (low[1], high[1]) for z in (low[2], high[2])])
+    assert np.linalg.norm(corners[:, None] - observer[None], axis=2).max() <= 35.0
+    assert low[1] - observer[:, 1].max() >= 10.0
+    for seed in (1, 2):
+        p, _ = DronePath(s.drones[0], s, seed, 0).state(np.arange(0.0, s.duration, 0.1))
+        gaps = np.linalg.norm(p[:, None] - observer[None], axis=2)
+        assert 10.0 <= gaps.min() and gaps.max() <= 35.0
+
+
+def test_takeoff_target_rests_by_the_wall_then_climbs():
+    from services.simulator.paths import DronePath
+
+    s = load_scenario("takeoff")
+    drone, building = s.drones[0], s.obstacles[0]
+    wall_y = building.center[1] - building.size[1] / 2
+    path = DronePath(drone, s, s.seed, 0)
+    resting, _ = path.state(drone.takeoff_time - 1.0)
+    assert resting[2] == s.ground_z + drone.body_radius and wall_y - resting[1] - drone.body_radius < 1.0
+    assert path.state(drone.takeoff_time + 6.0)[0][2] > resting[2] + 2.0
+
+
+def test_uav_table_and_overrides(tmp_path):
+    s = load_scenario(write(tmp_path, GOOD + '\n[uav]\nsensor = "os1-128"\nodometry_position_sigma = 0.1\n'
+                            '[uav.attack]\nmax_speed = 7.0\nmax_acceleration = 2.5\n'
+                            '[uav.overrides.uav2]\nsensor = "mid360"\n'))
+    one, two = s.uav_spec("uav1"), s.uav_spec("uav2")
+    assert (one.sensor, two.sensor) == ("os1-128", "mid360")
+    assert one.attack.max_speed == 7.0 and two.attack.max_acceleration == 2.5 and two.odometry_position_sigma == 0.1
+    assert one.sweeping.max_speed == 5.0 and one.sweeping.max_acceleration == 1.5
+    assert one.attack.message("attack").max_speed == 7.0
+    assert error_of(tmp_path, GOOD + "\n[uav]\nodometry_attitude_sigma = -1.0\n") == (
+        "t.toml: uav.odometry_attitude_sigma: must be >= 0, got -1.0")
+    assert error_of(tmp_path, GOOD + "\n[uav.overrides.uav1]\nsensor = 'velodyne'\n").startswith(
+        "t.toml: uav.overrides.uav1.sensor: unknown LiDAR model 'velodyne'")
+    assert error_of(tmp_path, GOOD + "\n[uav.overrides.uav2]\nsensr = 'x'\n") == (
+        "t.toml: uav.overrides.uav2.sensr: unknown field")
+    assert error_of(tmp_path, GOOD + "\n[uav.attack]\nmax_speed = 7.0\n") == (
+        "t.toml: uav.attack.max_acceleration: missing required field")
+
+
+def fault(**fields) -> str:
+    lines = "\n".join(f"{k} = {v!r}" if isinstance(v, str) else f"{k} = {v}" for k, v in fields.items())
+    return GOOD + "\n[[faults]]\n" + lines + "\n"
+
+
+def test_fault_schedule_parses_into_commands(tmp_path):
+    from services.simulator.scenario import check_team
+
+    text = fault(time=30.0, kind="lidar_silent", uav="uav2", duration=5.0) + fault(
+        time=40.0, kind="odometry_jump", uav="uav1", offset=[1.0, 0.0, 0.0]).replace(GOOD, "") + fault(
+        time=50.0, kind="kill", uav="uav3", service="planner").replace(GOOD, "")
+    s = load_scenario(write(tmp_path, text))
+    assert [(f.time, f.kind, f.uav) for f in s.faults] == [
+        (30.0, "lidar_silent", "uav2"), (40.0, "odometry_jump", "uav1"), (50.0, "kill", "uav3")]
+    command = s.faults[1].command()
+    assert command.header.stamp == 40_000_000_000 and command.offset == (1.0, 0.0, 0.0)
+    check_team(s, ["uav1", "uav2", "uav3"])
+    with pytest.raises(ScenarioError, match=r"^faults\[2\]\.uav: uav3 is not in the team \(uav1, uav2\)$"):
+        check_team(s, ["uav1", "uav2"])  # the command line ran a smaller team
+
+
+def test_bad_faults_name_the_field(tmp_path):
+    assert error_of(tmp_path, fault(time=1.0, kind="meteor", uav="uav1")) == (
+        "t.toml: faults[0].kind: invalid enum value 'meteor'")
+    assert error_of(tmp_path, fault(time=1.0, kind="kill", uav="uav4")) == (
+        "t.toml: faults[0].uav: 'uav4' is not a UAV of a team of at most 3 (uav1..uav3)")
+    assert error_of(tmp_path, fault(time=500.0, kind="freeze", uav="uav1")) == (
+        "t.toml: faults[0].time: 500.0 s is outside the mission (0 to duration 120.0 s)")
+    assert error_of(tmp_path, fault(time=1.0, kind="lidar_nan", uav="uav1", service="mapper")) == (
+        "t.toml: faults[0].service: only kill and freeze faults target one service")
+    assert error_of(tmp_path, fault(time=1.0, kind="freeze", uav="uav1", service="mapr")).startswith(
+        "t.toml: faults[0].service: unknown service 'mapr' (one of sensor_driver, ")
+    assert error_of(tmp_path, fault(time=1.0, kind="odometry_jump", uav="uav1")) == (
+        "t.toml: faults[0].offset: an odometry_jump needs a non-zero offset")
+    assert error_of(tmp_path, fault(time=1.0, kind="kill", uav="uav1", duration=-2.0)) == (
+        "t.toml: faults[0].duration: must be >= 0, got -2.0")
+    assert error_of(tmp_path, fault(kind="kill", uav="uav1")) == "t.toml: faults[0].time: missing required field"
+
+
+def test_bad_wind_and_capture(tmp_path):
+    assert error_of(tmp_path, GOOD + "\n[wind]\ngust_period = 0.0\n") == (
+        "t.toml: wind.gust_period: must be > 0, got 0.0")
+    assert error_of(tmp_path, "capture_radius = 0.0\n" + GOOD) == "t.toml: capture_radius: must be > 0, got 0.0"
+    assert error_of(tmp_path, "airspace = [[0, 0], [1, 1], [1, 0], [0, 1]]\n" + GOOD).startswith(
+        "t.toml: airspace: edges 0 and 2 cross")

@@ -1,16 +1,21 @@
-"""Simulated LiDAR: exact ray-primitive hits, scan shape, masking and determinism."""
+"""Simulated LiDAR: exact ray-primitive hits (the compiled caster, checked against the numpy
+reference), scan shape, masking, hit ids, pose noise, intensity, faults and determinism."""
 from __future__ import annotations
 
 import math
 
 import numpy as np
+import pytest
 
 from schemas.messages import Obstacle, TargetTruth
 from services.sensor_driver import core
+from services.sensor_driver import numpy_caster as reference
+from services.sensor_driver.faults import LidarFaults, faulty_scan
+from services.sensor_driver.models import beam_directions
 from services.sensor_driver.core import (
     Primitives,
-    beam_directions,
     cast,
+    cast_with_ids,
     primitives_from_obstacles,
     scan,
     target_spheres,
@@ -104,11 +109,11 @@ def test_culling_matches_brute_force():
     origin = np.array([0.5, 0.2, 3.0])
     brute = np.full(len(d), np.inf)
     with np.errstate(all="ignore"):
-        brute = np.minimum(brute, core._hit_plane(origin, d, 0.0))
-        brute = np.minimum(brute, core._hit_box(origin, d, prims.boxes[0]))
-        brute = np.minimum(brute, core._hit_cylinder(origin, d, prims.cylinders[0]))
-        brute = np.minimum(brute, core._hit_cone(origin, d, prims.cones[0]))
-        brute = np.minimum(brute, core._hit_sphere(origin, d, prims.spheres[0]))
+        brute = np.minimum(brute, reference._hit_plane(origin, d, 0.0))
+        brute = np.minimum(brute, reference._hit_box(origin, d, prims.boxes[0]))
+        brute = np.minimum(brute, reference._hit_cylinder(origin, d, prims.cylinders[0]))
+        brute = np.minimum(brute, reference._hit_cone(origin, d, prims.cones[0]))
+        brute = np.minimum(brute, reference._hit_sphere(origin, d, prims.spheres[0]))
     assert np.array_equal(cast(origin, d, prims), brute)
     assert np.isfinite(brute).sum() > 10000
 
@@ -127,7 +132,7 @@ def test_scan_of_ground_from_5m():
     directions = beam_directions(32, 512, 90.0)
     prims = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))])
     origin = np.array([3.0, 4.0, 5.0])
-    unlimited = scan(origin, 0.7, directions, prims, np.random.default_rng(1), max_range=1e9)
+    unlimited = scan(origin, 0.7, directions, prims, np.random.default_rng(1), max_range=1e9).points
     assert unlimited.shape == (32, 512, 3) and unlimited.dtype == np.float32
     pointing_up = directions[..., 2] >= 0
     assert np.array_equal(np.isnan(unlimited).any(axis=-1), pointing_up)
@@ -136,7 +141,7 @@ def test_scan_of_ground_from_5m():
     hits = unlimited[~pointing_up]
     assert np.abs(hits[:, 2]).max() < 0.06  # on the ground up to range noise (sigma 1 cm)
     # With the 50 m limit the shallow downward beams lose their far returns as well.
-    limited = scan(origin, 0.7, directions, prims, np.random.default_rng(1))
+    limited = scan(origin, 0.7, directions, prims, np.random.default_rng(1)).points
     expected = pointing_up | (5.0 / np.maximum(-directions[..., 2], 1e-12) > 50.0)
     assert np.array_equal(np.isnan(limited).any(axis=-1), expected)
     assert expected.sum() > pointing_up.sum()
@@ -145,12 +150,12 @@ def test_scan_of_ground_from_5m():
 def test_scan_rotates_with_heading_and_masks_body():
     directions = beam_directions(8, 64, 60.0)
     wall = primitives_from_obstacles([Obstacle(kind="box", center=(0, 10, 0), size=(40, 1, 40))])
-    points = scan(np.zeros(3), math.pi / 2, directions, wall, np.random.default_rng(0), range_noise=0.0)
+    points = scan(np.zeros(3), math.pi / 2, directions, wall, np.random.default_rng(0), range_noise=0.0).points
     # Column 0 points along the heading (+y), straight at the wall face at y = 9.5.
     assert np.allclose(points[4, 0, 1], 9.5, atol=MM)
-    # A return closer than the carrier body (0.4 m) is dropped, even above min_range.
+    # A return inside the carrier's body box (default ±0.4 m around the sensor) is dropped.
     near = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, -0.18))])  # 0.36 m at -30°
-    points = scan(np.zeros(3), 0.0, directions, near, np.random.default_rng(0), range_noise=0.0)
+    points = scan(np.zeros(3), 0.0, directions, near, np.random.default_rng(0), range_noise=0.0).points
     assert np.isnan(points[-1, :, :]).all()
 
 
@@ -162,8 +167,133 @@ def test_scan_is_seeded_and_targets_are_spheres():
     assert spheres.shape == (1, 4)
     prims = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))]).with_spheres(spheres)
     directions = beam_directions(32, 512, 90.0)
-    a = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, prims, np.random.default_rng([1, 0, 7]))
-    b = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, prims, np.random.default_rng([1, 0, 7]))
+    a = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, prims, np.random.default_rng([1, 0, 7])).points
+    b = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, prims, np.random.default_rng([1, 0, 7])).points
     assert np.array_equal(a, b, equal_nan=True)
     on_balloon = np.linalg.norm(a - np.array([8.0, 0.0, 5.0], np.float32), axis=-1) < 0.35
     assert on_balloon.sum() >= 2
+
+
+# ------------------------------------------------------------------ issue 3: compiled caster, truth, noise
+def random_world(rng: np.random.Generator) -> Primitives:
+    boxes = [Obstacle(kind="box", center=tuple(rng.uniform(-8, 8, 3)), size=tuple(rng.uniform(0.5, 4, 3)))
+             for _ in range(4)]
+    upright = [Obstacle(kind=kind, center=(*rng.uniform(-8, 8, 2), rng.uniform(-1, 1)),
+                        radius=rng.uniform(0.2, 2), height=rng.uniform(1, 6))
+               for kind in ("cylinder", "cone", "cylinder", "cone")]
+    prims = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, -1.5))] + boxes + upright)
+    targets = [TargetTruth(id=f"t{k}", kind=kind, position=tuple(rng.uniform(-6, 6, 3)), velocity=(0, 0, 0),
+                           radius=0.3 + 0.1 * k) for k, kind in enumerate(("balloon", "drone", "balloon", "drone"))]
+    return prims.with_targets(targets)
+
+
+def test_compiled_caster_matches_the_numpy_reference_bit_for_bit():
+    rng = np.random.default_rng(5)
+    for trial in range(4):
+        world = random_world(rng)
+        d = unit(*rng.normal(size=(20000, 3)))
+        d[:300, rng.integers(0, 3)] = 0.0  # axis-parallel rays: the 0/0 and ±inf branches
+        d[:300] /= np.linalg.norm(d[:300], axis=1, keepdims=True)
+        origin = rng.uniform(-3, 3, 3)
+        ranges, ids = cast_with_ids(origin, d, world)
+        expected_ranges, expected_ids = reference.cast(origin, d, world)
+        assert np.array_equal(ranges, expected_ranges)
+        assert np.array_equal(ids, expected_ids)
+        assert len(np.unique(ids)) >= 4  # misses, static world and some targets were all exercised
+
+
+def test_hit_ids_name_the_target_and_match_the_returns():
+    targets = [TargetTruth(id="b1", kind="balloon", position=(8.0, 0.0, 5.0), velocity=(0, 0, 0), radius=0.3),
+               TargetTruth(id="gone", kind="balloon", position=(0.0, 8.0, 5.0), velocity=(0, 0, 0), radius=0.3,
+                           destroyed=True),
+               TargetTruth(id="d1", kind="drone", position=(0.0, -8.0, 5.0), velocity=(1, 0, 0), radius=0.325)]
+    world = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))]).with_targets(targets)
+    directions = beam_directions(64, 1024, 45.0)
+    result = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, world, np.random.default_rng(3))
+    assert result.hits.shape == (64, 1024) and result.hits.dtype == np.int32
+    assert np.array_equal(result.hits == -1, np.isnan(result.points).any(axis=-1))
+    assert set(np.unique(result.hits)) == {-1, 0, 1, 3}  # target 2 is destroyed: never hit
+    for k, centre in ((1, (8.0, 0.0, 5.0)), (3, (0.0, -8.0, 5.0))):
+        on = result.points[result.hits == k]
+        assert len(on) >= 2 and np.linalg.norm(on - np.array(centre, np.float32), axis=1).max() < 0.5
+    drone = result.points[result.hits == 3]
+    assert np.abs(drone[:, 2] - 5.0).max() < core.DRONE_BODY_HEIGHT / 2 + 0.1  # a flat body, not a ball
+    assert (result.points[result.hits == 0][:, 2] < 0.1).all()  # the rest is ground
+
+
+def test_position_noise_moves_the_rays_not_the_published_pose():
+    ground = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))])
+    directions = beam_directions(16, 64, 90.0)
+    origin = np.array([0.0, 0.0, 5.0])
+    kwargs = dict(range_noise=0.0, max_range=1e9, body_box=None)
+    exact = scan(origin, 0.3, directions, ground, np.random.default_rng(9), **kwargs).points
+    assert np.nanmax(np.abs(exact[..., 2])) < 1e-5
+    moved = scan(origin, 0.3, directions, ground, np.random.default_rng(9), position_noise=0.5, **kwargs).points
+    offset = 0.5 * np.random.default_rng(9).normal(0.0, 1.0, 6)[:3]  # the scan's first draws
+    # Rays left from origin + offset, points are placed from origin: the ground appears at -dz.
+    assert np.allclose(moved[..., 2][np.isfinite(moved[..., 2])], -offset[2], atol=1e-5)
+    tilted = scan(origin, 0.3, directions, ground, np.random.default_rng(9), attitude_noise=0.02, **kwargs).points
+    err = np.abs(tilted[..., 2])
+    assert np.nanmax(err) > 0.05 and np.nanmin(err) < 0.1  # a tilted ground, worse far away
+
+
+def test_body_box_below_the_sensor_blocks_the_steep_rays():
+    ground = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))])
+    directions = beam_directions(91, 8, 90.0)  # rows every 1°: +45 … -45
+    elevation = 45.0 - np.arange(91)
+    frame = (-0.3, -0.3, -0.3, 0.3, 0.3, -0.1)  # the carrier 10 cm below the optical centre
+    points = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, ground, np.random.default_rng(0),
+                  range_noise=0.0, max_range=1e9, body_box=frame).points
+    blocked = np.isnan(points[..., 0])
+    assert blocked[elevation < -19.0].all()  # through the top face (atan(0.1/0.3) = 18.4° at the edge)
+    assert not blocked[(elevation < -1.0) & (elevation > -13.0)].any()  # past the frame, onto the ground
+    # The same box without the ground: blocked rays are blocked, not just out of range.
+    nothing = scan(np.array([0.0, 0.0, 5.0]), 0.0, directions, Primitives(), np.random.default_rng(0),
+                   body_box=frame)
+    assert (nothing.hits == -1).all()
+
+
+def test_intensity_falls_with_range_and_incidence():
+    wall = primitives_from_obstacles([Obstacle(kind="box", center=(0, 0, 0), size=(1, 40, 40))])  # face x = -0.5
+    directions = unit([1, 0, 0], [1, 1, 0], [1, 0, 0]).reshape(1, 3, 3)
+    near = scan(np.array([-3.5, 0.0, 0.0]), 0.0, directions, wall, np.random.default_rng(0), intensity=True)
+    far = scan(np.array([-10.5, 0.0, 0.0]), 0.0, directions, wall, np.random.default_rng(0), intensity=True)
+    static = core.REFLECTIVITY["static"]
+    assert near.intensity.dtype == np.float32
+    assert abs(near.intensity[0, 0] - static) < 1e-6  # head-on within the full-signal range
+    assert abs(near.intensity[0, 1] - static * math.cos(math.pi / 4)) < 1e-6  # 45°, 4.2 m away
+    assert abs(far.intensity[0, 0] - static * (5.0 / 10.0) ** 2) < 1e-6
+    assert scan(np.zeros(3), 0.0, directions, wall, np.random.default_rng(0)).intensity is None
+
+
+def test_faulty_scans_hide_the_world():
+    world = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))])
+    good = scan(np.array([0.0, 0.0, 5.0]), 0.0, beam_directions(8, 32, 90.0), world, np.random.default_rng(0))
+    nan = faulty_scan(good, "lidar_nan", np.array([0.0, 0.0, 5.0]), 50.0, np.random.default_rng(0))
+    assert np.isnan(nan.points).all() and (nan.hits == -1).all()
+    garbage = faulty_scan(good, "lidar_garbage", np.array([0.0, 0.0, 5.0]), 50.0, np.random.default_rng(0))
+    assert np.isfinite(garbage.points).all() and (garbage.hits == -1).all()
+    assert garbage.points.shape == good.points.shape and garbage.points[..., 2].std() > 10  # not the ground
+
+
+def test_mid360_scan_sees_a_balloon_with_a_few_points():
+    from services.sensor_driver.models import lidar_model
+
+    model = lidar_model("mid360")
+    balloon = [TargetTruth(id="b", kind="balloon", position=(15.0, 0.0, 8.0), velocity=(0, 0, 0), radius=0.3)]
+    world = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))]).with_targets(balloon)
+    counts = [int((scan(np.array([0.0, 0.0, 5.0]), 0.0, model.directions(f), world, np.random.default_rng(f),
+                        min_range=model.min_range, max_range=model.max_range).hits == 1).sum()) for f in range(10)]
+    assert sum(counts) > 0 and min(counts) < max(counts)  # sparse and changing from frame to frame
+
+
+def test_fault_windows_follow_mission_time():
+    faults = LidarFaults()
+    faults.add("lidar_silent", 5_000_000_000, 2.0)
+    faults.add("lidar_nan", 6_000_000_000, 0.0)  # until the end
+    assert faults.active(4_999_999_999) is None
+    assert faults.active(5_000_000_000) == "lidar_silent"
+    assert faults.active(6_500_000_000) == "lidar_nan"  # the later one wins while both are on
+    assert faults.active(60_000_000_000) == "lidar_nan"
+    with pytest.raises(ValueError, match="odometry_jump"):
+        faults.add("odometry_jump", 0, 1.0)

@@ -18,7 +18,7 @@ def scenario(**extra):
         "name": "unit",
         "arena": [[-50, -50], [50, -50], [50, 50], [-50, 50]],
         "starts": [[0.0, 0.0, 0.0], [0.0, 10.0, 0.0]],
-        "balloons": [{"pole": [20.0, 0.0], "height": 4.7, "name": "red"}],  # centre at z = 5.0
+        "balloons": [{"pole": [20.0, 0.0], "height": 4.7, "tether": 0.0, "name": "red"}],  # centre at z = 5.0
         "drones": [{"center": [0.0, 0.0, 8.0], "radius": 6.0, "speed": 2.0, "phase": 0.5}],
         "obstacles": [{"kind": "box", "center": [-20.0, -20.0, 2.0], "size": [4.0, 4.0, 4.0]}],
     }

@@ -5,10 +5,12 @@ import argparse
 import logging
 import sys
 
-from services.runtime.zenoh_config import PROFILES, ZenohConfigError, ZenohSettings
+from services.runtime.errors import UsageError
+from services.runtime.zenoh_config import PROFILES, ZenohSettings
+from services.simulator.scenario import ScenarioError
 
 
-class CliError(Exception):
+class CliError(UsageError):
     """A user mistake: reported as one line on stderr with exit code 2."""
 
 
@@ -66,7 +68,7 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(asctime)s.%(msecs)03d %(levelname).1s %(name)s: %(message)s", datefmt="%H:%M:%S")
     try:
         return args.handler(args)
-    except (CliError, ZenohConfigError, ValueError) as exc:
+    except (UsageError, ScenarioError) as exc:
         print(f"falconry {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

@@ -3,6 +3,7 @@ builds the progress line and the end-of-run summary from messages alone (truth, 
 status, tracks, detections, liveliness)."""
 from __future__ import annotations
 
+import hashlib
 import math
 import struct
 from dataclasses import dataclass, field
@@ -51,13 +52,15 @@ class UavSummary:
 
 
 class RunMonitor:
-    def __init__(self, truth_log: BinaryIO | None = None) -> None:
+    def __init__(self, truth_log: BinaryIO | None = None, digests: bool = False) -> None:
         self.truth_log = truth_log
+        self.digests: dict[str, tuple[int, "hashlib._Hash"]] | None = {} if digests else None
         self.step = -1
+        self.truth_step = -1
         self.mission_time = 0.0
         self.rtf = 0.0
-        self.finished = False
-        self.started = False
+        self.finished = False  # the clock's last tick went out
+        self.over = False  # ... and the simulator saw every service acknowledge it
         self.uavs: dict[str, UavSummary] = {}
         self.targets: dict[str, tuple[str, bool]] = {}
         self.destroyed: list[tuple[float, str, str]] = []
@@ -74,6 +77,10 @@ class RunMonitor:
         self._detections = msgspec.msgpack.Decoder(Detections)
 
     def handle(self, key: str, payload: bytes) -> None:
+        if self.digests is not None and key != keys.CLOCK:
+            count, digest = self.digests.get(key) or (0, hashlib.sha256())
+            digest.update(payload)
+            self.digests[key] = (count + 1, digest)
         try:
             if key in self.decode:
                 msg = self.decode[key].decode(payload)
@@ -104,7 +111,11 @@ class RunMonitor:
         self.rtf = tick.real_time_factor
         self.finished = self.finished or tick.finished
 
+    def digest_summary(self) -> dict[str, list]:
+        return {key: [count, digest.hexdigest()] for key, (count, digest) in sorted((self.digests or {}).items())}
+
     def _on_truth(self, truth: GroundTruth) -> None:
+        self.truth_step = max(self.truth_step, truth.step)
         t = seconds(truth.header.stamp)
         for v in truth.uavs:
             u = self._uav(v.name)
@@ -122,8 +133,8 @@ class RunMonitor:
 
     def _on_events(self, event: SimEvent) -> None:
         self.events.append(event)
-        if event.kind == "mission_started":
-            self.started = True
+        if event.kind == "mission_finished":
+            self.over = True
         elif event.kind == "target_destroyed":
             self.destroyed.append((seconds(event.header.stamp), event.subject, event.detail))
         elif event.kind == "service_restarted":

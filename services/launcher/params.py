@@ -14,9 +14,10 @@ from pathlib import Path
 import msgspec
 
 from schemas import keys
+from services.runtime.errors import UsageError
 
 
-class ParamsError(ValueError):
+class ParamsError(UsageError):
     pass
 
 

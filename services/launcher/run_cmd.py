@@ -37,7 +37,10 @@ def run(args: argparse.Namespace) -> int:
     if args.service in keys.UAV_SERVICES:
         if not args.uav:
             raise CliError(f"{args.service} is a per-UAV service: give --uav (e.g. --uav uav1)")
-        keys.check_name(args.uav, "UAV name")
+        try:
+            keys.check_name(args.uav, "UAV name")
+        except ValueError as exc:
+            raise CliError(str(exc)) from None
     elif args.uav:
         raise CliError(f"{args.service} is run-wide: it takes no --uav")
     if args.tick_hz <= 0:

@@ -21,8 +21,9 @@ from schemas.messages import FaultCommand, Header, SimEvent
 from services.launcher import netns
 from services.launcher.faults import FaultExecutor
 from services.launcher.monitor import RunMonitor
-from services.launcher.plan import DETECTORS, plan_run
-from services.launcher.params import ParamsError, read_tables
+from services.launcher.plan import DETECTORS, plan_run, uav_services
+from services.launcher.params import ParamsError, params_for, read_tables
+from services.launcher.registry import node_class
 from services.launcher.supervisor import Supervisor, describe_exit
 from services.runtime import shm
 from services.runtime.zenoh_config import free_port, init_logging, open_session
@@ -56,6 +57,9 @@ def add_parser(commands) -> None:
                      help="write every ground-truth message (u32 length + msgpack) to FILE")
     run.add_argument("--summary-json", metavar="FILE", help="also write the summary as JSON to FILE")
     run.add_argument("--log-file", metavar="FILE", help="write every service's log lines to FILE")
+    run.add_argument("--digest-json", metavar="FILE",
+                     help="write, per key expression, the count and SHA-256 of every payload published in the run "
+                          "(the clock excepted): two seeded lockstep runs must match")
     run.add_argument("--quiet", action="store_true",
                      help="do not echo service logs (progress, restarts and the summary still print)")
     run.add_argument("--progress", type=float, default=10.0, metavar="S",
@@ -72,8 +76,11 @@ def run_sim(args: argparse.Namespace) -> int:
     try:
         scenario = load_scenario(args.scenario)
         read_tables(args.config)
+        for service in ["simulator", *uav_services(args.detector)]:
+            params_for(service, node_class(service).params_type, args.config)
     except (ScenarioError, ParamsError) as exc:
         raise CliError(str(exc)) from None
+    outputs = open_outputs(args)
     for name, value in (("--duration", args.duration), ("--rtf", args.rtf), ("--tick", args.tick)):
         if value is not None and value <= 0:
             raise CliError(f"{name} must be positive")
@@ -97,14 +104,14 @@ def run_sim(args: argparse.Namespace) -> int:
     session = open_session(plan.hub_settings)
     inbox: queue.SimpleQueue = queue.SimpleQueue()
     subscribers = [session.declare_subscriber(k, lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes())))
-                   for k in WATCHED + (keys.FAULTS,)]
+                   # digests need everything; one subscription keeps each payload from arriving twice
+                   for k in ((f"{keys.ROOT}/**",) if args.digest_json else WATCHED + (keys.FAULTS,))]
     events_pub = session.declare_publisher(keys.EVENTS)
     encoder = msgspec.msgpack.Encoder()
     fault_decoder = msgspec.msgpack.Decoder(FaultCommand)
     event_seq = [0]
 
-    truth_file = open(args.truth_log, "wb") if args.truth_log else None
-    monitor = RunMonitor(truth_file)
+    monitor = RunMonitor(outputs.truth, digests=args.digest_json is not None)
 
     def report(kind: str, subject: str, detail: str) -> None:
         event_seq[0] += 1
@@ -116,7 +123,7 @@ def run_sim(args: argparse.Namespace) -> int:
         report("service_restarted", name, describe_exit(code))
 
     supervisor = Supervisor(echo=not args.quiet, on_restart=on_restart,
-                            log_file=Path(args.log_file) if args.log_file else None)
+                            log_file=outputs.log)
     mode = "lockstep" if args.lockstep else f"real time x{args.rtf:g}"
     supervisor.say(f"{scenario.name}: {len(uavs)} UAVs, seed {seed}, {duration:g} s of mission time, {mode}, "
                    f"detector {args.detector}, zenoh {plan.hub_label}"
@@ -128,7 +135,12 @@ def run_sim(args: argparse.Namespace) -> int:
         for name, argv in plan.children.items():
             supervisor.start(name, argv)
         next_progress = args.progress
-        while not monitor.finished:
+        finished_at = None
+        while not monitor.over:
+            if monitor.finished and finished_at is None:
+                finished_at = time.monotonic()
+            if finished_at is not None and time.monotonic() - finished_at > 3.0:
+                break  # the simulator's closing event went missing: the run is over all the same
             try:
                 key, payload = inbox.get(timeout=0.1)
                 if key == keys.FAULTS:
@@ -151,22 +163,28 @@ def run_sim(args: argparse.Namespace) -> int:
             if args.wall_timeout and time.time() - started_wall > args.wall_timeout:
                 outcome = f"wall timeout ({args.wall_timeout:g} s)"
                 break
-        while True:  # the last messages (final truth, events) may still be queued
+        # Messages of the last tick travel on other links and threads than the closing event:
+        # take everything until the truth is complete and the keys have been quiet a moment.
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline:
             try:
-                monitor.handle(*inbox.get_nowait())
+                monitor.handle(*inbox.get(timeout=0.2))
             except queue.Empty:
-                break
+                if monitor.truth_step >= monitor.step:
+                    break
     except KeyboardInterrupt:
         outcome = "interrupted"
     finally:
+        # a second Ctrl-C must not cut the clean-up short
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         faults.end_all()
         killed = supervisor.stop_all()
         for sub in subscribers:
             sub.undeclare()
         events_pub.undeclare()
         session.close()
-        if truth_file:
-            truth_file.close()
+        outputs.close()
         if network:
             network.teardown()
         shm.remove_orphans(shm.segments() - segments_before)
@@ -178,9 +196,37 @@ def run_sim(args: argparse.Namespace) -> int:
     print_summary(summary, len(uavs), duration)
     if args.summary_json:
         Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
+    if args.digest_json:
+        Path(args.digest_json).write_text(json.dumps(monitor.digest_summary(), indent=2, sort_keys=True) + "\n")
     if outcome == "interrupted":
         return 130
     return 0 if outcome == "finished" and not summary["failed_services"] else 1
+
+
+class Outputs:
+    """The run's output files, opened before anything starts so a bad path is a one-line error."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        from services.launcher.cli import CliError
+
+        self.truth = self.log = None
+        try:
+            for path in (args.summary_json, args.digest_json):
+                if path and not Path(path).resolve().parent.is_dir():
+                    raise FileNotFoundError(f"no such directory: {Path(path).resolve().parent}")
+            self.truth = open(args.truth_log, "wb") if args.truth_log else None
+            self.log = open(args.log_file, "a", buffering=1) if args.log_file else None
+        except OSError as exc:
+            self.close()
+            raise CliError(f"cannot write an output file: {exc}") from None
+
+    def close(self) -> None:
+        for f in (self.truth, self.log):
+            if f is not None:
+                f.close()
+
+
+open_outputs = Outputs
 
 
 def _interrupt(signum, frame) -> None:

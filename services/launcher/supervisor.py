@@ -14,9 +14,9 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, TextIO
 
+USAGE_ERROR = 2  # what `falconry run` exits with on a bad option, parameter or scenario
 MAX_RESTARTS = 5  # within RESTART_WINDOW_S; beyond that the service is given up on
 RESTART_WINDOW_S = 60.0
 
@@ -36,14 +36,14 @@ class Child:
 class Supervisor:
     def __init__(self, out: TextIO = sys.stdout, echo: bool = True,
                  on_restart: Callable[[str, int, float], None] | None = None,
-                 log_file: Path | None = None) -> None:
+                 log_file: TextIO | None = None) -> None:
         self.children: dict[str, Child] = {}
         self._out = out
         self._echo = echo
         self._lock = threading.Lock()
         self._stopping = False
         self._on_restart = on_restart
-        self._log = open(log_file, "a", buffering=1) if log_file else None
+        self._log = log_file
         self.width = 10
 
     def start(self, name: str, argv: list[str]) -> None:
@@ -83,6 +83,10 @@ class Supervisor:
                 continue
             code = child.process.returncode
             now = time.monotonic()
+            if code == USAGE_ERROR:  # a bad option or parameter: restarting cannot help
+                child.failed = True
+                self.say(f"{child.name} exited with a usage error (exit code 2); not restarting it")
+                continue
             child.restarts = [t for t in child.restarts if now - t < RESTART_WINDOW_S]
             if len(child.restarts) >= MAX_RESTARTS:
                 child.failed = True
@@ -140,9 +144,7 @@ class Supervisor:
         for child in self.children.values():
             if child.reader:
                 child.reader.join(timeout=1.0)
-        if self._log:
-            self._log.close()
-            self._log = None
+        self._log = None  # the caller owns the file
         return killed
 
 

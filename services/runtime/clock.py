@@ -20,20 +20,15 @@ class MissionClock:
 
     def __init__(self) -> None:
         self._now = 0
-        self.started = False
 
     def now_ns(self) -> int:
         return self._now
 
     def advance_to(self, stamp_ns: int) -> None:
         self._now = max(self._now, stamp_ns)
-        self.started = True
 
 
 class WallClock:
-    def __init__(self) -> None:
-        self.started = True
-
     def now_ns(self) -> int:
         return time.time_ns()
 
@@ -41,7 +36,6 @@ class WallClock:
 class ManualClock:
     def __init__(self, start_ns: int = 0) -> None:
         self._now = start_ns
-        self.started = True
 
     def now_ns(self) -> int:
         return self._now

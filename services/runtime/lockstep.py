@@ -23,6 +23,7 @@ class LockstepGate(Generic[Item]):
         upstream: Iterable[str],
         wants: Callable[[str], bool],
         order: Callable[[str], Hashable] = lambda key: key,
+        joining: bool = True,
     ) -> None:
         self.upstream = tuple(upstream)
         self._wants = wants
@@ -32,7 +33,9 @@ class LockstepGate(Generic[Item]):
         self._acks: dict[str, dict[int, dict[str, int]]] = {}
         self._fifo: dict[str, deque[tuple[int, Item]]] = {}
         self._released: dict[str, int] = {}
-        self.first_tick = True
+        # A service joining a run already under way (started late, restarted, or back after
+        # missing ticks) cannot have what was sent before: its first tick waits for nothing.
+        self.joining = joining
 
     # -- inputs -------------------------------------------------------------
     def hold(self, key: str, seq: int, item: Item) -> None:
@@ -41,6 +44,9 @@ class LockstepGate(Generic[Item]):
     def begin(self, step: int, clock_bounds: dict[str, int]) -> None:
         self.step = step
         self._clock_bounds = clock_bounds
+
+    def rejoin(self) -> None:
+        self.joining = True
 
     def record_ack(self, service: str, step: int, published: dict[str, int]) -> None:
         acks = self._acks.setdefault(service, {})
@@ -60,7 +66,7 @@ class LockstepGate(Generic[Item]):
         """What tick `step` still waits for; empty when it can be processed."""
         if self.step is None:
             return ["clock tick"]
-        if self.first_tick:  # a (re)started service cannot have what was sent before it existed
+        if self.joining and self.step > 0:  # at step 0 everyone was there from the start
             return []
         waits = [
             f"ack of {service}"
@@ -68,7 +74,11 @@ class LockstepGate(Generic[Item]):
             if service in alive_upstream and self.step not in self._acks.get(service, {})
         ]
         for key, bound in self.bounds(alive_upstream).items():
-            if bound <= self._released.get(key, 0) or not self._wants(key):
+            if not self._wants(key) or bound == 0:
+                continue
+            # bound == released: nothing new. A bound *below* what we released means the
+            # publisher restarted and counts from 1 again: its message `bound` is a new one.
+            if bound == self._released.get(key, 0):
                 continue
             if not any(seq == bound for seq, _ in self._fifo.get(key, ())):
                 waits.append(f"{key}#{bound}")
@@ -95,7 +105,7 @@ class LockstepGate(Generic[Item]):
                 seq, item = fifo.popleft()
                 self._released[key] = seq
                 out.append((key, item))
-        self.first_tick = False
+        self.joining = False
         return out
 
 

@@ -79,7 +79,9 @@ class Node:
         self._subs: list[Subscription] = []
         self._zenoh_handles: list[Any] = []
         self._publishers: list[TypedPublisher] = []
-        self._liveliness_handlers: list[tuple[str, Callable[[str, bool], None]]] = []
+        self._liveliness_handlers: list[tuple[str, Callable[[str, bool], None], bool]] = []
+        self._tick_alive: set[str] = set()  # lockstep: the alive set of the last tick
+        self._pending_live: list[tuple[Callable, str, bool]] = []  # token events before the first tick
         self._alive_upstream: set[str] = set()
         self._lockstep: bool | None = None  # unknown until the first clock tick
         self._pending: list[tuple[Subscription, str, Any]] = []  # data before the first tick
@@ -91,6 +93,7 @@ class Node:
         self.session: zenoh.Session | None = None
         self._declared = False
         self._deferred_clock: SimClock | None = None
+        self._warned_no_clock = False
         self._fault_windows = FaultWindows()
         self._decode_log_budget = 20
 
@@ -116,11 +119,13 @@ class Node:
     def subscribe(self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None]) -> None:
         self._add_subscription(key_expr, msg_type, handler, internal=False)
 
-    def on_liveliness(self, key_expr: str, handler: Callable[[str, bool], None]) -> None:
-        """handler(key, alive) for every token matching key_expr, current ones included."""
-        self._liveliness_handlers.append((key_expr, handler))
+    def on_liveliness(self, key_expr: str, handler: Callable[[str, bool], None], internal: bool = False) -> None:
+        """handler(key, alive) for every token matching key_expr, current ones included.
+        In lockstep the simulator's view, carried by each tick, replaces raw token events
+        (internal runtime handlers excepted), so that they too land on the same tick every run."""
+        self._liveliness_handlers.append((key_expr, handler, internal))
         if self._declared:
-            self._declare_liveliness_subscriber(key_expr, handler)
+            self._declare_liveliness_subscriber(key_expr, handler, internal)
 
     def stop(self) -> None:
         self._stop.set()
@@ -146,11 +151,11 @@ class Node:
 
         self._zenoh_handles.append(self.session.declare_subscriber(sub.key_expr, on_sample))
 
-    def _declare_liveliness_subscriber(self, key_expr, handler) -> None:
+    def _declare_liveliness_subscriber(self, key_expr, handler, internal: bool) -> None:
         inbox = self._inbox
 
         def on_token(sample: zenoh.Sample) -> None:
-            inbox.put(("live", handler, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+            inbox.put(("live", handler, str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT, internal))
 
         self._zenoh_handles.append(
             self.session.liveliness().declare_subscriber(key_expr, on_token, history=True)
@@ -188,14 +193,14 @@ class Node:
                 self._add_subscription(keys.ack(self.scope, service), StepAck, self._on_upstream_ack, internal=True)
             if self.upstream:
                 self._add_subscription(keys.FAULTS, FaultCommand, self._on_fault, internal=True)
-            self.on_liveliness(f"{keys.ROOT}/{self.scope}/alive/*", self._on_scope_liveliness)
+            self.on_liveliness(f"{keys.ROOT}/{self.scope}/alive/*", self._on_scope_liveliness, internal=True)
             if self._clock_kind == "sim":
-                self.on_liveliness(keys.alive(keys.SIM, "simulator"), self._on_simulator_liveliness)
+                self.on_liveliness(keys.alive(keys.SIM, "simulator"), self._on_simulator_liveliness, internal=True)
             self.setup()
             for sub in self._subs:
                 self._declare_subscriber(sub)
-            for key_expr, handler in self._liveliness_handlers:
-                self._declare_liveliness_subscriber(key_expr, handler)
+            for key_expr, handler, internal in self._liveliness_handlers:
+                self._declare_liveliness_subscriber(key_expr, handler, internal)
             self._declared = True
             self._ack_pub = self.publisher(keys.ack(self.scope, self.service), StepAck)
             inbox = self._inbox
@@ -275,12 +280,15 @@ class Node:
             elif self._lockstep:
                 self._gate.hold(key, msg.header.seq, (sub, msg))
             elif self._lockstep is None:
-                self._pending.append((sub, key, msg))
+                self._hold_until_clock(sub, key, msg)
             else:
                 self._call(sub.handler, msg, key)
         elif kind == "live":
-            _, handler, key, alive = item
-            self._call(handler, key, alive)
+            _, handler, key, alive, internal = item
+            if internal or self._lockstep is False:
+                self._call(handler, key, alive)
+            elif self._lockstep is None:
+                self._pending_live.append((handler, key, alive))
         elif kind == "query":
             self._answer_health(item[1])
 
@@ -304,7 +312,19 @@ class Node:
             self.counters.handler_errors += 1
             self.log.error("handler %s failed:\n%s", getattr(handler, "__name__", handler), traceback.format_exc())
 
+    def _hold_until_clock(self, sub: Subscription, key: str, msg: Any) -> None:
+        """Before the first tick the mode is unknown; keep the newest message per key only
+        (a service left without a simulator must not hoard point clouds)."""
+        if not self._pending and not self._warned_no_clock:
+            self.log.info("waiting for the simulator's clock on %s (onboard, run with --clock wall)", keys.CLOCK)
+            self._warned_no_clock = True
+        self._pending = [(s, k, m) for s, k, m in self._pending if k != key] + [(sub, key, msg)]
+
     def _flush_pending(self) -> None:
+        if not self._lockstep:
+            for handler, key, alive in self._pending_live:
+                self._call(handler, key, alive)
+        self._pending_live = []
         pending, self._pending = self._pending, []
         for sub, key, msg in pending:
             if self._lockstep:
@@ -331,16 +351,19 @@ class Node:
             self._tick(tick.header.stamp)
             return
         if self._last_step >= 0 and tick.step != self._last_step + 1:
-            self._gate.first_tick = True  # we missed ticks (cut off, frozen): what was sent then is gone
+            self._gate.rejoin()  # we missed ticks (cut off, frozen): what was sent then is gone
         self._gate.begin(tick.step, tick.bounds)
         self._wait_for_gate(tick.step)
         if self._stop.is_set():
             return
+        self._apply_tick_liveliness(tick.alive)
         for key, (sub, msg) in self._gate.release(self._answering_upstream()):
             self._call(sub.handler, msg, key)
         self._last_step = tick.step
         self._tick(tick.header.stamp)
-        published = {p.key: p.seq for p in self._publishers if p.seq and p is not self._ack_pub}
+        # every key, even those still at 0: a downstream then holds a restarted publisher's
+        # first messages until an ack names them
+        published = {p.key: p.seq for p in self._publishers if p is not self._ack_pub}
         self._ack_pub.put(StepAck(header=Header(stamp=tick.header.stamp), step=tick.step, published=published))
 
     def _wait_for_gate(self, step: int) -> None:
@@ -360,10 +383,21 @@ class Node:
                 continue
             if item[0] == "data" and item[1].key_expr == keys.CLOCK:
                 newer = self._decode(item[1], item[2], item[3])
-                if newer is not None and newer.step > step:
-                    self._deferred_clock = newer  # the simulator moved on without us
+                if newer is not None and newer.step != step:
+                    self._deferred_clock = newer  # the simulator moved on without us, or restarted
                 continue
             self._dispatch(item)
+
+    def _apply_tick_liveliness(self, alive: list[str]) -> None:
+        current = set(alive)
+        for name in sorted(current ^ self._tick_alive):
+            scope, service = name.split("/", 1)
+            key = keys.alive(scope, service)
+            ke = zenoh.KeyExpr(key)
+            for key_expr, handler, internal in self._liveliness_handlers:
+                if not internal and zenoh.KeyExpr(key_expr).intersects(ke):
+                    self._call(handler, key, name in current)
+        self._tick_alive = current
 
     def _tick(self, now_ns: int) -> None:
         self._call(self.on_tick, now_ns)
@@ -391,7 +425,8 @@ class Node:
             # A restarted simulator counts ticks from 0 again: follow it.
             self.log.warning("simulator gone; will follow its clock from the start when it returns")
             self._last_step = -1
-            self._gate = LockstepGate(self.upstream, self._wants, self._order)
+            self._gate.rejoin()
+            self.clock = MissionClock()
 
     # ------------------------------------------------------------- health
     def health(self) -> ServiceHealth:

@@ -15,7 +15,18 @@ SHM_DIR = Path("/dev/shm")
 
 
 def segments() -> set[Path]:
-    return set(SHM_DIR.glob("*zenoh*")) if SHM_DIR.is_dir() else set()
+    """Zenoh segments of this user (another user's are not ours to judge or remove)."""
+    if not SHM_DIR.is_dir():
+        return set()
+    uid = os.getuid()
+    return {p for p in SHM_DIR.glob("*zenoh*") if _owner(p) == uid}
+
+
+def _owner(path: Path) -> int | None:
+    try:
+        return path.stat().st_uid
+    except OSError:
+        return None
 
 
 def in_use() -> set[str]:
@@ -53,6 +64,6 @@ def remove_orphans(among: set[Path] | None = None) -> list[str]:
         try:
             path.unlink()
             removed.append(path.name)
-        except FileNotFoundError:
-            pass
+        except OSError:
+            pass  # gone already, or not ours to remove
     return removed

@@ -46,9 +46,9 @@ class TypedPublisher(Generic[M]):
         if header.stamp == 0:
             header.stamp = self._node.clock.now_ns()
         payload = self._encoder.encode(msg)
-        # Count it only once it is sure to go out: lockstep peers wait for every seq we count.
-        self.seq += 1
         self._publisher.put(payload)
+        # Counted only once it went out: lockstep peers wait for every seq we count.
+        self.seq += 1
         self._node.counters.published[self.key] = self.seq
 
     def undeclare(self) -> None:

@@ -18,11 +18,13 @@ from pathlib import Path
 
 import zenoh
 
+from services.runtime.errors import UsageError
+
 PROFILES = ("embedded", "router")
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 
 
-class ZenohConfigError(ValueError):
+class ZenohConfigError(UsageError):
     """A user-supplied Zenoh setting is wrong; the message says which."""
 
 
@@ -89,7 +91,7 @@ def build(settings: ZenohSettings) -> zenoh.Config:
         _insert(config, "connect/endpoints", settings.connect)
     elif settings.profile == "router" and not config_file:
         _insert(config, "connect/endpoints", [DEFAULT_ROUTER])
-    if settings.listen and config_file:
+    if settings.listen and (config_file or settings.profile != "embedded"):
         _insert(config, "listen/endpoints", settings.listen)
     if settings.shared_memory is not None:
         _insert(config, "transport/shared_memory/enabled", settings.shared_memory)

@@ -1,6 +1,9 @@
-"""The sensor_driver service: organised LiDAR scans of one UAV on falconry/<uav>/points.
+"""The sensor_driver service: organised LiDAR scans of one UAV on falconry/<uav>/points, and
+(simulation, evaluation only) the id of what each ray hit on falconry/<uav>/points_truth.
 
-First version (walking skeleton): a simulated rotating 32×512 LiDAR ray-cast in numpy against
-the simulator's world and targets. Later issues deepen it: Ouster/Livox beam models, a
-numba-compiled caster, replay of recorded files and real hardware behind the same output.
+Second version (issue 3): Ouster OS0/OS1 and Livox Mid-360 models (models.py), a numba ray
+caster (raycast.py) checked against the numpy reference (numpy_caster.py), range and sensor
+pose noise, a carrier body mask, optional intensity and the scheduled LiDAR faults (faults.py).
+Later work deepens it: motion distortion within a frame, dropouts and weather, replay of
+recorded files and real hardware behind the same output.
 """

@@ -1,47 +1,122 @@
-"""Simulated rotating multi-beam LiDAR: beam pattern and a vectorised ray caster.
+"""Simulated LiDAR: the world as primitives, and whole scans with noise, body mask and truth.
 
-First version (walking skeleton): an ideal spinning sensor (every beam fired at the same
-instant, no motion distortion) with gaussian range noise, cast against the world's static
-primitives and the targets. A later issue deepens it with Ouster/Livox beam patterns,
-intensity, dropouts, motion distortion and a numba-compiled caster (`cast` is written as a loop
-over primitives with plain float64 arrays so it translates directly).
+Second version (issue 3): sensor models (models.py: Ouster OS0/OS1, Livox Mid-360), a
+numba-compiled caster (raycast.py, checked against the numpy reference numpy_caster.py), the id
+of what every ray hit (for evaluation and the oracle detector, never in the cloud), sensor pose
+noise, a body mask and an optional intensity. Still ideal in time: every ray of a frame is cast
+at the frame's stamp (no motion distortion), and the carrier has no roll or pitch. Later work
+adds motion distortion, dropouts, weather and recorded / real sources behind the same output.
 
 Primitives (`Primitives`, all float64 arrays, one row each):
   planes     (P,)   horizontal planes z = value (the ground)
-  spheres    (S, 4) cx, cy, cz, r (balloons, intruder drones as spheres of their body radius)
-  cylinders  (C, 5) cx, cy, z_base, r, h (vertical, capped: poles, tree trunks)
+  spheres    (S, 4) cx, cy, cz, r (balloons)
+  cylinders  (C, 5) cx, cy, z_base, r, h (vertical, capped: poles, tree trunks, intruder drones)
   boxes      (B, 6) x_min, y_min, z_min, x_max, y_max, z_max (axis-aligned: buildings)
   cones      (K, 5) cx, cy, z_base, r_base, h (vertical, apex up, base disk closed: trees)
-Ranges are along unit directions, so a range is also the distance to the hit.
+Spheres and cylinders carry a hit id each (0 static world, k >= 1 target k); the other kinds
+are always static. Ranges are along unit directions, so a range is also the distance to the hit.
 """
 from __future__ import annotations
 
-from collections.abc import Iterable
+import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+import msgspec
 import numpy as np
 
 from schemas.messages import Obstacle, TargetTruth
+from services.sensor_driver import numpy_caster
+from services.sensor_driver.models import lidar_model
+from services.sensor_driver.raycast import BOX, CONE, CYLINDER, PLANE, SPHERE, Packed, cast_kernel, scan_kernel
 
-EPS = 1e-9  # hits closer than this along the ray are the surface the ray starts on
+DRONE_BODY_HEIGHT = 0.3  # m: an intruder multirotor is a flat disk of its radius, this thick
+REFLECTIVITY = {"ground": 0.2, "static": 0.3, "target": 0.6}
+INTENSITY_FULL_RANGE = 5.0  # m: intensity falls as 1/r² beyond this
+DEFAULT_BODY_BOX = (-0.4, -0.4, -0.4, 0.4, 0.4, 0.4)
 
 
-def _rows(n: int) -> np.ndarray:
-    return np.zeros((0, n))
+class SensorDriverParams(msgspec.Struct, forbid_unknown_fields=True):
+    model: str = "os0-32-512"  # LiDAR model (models.py): os0-/os1- 32/64/128 [-512/-1024/-2048], mid360
+    rate_hz: float = 10.0  # frames per second of mission time
+    min_range: float = 0.0  # m; 0 = the model's datasheet value
+    max_range: float = 0.0  # m; 0 = the model's datasheet value
+    range_noise: float = 0.02  # m, standard deviation of every range
+    position_noise: float = 0.0  # m, σ per axis of where a scan is really taken from (per scan)
+    attitude_noise: float = 0.0  # rad, σ of the sensor's true roll, pitch and yaw (per scan)
+    # Carrier body in the sensor frame (x fwd, y left, z up): x_min, y_min, z_min, x_max, y_max, z_max.
+    # A box in front of the sensor (e.g. the frame below it) blocks rays; a box around the sensor
+    # crops returns inside it. Either way those rays return nothing. [] = no body.
+    body_box: list[float] = msgspec.field(default_factory=lambda: list(DEFAULT_BODY_BOX))
+    intensity: bool = False  # publish a per-point intensity (reflectivity · |cos incidence| / range²)
+
+    def __post_init__(self) -> None:  # msgspec reports these as validation errors naming the table
+        lidar_model(self.model, self.rate_hz if self.rate_hz > 0 else 10.0)
+        if not self.rate_hz > 0:
+            raise ValueError(f"rate_hz must be > 0, got {self.rate_hz}")
+        for name in ("min_range", "max_range", "range_noise", "position_noise", "attitude_noise"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        box = self.body_box
+        if len(box) not in (0, 6) or (len(box) == 6 and not all(box[k] < box[k + 3] for k in range(3))):
+            raise ValueError(f"body_box must be [] or [x_min, y_min, z_min, x_max, y_max, z_max] "
+                             f"with min < max, got {box}")
 
 
 @dataclass
 class Primitives:
     planes: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    spheres: np.ndarray = field(default_factory=lambda: _rows(4))
-    cylinders: np.ndarray = field(default_factory=lambda: _rows(5))
-    boxes: np.ndarray = field(default_factory=lambda: _rows(6))
-    cones: np.ndarray = field(default_factory=lambda: _rows(5))
+    spheres: np.ndarray = field(default_factory=lambda: np.zeros((0, 4)))
+    cylinders: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    cones: np.ndarray = field(default_factory=lambda: np.zeros((0, 5)))
+    sphere_ids: np.ndarray | None = None  # int32 (S,); None = all static (0)
+    cylinder_ids: np.ndarray | None = None
 
-    def with_spheres(self, spheres: np.ndarray) -> "Primitives":
-        """These primitives plus more spheres (the moving targets of one scan)."""
+    def __post_init__(self) -> None:
+        self.planes = np.asarray(self.planes, dtype=float).reshape(-1)
+        self.spheres = np.asarray(self.spheres, dtype=float).reshape(-1, 4)
+        self.cylinders = np.asarray(self.cylinders, dtype=float).reshape(-1, 5)
+        self.boxes = np.asarray(self.boxes, dtype=float).reshape(-1, 6)
+        self.cones = np.asarray(self.cones, dtype=float).reshape(-1, 5)
+        self.sphere_ids = _ids(self.sphere_ids, len(self.spheres))
+        self.cylinder_ids = _ids(self.cylinder_ids, len(self.cylinders))
+
+    def with_spheres(self, spheres: np.ndarray, ids: Sequence[int] | None = None) -> "Primitives":
+        """These primitives plus more spheres (moving targets of one scan)."""
         extra = np.asarray(spheres, dtype=float).reshape(-1, 4)
-        return Primitives(self.planes, np.vstack([self.spheres, extra]), self.cylinders, self.boxes, self.cones)
+        return Primitives(self.planes, np.vstack([self.spheres, extra]), self.cylinders, self.boxes, self.cones,
+                          np.concatenate([self.sphere_ids, _ids(ids, len(extra))]), self.cylinder_ids)
+
+    def with_targets(self, targets: Sequence[TargetTruth]) -> "Primitives":
+        """Plus the standing targets, hit id k for targets[k-1]: balloons are spheres, intruder
+        drones flat upright cylinders of their radius, DRONE_BODY_HEIGHT thick, centred on them."""
+        spheres, sphere_ids, cylinders, cylinder_ids = [], [], [], []
+        for k, t in enumerate(targets, start=1):
+            if t.destroyed:
+                continue
+            x, y, z = t.position
+            if t.kind == "drone":
+                cylinders.append((x, y, z - DRONE_BODY_HEIGHT / 2, t.radius, DRONE_BODY_HEIGHT))
+                cylinder_ids.append(k)
+            else:
+                spheres.append((x, y, z, t.radius))
+                sphere_ids.append(k)
+        extra_cyl = np.asarray(cylinders, dtype=float).reshape(-1, 5)
+        return Primitives(
+            self.planes, np.vstack([self.spheres, np.asarray(spheres, dtype=float).reshape(-1, 4)]),
+            np.vstack([self.cylinders, extra_cyl]), self.boxes, self.cones,
+            np.concatenate([self.sphere_ids, _ids(sphere_ids, len(spheres))]),
+            np.concatenate([self.cylinder_ids, _ids(cylinder_ids, len(extra_cyl))]))
+
+
+def _ids(ids, count: int) -> np.ndarray:
+    if ids is None:
+        return np.zeros(count, dtype=np.int32)
+    ids = np.asarray(ids, dtype=np.int32).reshape(-1)
+    if len(ids) != count:
+        raise ValueError(f"{len(ids)} hit ids for {count} primitives")
+    return ids
 
 
 def primitives_from_obstacles(obstacles: Iterable[Obstacle]) -> Primitives:
@@ -59,177 +134,111 @@ def primitives_from_obstacles(obstacles: Iterable[Obstacle]) -> Primitives:
         elif o.kind == "box":
             half = np.asarray(o.size, dtype=float) / 2
             boxes.append((cx - half[0], cy - half[1], cz - half[2], cx + half[0], cy + half[1], cz + half[2]))
-    return Primitives(
-        np.asarray(planes, dtype=float),
-        np.asarray(spheres, dtype=float).reshape(-1, 4),
-        np.asarray(cylinders, dtype=float).reshape(-1, 5),
-        np.asarray(boxes, dtype=float).reshape(-1, 6),
-        np.asarray(cones, dtype=float).reshape(-1, 5),
-    )
+    return Primitives(planes, spheres, cylinders, boxes, cones)
 
 
 def target_spheres(targets: Iterable[TargetTruth]) -> np.ndarray:
-    """(S, 4) spheres of the targets still standing."""
+    """(S, 4) spheres of the targets still standing, every kind as a sphere of its radius."""
     rows = [(*t.position, t.radius) for t in targets if not t.destroyed]
     return np.asarray(rows, dtype=float).reshape(-1, 4)
 
 
-def beam_directions(rows: int, cols: int, vfov_deg: float, vertical_center_deg: float = 0.0) -> np.ndarray:
-    """(rows, cols, 3) unit beams in the sensor frame (x forward, z up). Row 0 is the highest beam,
-    rows spread evenly over the vertical field of view (ends included); column j points at azimuth
-    2π·j/cols, counter-clockwise from +x."""
-    half = vfov_deg / 2.0
-    elevation = np.radians(np.linspace(vertical_center_deg + half, vertical_center_deg - half, rows))
-    azimuth = 2.0 * np.pi * np.arange(cols) / cols
-    el, az = np.meshgrid(elevation, azimuth, indexing="ij")
-    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+def pack(p: Primitives) -> Packed:
+    """The flat table the compiled caster reads (raycast.py), in the reference's order."""
+    rows: list[tuple[int, tuple, tuple, int, float]] = []
+    for z in p.planes:
+        rows.append((PLANE, (z,), (0.0, 0.0, 0.0, 0.0), 0, REFLECTIVITY["ground"]))
+    kinds = ((SPHERE, p.spheres, p.sphere_ids, numpy_caster.sphere_bounds),
+             (CYLINDER, p.cylinders, p.cylinder_ids, numpy_caster.upright_bounds),
+             (BOX, p.boxes, np.zeros(len(p.boxes), np.int32), numpy_caster.box_bounds),
+             (CONE, p.cones, np.zeros(len(p.cones), np.int32), numpy_caster.upright_bounds))
+    for kind, table, ids, bounds in kinds:
+        for row, ident in zip(table, ids):
+            centre, radius = bounds(row)
+            values = tuple(row) + (((row[3] / row[4]) * (row[3] / row[4]),) if kind == CONE else ())
+            rows.append((kind, values, (*centre, radius), int(ident),
+                         REFLECTIVITY["target" if ident > 0 else "static"]))
+    params = np.zeros((len(rows), 6))
+    for i, (_, values, _, _, _) in enumerate(rows):
+        params[i, :len(values)] = values
+    return Packed(
+        kinds=np.array([r[0] for r in rows], dtype=np.int64),
+        params=params,
+        bounds=np.array([r[2] for r in rows], dtype=float).reshape(-1, 4),
+        ids=np.array([r[3] for r in rows], dtype=np.int32),
+        reflectivity=np.array([r[4] for r in rows], dtype=float),
+    )
 
 
-def rotate_yaw(directions: np.ndarray, heading: float) -> np.ndarray:
-    c, s = np.cos(heading), np.sin(heading)
-    x, y = directions[..., 0], directions[..., 1]
-    return np.stack([c * x - s * y, s * x + c * y, directions[..., 2]], axis=-1)
+def cast_with_ids(origin: np.ndarray, directions: np.ndarray, world: Primitives | Packed
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(range, hit id) along each unit direction (N, 3) from `origin`: inf and -1 if none."""
+    packed = world if isinstance(world, Packed) else pack(world)
+    d = np.ascontiguousarray(np.asarray(directions, dtype=float).reshape(-1, 3))
+    ranges = np.empty(len(d))
+    index = np.empty(len(d), dtype=np.int64)
+    cast_kernel(np.asarray(origin, dtype=float), d, packed.kinds, packed.params, packed.bounds, ranges, index)
+    ids = np.where(index >= 0, packed.ids[np.maximum(index, 0)] if len(packed) else -1, -1).astype(np.int32)
+    return ranges, ids
 
 
-# ------------------------------------------------------------------ ray casting
-def cast(origin: np.ndarray, directions: np.ndarray, primitives: Primitives) -> np.ndarray:
+def cast(origin: np.ndarray, directions: np.ndarray, world: Primitives | Packed) -> np.ndarray:
     """Distance along each unit direction (N, 3) from `origin` to the nearest surface; inf if none."""
-    o = np.asarray(origin, dtype=float)
-    d = np.asarray(directions, dtype=float).reshape(-1, 3)
-    best = np.full(len(d), np.inf)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        for z in primitives.planes:
-            np.minimum(best, _hit_plane(o, d, z), out=best)
-        kinds = (
-            (primitives.spheres, _hit_sphere, _sphere_bounds),
-            (primitives.cylinders, _hit_cylinder, _upright_bounds),
-            (primitives.boxes, _hit_box, _box_bounds),
-            (primitives.cones, _hit_cone, _upright_bounds),
-        )
-        for rows, hit, bounds in kinds:
-            for row in rows:
-                centre, radius = bounds(row)
-                idx = _rays_near(o, d, centre, radius)
-                if len(idx):
-                    best[idx] = np.minimum(best[idx], hit(o, d[idx], row))
-    return best
-
-
-def _rays_near(o: np.ndarray, d: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
-    """Indices of the rays that can reach the bounding sphere: the exact test runs on these only."""
-    oc = centre - o
-    dist2 = float(oc @ oc)
-    if dist2 <= radius * radius:
-        return np.arange(len(d))
-    along = _dot(d, oc)
-    return np.flatnonzero((along > 0) & (dist2 - along * along <= radius * radius))
-
-
-def _sphere_bounds(row: np.ndarray) -> tuple[np.ndarray, float]:
-    return row[:3], float(row[3]) * (1 + 1e-9) + 1e-9
-
-
-def _upright_bounds(row: np.ndarray) -> tuple[np.ndarray, float]:
-    cx, cy, z0, r, h = row
-    return np.array([cx, cy, z0 + h / 2]), float(np.hypot(r, h / 2)) * (1 + 1e-9) + 1e-9
-
-
-def _box_bounds(row: np.ndarray) -> tuple[np.ndarray, float]:
-    return (row[:3] + row[3:]) / 2, float(np.linalg.norm(row[3:] - row[:3])) / 2 * (1 + 1e-9) + 1e-9
-
-
-def _dot(d: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Row-wise d·v written out: BLAS may round differently by batch size, this does not."""
-    return d[:, 0] * v[0] + d[:, 1] * v[1] + d[:, 2] * v[2]
-
-
-def _positive(t: np.ndarray) -> np.ndarray:
-    """Hit distances in front of the origin; everything else (behind, NaN) becomes inf."""
-    return np.where(t > EPS, t, np.inf)
-
-
-def _hit_plane(o: np.ndarray, d: np.ndarray, z: float) -> np.ndarray:
-    return _positive((z - o[2]) / d[:, 2])
-
-
-def _hit_sphere(o: np.ndarray, d: np.ndarray, row: np.ndarray) -> np.ndarray:
-    oc = o - row[:3]
-    b = _dot(d, oc)
-    c = float(oc @ oc) - row[3] ** 2
-    disc = b * b - c
-    root = np.sqrt(disc)  # NaN where the line misses: _positive turns it into inf
-    near, far = _positive(-b - root), _positive(-b + root)
-    return np.minimum(near, far)
-
-
-def _disk(o: np.ndarray, d: np.ndarray, cx: float, cy: float, z: float, r: float) -> np.ndarray:
-    t = _positive((z - o[2]) / d[:, 2])
-    x = o[0] + t * d[:, 0] - cx
-    y = o[1] + t * d[:, 1] - cy
-    return np.where(x * x + y * y <= r * r, t, np.inf)
-
-
-def _hit_cylinder(o: np.ndarray, d: np.ndarray, row: np.ndarray) -> np.ndarray:
-    cx, cy, z0, r, h = row
-    ox, oy = o[0] - cx, o[1] - cy
-    a = d[:, 0] ** 2 + d[:, 1] ** 2
-    b = ox * d[:, 0] + oy * d[:, 1]
-    c = ox * ox + oy * oy - r * r
-    root = np.sqrt(b * b - a * c)
-    best = np.full(len(d), np.inf)
-    for t in (_positive((-b - root) / a), _positive((-b + root) / a)):
-        z = o[2] + t * d[:, 2]
-        np.minimum(best, np.where((z >= z0) & (z <= z0 + h), t, np.inf), out=best)
-    np.minimum(best, _disk(o, d, cx, cy, z0 + h, r), out=best)
-    np.minimum(best, _disk(o, d, cx, cy, z0, r), out=best)
-    return best
-
-
-def _hit_box(o: np.ndarray, d: np.ndarray, row: np.ndarray) -> np.ndarray:
-    # Slabs; a zero direction component gives ±inf (or NaN on the face, which fmin/fmax skip).
-    t1 = (row[:3] - o) / d
-    t2 = (row[3:] - o) / d
-    t_near = np.fmax.reduce(np.fmin(t1, t2), axis=1)
-    t_far = np.fmin.reduce(np.fmax(t1, t2), axis=1)
-    hit = (t_near <= t_far) & (t_far > EPS)
-    return np.where(hit, np.where(t_near > EPS, t_near, t_far), np.inf)
-
-
-def _hit_cone(o: np.ndarray, d: np.ndarray, row: np.ndarray) -> np.ndarray:
-    # Lateral surface: (x-cx)² + (y-cy)² = (k·(apex_z - z))², k = r/h, for z in [z0, apex].
-    cx, cy, z0, r, h = row
-    k2 = (r / h) ** 2
-    ox, oy, oz = o[0] - cx, o[1] - cy, (z0 + h) - o[2]  # oz: apex height above the origin
-    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
-    a = dx * dx + dy * dy - k2 * dz * dz
-    b = ox * dx + oy * dy + k2 * oz * dz
-    c = ox * ox + oy * oy - k2 * oz * oz
-    root = np.sqrt(b * b - a * c)
-    best = np.full(len(d), np.inf)
-    parallel = np.abs(a) < 1e-12  # ray parallel to the side: the quadratic degenerates to 2bt + c = 0
-    linear = np.where(parallel, _positive(-c / (2 * b)), np.inf)
-    for t in (_positive((-b - root) / a), _positive((-b + root) / a), linear):
-        z = o[2] + t * dz
-        np.minimum(best, np.where((z >= z0) & (z <= z0 + h), t, np.inf), out=best)
-    np.minimum(best, _disk(o, d, cx, cy, z0, r), out=best)
-    return best
+    return cast_with_ids(origin, directions, world)[0]
 
 
 # ------------------------------------------------------------------ scanning
-def scan(origin: np.ndarray, heading: float, directions: np.ndarray, primitives: Primitives,
-         rng: np.random.Generator, min_range: float = 0.3, max_range: float = 50.0,
-         range_noise: float = 0.01, body_radius: float = 0.4) -> np.ndarray:
-    """One organised scan: float32 (rows, cols, 3) world-frame points, NaN where no return.
+@dataclass
+class Scan:
+    points: np.ndarray  # float32 (rows, cols, 3) world frame, NaN: no return
+    hits: np.ndarray  # int32 (rows, cols): -1 no return, 0 static world, k >= 1 target k
+    intensity: np.ndarray | None  # float32 (rows, cols) in [0, 1], NaN: no return
 
-    `directions` are the sensor-frame beams (rows, cols, 3), yawed by `heading`. Returns closer
-    than `body_radius` would come from inside the carrier's own body and count as no return.
-    The noise draw is one sample per beam whether it hits or not, so the RNG stream stays in step."""
+
+def yaw_rotation(heading: float) -> np.ndarray:
+    c, s = math.cos(heading), math.sin(heading)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def small_rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rz(yaw)·Ry(pitch)·Rx(roll)."""
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    rx = np.array([[1.0, 0.0, 0.0], [0.0, cr, -sr], [0.0, sr, cr]])
+    ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    return yaw_rotation(yaw) @ ry @ rx
+
+
+def scan(origin: np.ndarray, heading: float, directions: np.ndarray, world: Primitives | Packed,
+         rng: np.random.Generator, min_range: float = 0.3, max_range: float = 50.0,
+         range_noise: float = 0.01, position_noise: float = 0.0, attitude_noise: float = 0.0,
+         body_box: Sequence[float] | None = DEFAULT_BODY_BOX, intensity: bool = False) -> Scan:
+    """One organised scan from the believed pose (`origin`, yawed by `heading`) of sensor-frame
+    beams `directions` (rows, cols, 3).
+
+    The rays really leave from the believed pose moved by gaussian position / attitude noise
+    (one draw per scan), and the points are placed from the believed pose, as a real driver
+    would. A ray returns nothing when its true range is outside [min_range, max_range] or
+    when it meets the carrier (`body_box`, sensor frame; see SensorDriverParams). Range noise
+    is one draw per ray whether it hits or not, so the RNG stream stays in step."""
     shape = directions.shape[:-1]
-    world_dirs = rotate_yaw(directions, heading).reshape(-1, 3)
-    ranges = cast(origin, world_dirs, primitives)
-    noise = rng.normal(0.0, range_noise, ranges.shape) if range_noise > 0 else np.zeros(ranges.shape)
-    valid = (ranges >= max(min_range, body_radius)) & (ranges <= max_range)
-    measured = np.where(valid, ranges + noise, 0.0)
-    points = np.asarray(origin, dtype=float) + world_dirs * measured[:, None]
-    points[~valid] = np.nan
-    return points.astype(np.float32).reshape(*shape, 3)
+    packed = world if isinstance(world, Packed) else pack(world)
+    sensor_dirs = np.ascontiguousarray(np.asarray(directions, dtype=float).reshape(-1, 3))
+    pose_draw = rng.normal(0.0, 1.0, 6)
+    noise = rng.normal(0.0, range_noise, len(sensor_dirs)) if range_noise > 0 else np.zeros(len(sensor_dirs))
+    believed_origin = np.asarray(origin, dtype=float)
+    believed = yaw_rotation(heading)
+    true_origin = believed_origin + position_noise * pose_draw[:3]
+    true_rotation = believed @ small_rotation(*(attitude_noise * pose_draw[3:]))
+    body = np.asarray(body_box if body_box is not None else (), dtype=float)
+    if len(body) not in (0, 6):
+        raise ValueError(f"body_box needs 6 numbers (x_min, y_min, z_min, x_max, y_max, z_max), got {len(body)}")
+    n = len(sensor_dirs)
+    points = np.empty((n, 3), dtype=np.float32)
+    hits = np.empty(n, dtype=np.int32)
+    brightness = np.empty(n, dtype=np.float32)
+    scan_kernel(true_origin, true_rotation, believed_origin, believed, sensor_dirs, noise,
+                packed.kinds, packed.params, packed.bounds, packed.ids, packed.reflectivity,
+                float(min_range), float(max_range), body if len(body) else np.zeros(6), len(body) == 6,
+                INTENSITY_FULL_RANGE if intensity else 0.0, points, hits, brightness)
+    return Scan(points.reshape(*shape, 3), hits.reshape(shape),
+                brightness.reshape(shape) if intensity else None)

@@ -1,41 +1,31 @@
-"""sensor_driver node: publishes simulated LiDAR scans of its UAV on falconry/<uav>/points.
+"""sensor_driver node: simulated LiDAR scans of its UAV on falconry/<uav>/points, and for
+evaluation only the id of what every ray hit on falconry/<uav>/points_truth.
 
-First version (walking skeleton): ray-casts the simulator's world (static obstacles from
-falconry/sim/world, standing targets and the own pose from falconry/sim/truth) at `rate_hz` of
-mission time. Only this service and the simulator may read ground truth. Later issues add the
-Ouster/Livox models, a recorded-file source and real hardware behind the same output.
+Ray-casts the simulator's world (static obstacles from falconry/sim/world, standing targets and
+the own pose from falconry/sim/truth) at `rate_hz` of mission time with the chosen LiDAR model
+(core.SensorDriverParams, models.py). Both messages of a scan carry the same stamp; the
+PointTruth never enters the PointCloud, so perception cannot see it. LiDAR faults scheduled on
+falconry/sim/faults for this UAV are acted on here: `lidar_silent` publishes nothing,
+`lidar_nan` an all-NaN cloud, `lidar_garbage` random points (truth -1 for both).
+Only this service and the simulator may read ground truth. Later issues add a recorded-file
+source and real hardware behind the same output.
 """
 from __future__ import annotations
 
 import math
 import zlib
 
-import msgspec
 import numpy as np
 
 from schemas import keys
 from schemas.arrays import from_numpy
-from schemas.messages import GroundTruth, Header, PointCloud, Pose, WorldModel
+from schemas.messages import FaultCommand, GroundTruth, Header, PointCloud, PointTruth, Pose, WorldModel
 from services.runtime.node import Node
-from services.sensor_driver.core import (
-    Primitives,
-    beam_directions,
-    primitives_from_obstacles,
-    scan,
-    target_spheres,
-)
+from services.sensor_driver.core import Primitives, SensorDriverParams, primitives_from_obstacles, scan
+from services.sensor_driver.faults import LIDAR_FAULTS, LidarFaults, faulty_scan
+from services.sensor_driver.models import lidar_model
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
-
-
-class SensorDriverParams(msgspec.Struct, forbid_unknown_fields=True):
-    rows: int = 32
-    cols: int = 512
-    vfov_deg: float = 90.0
-    rate_hz: float = 10.0
-    min_range: float = 0.3
-    max_range: float = 50.0
-    range_noise: float = 0.01  # m, standard deviation
 
 
 class SensorDriverNode(Node):
@@ -45,18 +35,26 @@ class SensorDriverNode(Node):
 
     def setup(self) -> None:
         p: SensorDriverParams = self.params
-        self.directions = beam_directions(p.rows, p.cols, p.vfov_deg)
+        if not p.rate_hz > 0:
+            raise ValueError(f"sensor_driver.rate_hz must be > 0, got {p.rate_hz}")
+        self.model = lidar_model(p.model, p.rate_hz)
+        self.min_range = p.min_range or self.model.min_range
+        self.max_range = p.max_range or self.model.max_range
         self.period_ns = max(1, int(round(1e9 / p.rate_hz)))
-        self.sensor_model = f"rotating-{p.rows}x{p.cols}"
         self.static: Primitives | None = None
         self.obstacles = None
         self.truth: GroundTruth | None = None
         self.rng: np.random.Generator | None = None
         self.rng_key: tuple[int, int] | None = None
         self.last_slot = -1
+        self.faults = LidarFaults()
+        self._scan(np.zeros(3), 0.0, Primitives(planes=[-1.0]), np.random.default_rng(0))  # compile now,
+        # before the liveliness token: the first scan of a run must not stall a lockstep tick
         self.points_pub = self.publisher(self.topic("points"), PointCloud)
+        self.truth_pub = self.publisher(self.topic("points_truth"), PointTruth)
         self.subscribe(keys.WORLD, WorldModel, self.on_world)
         self.subscribe(keys.TRUTH, GroundTruth, self.on_truth)
+        self.subscribe(keys.FAULTS, FaultCommand, self.on_fault)
 
     def on_world(self, world: WorldModel, key: str) -> None:
         if world.obstacles != self.obstacles:
@@ -70,6 +68,21 @@ class SensorDriverNode(Node):
     def on_truth(self, truth: GroundTruth, key: str) -> None:
         self.truth = truth
 
+    def on_fault(self, fault: FaultCommand, key: str) -> None:
+        if fault.uav != self.uav or fault.kind not in LIDAR_FAULTS:
+            return
+        self.faults.add(fault.kind, fault.header.stamp, fault.duration)
+        self.log.warning("LiDAR fault %s from %.2f s%s", fault.kind, fault.header.stamp / 1e9,
+                         f" for {fault.duration:g} s" if fault.duration > 0 else " until the end")
+
+    def _scan(self, origin: np.ndarray, heading: float, world: Primitives, rng: np.random.Generator,
+              frame: int = 0):
+        p: SensorDriverParams = self.params
+        return scan(origin, heading, self.model.directions(frame), world, rng,
+                    min_range=self.min_range, max_range=self.max_range, range_noise=p.range_noise,
+                    position_noise=p.position_noise, attitude_noise=p.attitude_noise,
+                    body_box=p.body_box, intensity=p.intensity)
+
     def on_tick(self, now_ns: int) -> None:
         slot = now_ns // self.period_ns
         if slot <= self.last_slot or self.static is None or self.truth is None or self.rng is None:
@@ -78,21 +91,33 @@ class SensorDriverNode(Node):
         if me is None or not me.alive:
             return
         self.last_slot = slot
-        p: SensorDriverParams = self.params
+        fault = self.faults.active(now_ns)
+        if fault == "lidar_silent":
+            return
         origin = np.asarray(me.position, dtype=float)
-        world = self.static.with_spheres(target_spheres(self.truth.targets))
-        points = scan(origin, me.heading, self.directions, world, self.rng,
-                      min_range=p.min_range, max_range=p.max_range, range_noise=p.range_noise)
+        world = self.static.with_targets(self.truth.targets)
+        result = self._scan(origin, me.heading, world, self.rng, frame=int(slot))
+        if fault is not None:
+            result = faulty_scan(result, fault, origin, self.max_range, self.rng)
         half = me.heading / 2.0
+        rows, cols = result.hits.shape
         self.points_pub.put(PointCloud(
             header=Header(stamp=now_ns),
-            width=p.cols,
-            height=p.rows,
+            width=cols,
+            height=rows,
             sensor_pose=Pose(position=me.position, orientation=(math.cos(half), 0.0, 0.0, math.sin(half))),
-            points=from_numpy(points),
-            sensor_model=self.sensor_model,
-            min_range=p.min_range,
-            max_range=p.max_range,
+            points=from_numpy(result.points),
+            intensity=None if result.intensity is None else from_numpy(result.intensity),
+            sensor_model=self.model.name,
+            min_range=self.min_range,
+            max_range=self.max_range,
+        ))
+        self.truth_pub.put(PointTruth(
+            header=Header(stamp=now_ns),
+            width=cols,
+            height=rows,
+            hits=from_numpy(result.hits),
+            targets=[t.id for t in self.truth.targets],
         ))
 
 

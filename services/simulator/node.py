@@ -35,6 +35,7 @@ from schemas.messages import (
     WorldModel,
 )
 from services.runtime.clock import seconds, to_ns
+from services.runtime.errors import UsageError
 from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.node import Node
 from services.simulator.core import Simulation
@@ -70,14 +71,14 @@ class SimulatorNode(Node):
         self.rtf = float(getattr(opts, "rtf", 1.0) or 1.0)
         self.tick_s = float(getattr(opts, "tick", 0.05) or 0.05)
         if self.duration <= 0 or self.rtf <= 0 or self.tick_s <= 0:
-            raise ValueError("--duration, --rtf and --tick must be positive")
+            raise UsageError("--duration, --rtf and --tick must be positive")
         self._clock_kind = "master"  # this node makes the clock; it never follows one
         self.sim = Simulation(self.scenario, self.uav_names, self.seed)
         self._alive: set[str] = set()
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
         self._fault_windows = FaultWindows()
         self._acks: dict[str, StepAck] = {}
-        self._sim_gate: LockstepGate = LockstepGate((), self._wants, self._order)
+        self._sim_gate: LockstepGate = LockstepGate((), self._wants, self._order, joining=False)
 
     # -------------------------------------------------------------- wiring
     def setup(self) -> None:
@@ -90,7 +91,7 @@ class SimulatorNode(Node):
         for u in self.uav_names:
             self.subscribe(keys.uav(u, "trajectory"), TrajectoryReference, self.on_trajectory)
         self._add_subscription(keys.ALL_ACKS, StepAck, self._on_ack, internal=True)
-        self.on_liveliness(keys.ALL_ALIVE, self._on_alive)
+        self.on_liveliness(keys.ALL_ALIVE, self._on_alive, internal=True)
 
     def _on_alive(self, key: str, alive: bool) -> None:
         parsed = keys.parse_alive(key)
@@ -120,7 +121,6 @@ class SimulatorNode(Node):
 
     def serve(self) -> None:
         self._lockstep = self.run_lockstep  # trajectories are gated by acknowledgements in lockstep
-        self.publish_world()
         if not self.wait_for_team():
             return
         self.event("mission_started", "sim", f"{self.scenario.name}, {len(self.uav_names)} UAVs, seed {self.seed}, "
@@ -141,7 +141,8 @@ class SimulatorNode(Node):
             self.publish_state(step, now)
             rtf = seconds(now) / max(time.monotonic() - wall_start, 1e-9)
             tick = SimClock(header=Header(stamp=now), step=step, dt=self.tick_s, lockstep=self.run_lockstep,
-                            real_time_factor=rtf, bounds=self.bounds(), finished=step == steps)
+                            real_time_factor=rtf, bounds=self.bounds(), finished=step == steps,
+                            alive=sorted(self._alive | {self.sender}))
             self.clock_pub.put(tick)
             if self.run_lockstep:
                 self.wait_for_acks(tick)
@@ -154,16 +155,12 @@ class SimulatorNode(Node):
     def wait_for_team(self) -> bool:
         expected = self.expected_services()
         deadline = time.monotonic() + self.params.startup_timeout
-        next_world = time.monotonic() + 1.0
         while not expected <= self._alive:
             if self.stopping:
                 return False
             if time.monotonic() > deadline:
                 self.log.warning("starting without %s", ", ".join(sorted(expected - self._alive)))
                 return True
-            if time.monotonic() > next_world:
-                self.publish_world()
-                next_world += 1.0
             self.pump(0.05)
         return True
 
@@ -195,7 +192,6 @@ class SimulatorNode(Node):
                 resend = now + RESEND_S
             self.pump(0.05)
         self._sim_gate.begin(tick.step + 1, self.bounds())
-        self._sim_gate.first_tick = False
         deadline = time.monotonic() + ACK_TIMEOUT_S
         while self._sim_gate.missing(set()) and not self.stopping and time.monotonic() < deadline:
             self.pump(0.05)
@@ -205,8 +201,7 @@ class SimulatorNode(Node):
             remaining = wall_deadline - time.monotonic()
             if remaining <= 0:
                 break
-            if self.pump(min(remaining, 0.05)):
-                continue
+            self.pump(min(remaining, 0.05))
 
     def _dispatch(self, item: tuple) -> None:
         if item[0] == "data" and not item[1].internal and self._lockstep:

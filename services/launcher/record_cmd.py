@@ -1,0 +1,88 @@
+"""`falconry record FILE`: write every message of a run to an MCAP file."""
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+import time
+
+import zenoh
+
+from services.recorder.mcap_io import CHUNK_SIZE, COMPRESSIONS
+from services.recorder.record import DEFAULT_KEYS, Recorder, summary_lines
+from services.runtime.zenoh_config import init_logging, open_session
+
+
+def add_parser(commands) -> None:
+    from services.launcher.cli import add_zenoh_options
+
+    p = commands.add_parser(
+        "record", help="record every message of a run to an MCAP file",
+        description="Subscribe to falconry/** (or the given key expressions) and write every message to an "
+                    "MCAP file: one channel per key, the raw msgpack payload as message data, the type's JSON "
+                    "Schema per channel, log_time = receive time, publish_time = header.stamp. Chunks are "
+                    "closed every --flush seconds, so a crash loses at most that much; Ctrl-C, SIGTERM or "
+                    "--duration finish the file properly. Open it with `mcap info FILE` or Foxglove; replay "
+                    "it with `falconry replay FILE`.",
+    )
+    p.add_argument("file", metavar="FILE", help="the MCAP file to write (replaced if it exists)")
+    p.add_argument("--keys", nargs="+", action="extend", metavar="EXPR",
+                   help=f"key expressions to record (default: {' '.join(DEFAULT_KEYS)})")
+    p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time (default: until stopped)")
+    p.add_argument("--compression", choices=list(COMPRESSIONS), default="zstd", help="chunk compression (default zstd)")
+    p.add_argument("--chunk-size", type=int, default=CHUNK_SIZE, metavar="BYTES",
+                   help=f"close a chunk once it holds this much (default {CHUNK_SIZE})")
+    p.add_argument("--flush", type=float, default=1.0, metavar="S",
+                   help="close the chunk in progress at least every S seconds (default 1)")
+    p.add_argument("--progress", type=float, default=5.0, metavar="S",
+                   help="print a progress line every S seconds (default 5; 0 = never)")
+    add_zenoh_options(p, "Give the run's hub, e.g. --connect tcp/127.0.0.1:PORT (or --listen and let the run connect).")
+    p.set_defaults(handler=run_record)
+
+
+def check_key_exprs(exprs: list[str]) -> list[str]:
+    for expr in exprs:
+        try:
+            zenoh.KeyExpr(expr)
+        except Exception:
+            raise ValueError(f"invalid key expression {expr!r}") from None
+    return exprs
+
+
+def run_record(args: argparse.Namespace) -> int:
+    from services.launcher.cli import CliError, zenoh_settings
+
+    if args.zenoh_profile == "embedded" and not (args.connect or args.listen or args.zenoh_config):
+        raise CliError("give the run to record with --connect ENDPOINT (e.g. tcp/127.0.0.1:PORT)")
+    if args.duration is not None and args.duration <= 0:
+        raise CliError("--duration must be positive")
+    if args.flush <= 0 or args.chunk_size <= 0:
+        raise CliError("--flush and --chunk-size must be positive")
+    key_exprs = check_key_exprs(args.keys or list(DEFAULT_KEYS))
+
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    init_logging()
+    session = open_session(zenoh_settings(args))
+    try:
+        recorder = Recorder(session, args.file, key_exprs, compression=args.compression,
+                            chunk_size=args.chunk_size, flush_s=args.flush)
+        print(f"recording {' '.join(recorder.key_exprs)} to {args.file} (Ctrl-C to stop)", flush=True)
+        started = time.monotonic()
+        next_progress = started + args.progress
+        while not stop.wait(0.1):
+            now = time.monotonic()
+            if args.duration is not None and now - started >= args.duration:
+                break
+            if args.progress and now >= next_progress:
+                next_progress += args.progress
+                s = recorder.stats
+                print(f"recording: {s.messages} messages, {s.bytes / 1e6:.1f} MB, {len(s.per_key)} keys, "
+                      f"{now - started:.0f} s" + (f", {recorder.backlog} queued" if recorder.backlog else ""),
+                      flush=True)
+        stats = recorder.close()
+    finally:
+        session.close()
+    print("\n".join(summary_lines(args.file, stats, time.monotonic() - started)), flush=True)
+    return 0

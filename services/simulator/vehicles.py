@@ -1,0 +1,228 @@
+"""The team's UAVs: point masses tracking their trajectory references, and their odometry.
+
+Control: a PD law on the time-sampled reference, a = kp (p_ref - p̂) + kd (v_ref - v), with the
+position term's velocity demand capped to what can still be braked within the acceleration limit
+(so a far-away step does not overshoot). The acceleration norm is clipped to max_acceleration,
+then horizontal speed to max_speed and vertical speed to max_vertical_speed (together the
+Euclidean projection onto a convex set, so the clip never adds acceleration). Heading turns at
+most max_heading_rate towards the reference heading. The limits are the reference's profile,
+capped by the airframe's envelope (the larger of the scenario's sweeping and attack profiles).
+A vehicle resting on the ground does not slide; a killed one falls ballistically and stops.
+
+Odometry: p̂ = p + offset + noise. `jump_odometry` adds to the offset (a relocalisation error);
+an airborne UAV's controller closes its loop on p + offset, so after a jump the vehicle really
+moves by -offset while its odometry keeps matching the reference, as a real one would. The
+white noise (position and heading, σ from the scenario) is drawn from a generator keyed by
+(seed, UAV, mission time): the same for a run whoever asks and how often.
+
+Emergency landing ignores the reference for good: brake horizontally and descend at
+EMERGENCY_DESCENT (capped by the vertical limit) until on the ground.
+"""
+from __future__ import annotations
+
+import math
+import zlib
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from schemas.messages import VehicleTruth
+from services.simulator.checks import start_poses
+from services.simulator.specs import NS, Scenario
+
+KP = 2.0
+KD = 2.5
+BRAKING_MARGIN = 0.8  # fraction of max_acceleration the approach speed cap plans to brake with
+TAKEOFF_HEIGHT = 0.2  # above ground: airborne
+LANDED_HEIGHT = 0.05  # above ground: landed again (hysteresis against chatter)
+GRAVITY = 9.81
+EMERGENCY_DESCENT = 1.0  # m/s
+MIN_VARIANCE = 1e-6  # reported for a noiseless estimate, so the covariance stays invertible
+ODOMETRY_SALT = zlib.crc32(b"odometry")
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    name: str
+    position: np.ndarray  # (3,)
+    velocity: np.ndarray  # (3,)
+    heading: float
+    airborne: bool
+    alive: bool
+
+    def truth(self) -> VehicleTruth:
+        return VehicleTruth(name=self.name, position=_vec(self.position), velocity=_vec(self.velocity),
+                            heading=self.heading, airborne=self.airborne, alive=self.alive)
+
+
+class OdometryReading(NamedTuple):
+    position: np.ndarray  # (3,) estimate, m
+    velocity: np.ndarray  # (3,) m/s
+    heading: float  # rad, in [-π, π)
+    covariance: np.ndarray  # (6, 6) over x, y, z, roll, pitch, yaw
+
+
+def _vec(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+@dataclass
+class _Reference:
+    start_ns: int
+    dt: float
+    positions: np.ndarray  # (N, 3)
+    velocities: np.ndarray  # (N, 3): velocity on the interval starting at sample i (0 for the last)
+    headings: np.ndarray  # (N,) unwrapped, so interpolation turns the short way
+
+    def at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, float]:
+        u = (t_ns - self.start_ns) / NS / self.dt if self.dt > 0 else 0.0
+        last = len(self.positions) - 1
+        if u < 0 or last == 0:
+            return self.positions[0], np.zeros(3), float(self.headings[0])
+        if u >= last:
+            return self.positions[last], np.zeros(3), float(self.headings[last])
+        i = int(u)
+        f = u - i
+        position = self.positions[i] + f * (self.positions[i + 1] - self.positions[i])
+        heading = self.headings[i] + f * (self.headings[i + 1] - self.headings[i])
+        return position, self.velocities[i], float(heading)
+
+
+class Fleet:
+    def __init__(self, scenario: Scenario, names: list[str], seed: int) -> None:
+        self.names = list(names)
+        self.seed = seed % (1 << 63)
+        self.ground_z = float(scenario.ground_z)
+        count = len(self.names)
+        starts = np.asarray(start_poses(scenario, count), dtype=float)
+        self.position = np.column_stack([starts[:, 0], starts[:, 1], np.full(count, self.ground_z)])
+        self.velocity = np.zeros((count, 3))
+        self.heading = starts[:, 2].copy()
+        self.airborne = np.zeros(count, dtype=bool)
+        self.alive = np.ones(count, dtype=bool)
+        self.emergency = np.zeros(count, dtype=bool)
+        self.hold = self.position.copy()  # reference until the first trajectory arrives
+        self.references: list[_Reference | None] = [None] * count
+        specs = [scenario.uav_spec(n) for n in self.names]
+        # Columns: max_speed, max_acceleration, max_heading_rate, max_vertical_speed.
+        self.envelope = np.array([_limits(s.envelope()) for s in specs]).reshape(count, 4)
+        self.limits = np.array([_limits(s.sweeping) for s in specs]).reshape(count, 4)
+        self.sigmas = np.array([[s.odometry_position_sigma, s.odometry_attitude_sigma] for s in specs]).reshape(-1, 2)
+        self.offset = np.zeros((count, 3))
+        self.jumped = False  # any odometry offset yet (skips work in the common case)
+
+    def index(self, uav: str) -> int:
+        try:
+            return self.names.index(uav)
+        except ValueError:
+            raise KeyError(f"unknown UAV {uav!r} (team: {', '.join(self.names)})") from None
+
+    # ------------------------------------------------------------ inputs
+    def set_reference(self, i: int, reference: _Reference, limits: np.ndarray) -> None:
+        self.references[i] = reference
+        self.limits[i] = np.minimum(np.maximum(limits, 0.0), self.envelope[i])
+
+    def emergency_land(self, i: int) -> bool:
+        """Start an emergency landing; False when already landing that way or dead."""
+        if self.emergency[i] or not self.alive[i]:
+            return False
+        self.emergency[i] = True
+        return True
+
+    # ------------------------------------------------------------ physics
+    def integrate(self, t_ns: int, h: float, events: list) -> None:
+        count = len(self.names)
+        p_ref = self.hold.copy()
+        v_ref = np.zeros((count, 3))
+        heading_ref = self.heading.copy()
+        for i, ref in enumerate(self.references):
+            if ref is not None:
+                p_ref[i], v_ref[i], heading_ref[i] = ref.at(t_ns)
+        max_speed, max_acc, max_rate, max_vz = self.limits.T
+
+        error = p_ref - self.position
+        if self.jumped:
+            error -= self.offset * self.airborne[:, None]  # the controller flies on its estimate
+        distance = np.linalg.norm(error, axis=1)
+        # The PD law as a velocity demand: v_ref + (kp/kd)·e, with |(kp/kd)·e| capped by braking distance.
+        pull = (KP / KD) * distance
+        brake_speed = np.sqrt(2.0 * BRAKING_MARGIN * max_acc * distance)
+        scale = np.where(pull > brake_speed, brake_speed / np.maximum(pull, 1e-12), 1.0)
+        acc = KP * error * scale[:, None] + KD * (v_ref - self.velocity)
+        if self.emergency.any():
+            landing = self.emergency
+            descent = np.zeros((count, 3))
+            descent[:, 2] = -np.minimum(EMERGENCY_DESCENT, max_vz)
+            acc[landing] = KD * (descent - self.velocity)[landing]
+            heading_ref[landing] = self.heading[landing]
+        acc_norm = np.linalg.norm(acc, axis=1)
+        acc *= np.where(acc_norm > max_acc, max_acc / np.maximum(acc_norm, 1e-12), 1.0)[:, None]
+
+        dead = ~self.alive
+        acc[dead] = (0.0, 0.0, -GRAVITY)
+        velocity = self.velocity + acc * h
+        alive = self.alive
+        horizontal = np.linalg.norm(velocity[:, :2], axis=1)
+        shrink = np.where(alive & (horizontal > max_speed), max_speed / np.maximum(horizontal, 1e-12), 1.0)
+        velocity[:, :2] *= shrink[:, None]
+        velocity[alive, 2] = np.clip(velocity[alive, 2], -max_vz[alive], max_vz[alive])
+        position = self.position + velocity * h
+
+        on_ground = position[:, 2] <= self.ground_z
+        resting = on_ground & ~self.airborne
+        position[on_ground, 2] = self.ground_z
+        velocity[on_ground, 2] = np.maximum(velocity[on_ground, 2], 0.0)
+        velocity[resting, :2] = 0.0  # resting on the ground: no sliding
+        position[resting, :2] = self.position[resting, :2]
+        velocity[on_ground & dead] = 0.0
+
+        turn = (heading_ref - self.heading + np.pi) % (2 * np.pi) - np.pi
+        step = np.clip(turn, -max_rate * h, max_rate * h)
+        self.heading = np.where(alive, (self.heading + step + np.pi) % (2 * np.pi) - np.pi, self.heading)
+        self.position, self.velocity = position, velocity
+
+        height = position[:, 2] - self.ground_z
+        for i, name in enumerate(self.names):
+            if not self.airborne[i] and height[i] > TAKEOFF_HEIGHT:
+                self.airborne[i] = True
+                events.append(("takeoff", name, ""))
+            elif self.airborne[i] and height[i] <= LANDED_HEIGHT:
+                self.airborne[i] = False
+                self.hold[i] = position[i]
+                detail = "crashed" if not self.alive[i] else "emergency" if self.emergency[i] else ""
+                events.append(("landed", name, detail))
+
+    # ------------------------------------------------------------ outputs
+    def odometry(self, i: int, t_ns: int) -> OdometryReading:
+        position_sigma, attitude_sigma = self.sigmas[i]
+        rng = np.random.default_rng([self.seed, i, ODOMETRY_SALT, max(int(t_ns), 0)])
+        noise = rng.standard_normal(4)
+        position = self.position[i] + self.offset[i] + position_sigma * noise[:3]
+        heading = (self.heading[i] + attitude_sigma * noise[3] + math.pi) % (2 * math.pi) - math.pi
+        variances = np.repeat(np.maximum([position_sigma**2, attitude_sigma**2], MIN_VARIANCE), 3)
+        return OdometryReading(position, self.velocity[i].copy(), float(heading), np.diag(variances))
+
+    def states(self) -> list[VehicleState]:
+        return [VehicleState(name, self.position[i].copy(), self.velocity[i].copy(), float(self.heading[i]),
+                             bool(self.airborne[i]), bool(self.alive[i])) for i, name in enumerate(self.names)]
+
+
+def _limits(profile) -> list[float]:
+    return [profile.max_speed, profile.max_acceleration, profile.max_heading_rate, profile.max_vertical_speed]
+
+
+def make_reference(uav: str, start_ns: int, dt: float, positions: np.ndarray, headings: np.ndarray) -> _Reference:
+    positions = np.array(positions, dtype=float).reshape(-1, 3)
+    headings = np.array(headings, dtype=float).reshape(-1)
+    if len(positions) == 0 or len(headings) != len(positions):
+        raise ValueError(f"{uav}: reference needs N >= 1 positions and N headings, "
+                         f"got {len(positions)} and {len(headings)}")
+    if len(positions) > 1 and not dt > 0:
+        raise ValueError(f"{uav}: reference dt must be > 0, got {dt}")
+    if not np.all(np.isfinite(positions)) or not np.all(np.isfinite(headings)):
+        raise ValueError(f"{uav}: reference contains non-finite values")
+    velocities = np.zeros_like(positions)
+    if len(positions) > 1:
+        velocities[:-1] = np.diff(positions, axis=0) / dt
+    return _Reference(int(start_ns), float(dt), positions, velocities, np.unwrap(headings))

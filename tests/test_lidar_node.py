@@ -1,0 +1,118 @@
+"""The sensor driver and the oracle as running services: every scan comes with its truth
+(same stamp, same shape), the oracle turns the target hits into detections, and a scheduled
+`lidar_silent` fault silences exactly its window of mission time."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+import msgspec
+import numpy as np
+
+from schemas import keys
+from schemas.arrays import to_numpy
+from schemas.messages import (
+    Detections,
+    FaultCommand,
+    GroundTruth,
+    Header,
+    Obstacle,
+    PointCloud,
+    PointTruth,
+    SimClock,
+    TargetTruth,
+    VehicleTruth,
+    WorldModel,
+)
+from tests.conftest import REPO
+from tests.tools.health import wait_healthy
+
+TICK_NS = 50_000_000
+# The oracle started the way `falconry run oracle --uav uav1` does once the launcher treats it
+# as a per-UAV service.
+ORACLE = """
+import sys
+from services.launcher.cli import main
+from schemas import keys
+keys.UAV_SERVICES = keys.UAV_SERVICES + (keys.ORACLE,)
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def stamp_ns(tick: int) -> int:
+    return tick * TICK_NS
+
+
+def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes, tmp_path):
+    session, endpoint = hub
+    config = tmp_path / "params.toml"
+    config.write_text('[sensor_driver]\nmodel = "os1-64-1024"\nrange_noise = 0.0\n[oracle]\nsigma = 0.05\n')
+    processes.start("run", "sensor_driver", "--uav", "uav1", "--connect", endpoint, "--config", str(config),
+                    "--exit-with-parent")
+    processes.procs.append(subprocess.Popen(
+        [sys.executable, "-c", ORACLE, "run", "oracle", "--uav", "uav1", "--connect", endpoint,
+         "--config", str(config), "--exit-with-parent"], cwd=REPO))
+    wait_healthy(session, [("uav1", "sensor_driver"), ("uav1", "oracle")])
+
+    got: dict[str, list] = {"points": [], "points_truth": [], "detections": []}
+    decoders = {"points": PointCloud, "points_truth": PointTruth, "detections": Detections}
+    subscribers = [session.declare_subscriber(keys.uav("uav1", topic), lambda s, t=topic: got[t].append(
+        msgspec.msgpack.decode(s.payload.to_bytes(), type=decoders[t]))) for topic in got]
+    time.sleep(0.5)
+
+    def put(key: str, msg) -> None:
+        session.put(key, msgspec.msgpack.encode(msg))
+
+    world = WorldModel(header=Header(sender="sim/simulator", seq=1), scenario="test", arena=[(0, 0), (1, 0), (0, 1)],
+                       min_height=0.0, max_height=20.0, uavs=["uav1", "uav2"], seed=3,
+                       obstacles=[Obstacle(kind="plane", center=(0, 0, 0)),
+                                  Obstacle(kind="box", center=(0, 20, 4), size=(6, 2, 8))])
+    targets = [TargetTruth(id="balloon1", kind="balloon", position=(10.0, 0.0, 5.0), velocity=(0, 0, 0), radius=0.3),
+               TargetTruth(id="hidden", kind="balloon", position=(0.0, 25.0, 5.0), velocity=(0, 0, 0), radius=0.3),
+               TargetTruth(id="drone1", kind="drone", position=(0.0, -12.0, 6.0), velocity=(1, 0, 0),
+                           radius=0.325)]
+    put(keys.WORLD, world)
+    put(keys.FAULTS, FaultCommand(header=Header(sender="sim/simulator", seq=1, stamp=stamp_ns(20)),
+                                  kind="lidar_silent", uav="uav1", duration=0.5))
+    time.sleep(0.3)
+    for tick in range(1, 41):
+        now = stamp_ns(tick)
+        put(keys.TRUTH, GroundTruth(header=Header(sender="sim/simulator", seq=tick, stamp=now), step=tick,
+                                    uavs=[VehicleTruth(name="uav1", position=(0.0, 0.0, 5.0), velocity=(0, 0, 0),
+                                                       heading=0.4, airborne=True)],
+                                    targets=targets))
+        put(keys.CLOCK, SimClock(header=Header(sender="sim/simulator", seq=tick, stamp=now), step=tick, dt=0.05,
+                                 lockstep=False))
+        time.sleep(0.06)
+    deadline = time.monotonic() + 5.0
+    while time.monotonic() < deadline and len(got["detections"]) < len(got["points"]):
+        time.sleep(0.1)
+    for s in subscribers:
+        s.undeclare()
+
+    clouds = {m.header.stamp: m for m in got["points"]}
+    truths = {m.header.stamp: m for m in got["points_truth"]}
+    scanned = sorted(clouds)
+    # 10 Hz from the first tick, nothing in the silent window [1.0, 1.5) s of mission time
+    assert scanned and set(scanned) == set(truths)
+    assert not [s for s in scanned if stamp_ns(20) <= s < stamp_ns(30)]
+    assert stamp_ns(18) in scanned and stamp_ns(30) in scanned and stamp_ns(40) in scanned
+    for stamp in scanned:
+        cloud, truth = clouds[stamp], truths[stamp]
+        points, hits = to_numpy(cloud.points), to_numpy(truth.hits)
+        assert points.shape == (64, 1024, 3) and hits.shape == (64, 1024) and cloud.sensor_model == "os1-64-1024"
+        assert np.array_equal(hits == -1, np.isnan(points).any(axis=-1))
+        assert truth.targets == ["balloon1", "hidden", "drone1"]
+        assert set(np.unique(hits)) <= {-1, 0, 1, 3}  # the building hides target 2
+
+    detections = {m.header.stamp: m for m in got["detections"]}
+    assert set(detections) == set(scanned)
+    for stamp, msg in detections.items():
+        assert msg.detector == "oracle"
+        positions = to_numpy(msg.positions)
+        assert len(positions) == 2, stamp  # the balloon and the drone, not the hidden balloon
+        assert np.linalg.norm(positions[0] - [10.0, 0.0, 5.0]) < 0.5
+        assert np.linalg.norm(positions[1] - [0.0, -12.0, 6.0]) < 0.6
+        assert np.allclose(to_numpy(msg.covariances)[0], 0.05 ** 2 * np.eye(3))
+        assert (to_numpy(msg.point_counts) >= 2).all() and msg.sensor_position == (0.0, 0.0, 5.0)

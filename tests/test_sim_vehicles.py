@@ -1,0 +1,103 @@
+"""UAVs: odometry noise and jumps, emergency landing, the airframe's envelope, per-UAV settings."""
+from __future__ import annotations
+
+import numpy as np
+
+from services.simulator.core import Simulation
+from services.simulator.scenario import parse_scenario
+
+DT = 0.05
+LIMITS = dict(max_speed=5.0, max_acceleration=1.5, max_heading_rate=1.0, max_vertical_speed=2.0)
+
+
+def world(**extra):
+    data = {"name": "vehicles", "arena": [[-50, -50], [50, -50], [50, 50], [-50, 50]],
+            "starts": [[0.0, 0.0, 0.5], [0.0, 10.0, 0.0]]}
+    data.update(extra)
+    return parse_scenario(data, "vehicles.toml")
+
+
+def hovering(sim: Simulation, uav: str = "uav1", at=(0.0, 0.0, 5.0), seconds: float = 7.0) -> list:
+    sim.set_reference(uav, sim.time_ns, 1.0, np.array([at]), np.array([0.5]), **LIMITS)
+    return [e for _ in range(int(seconds / DT)) for e in sim.step(DT)]
+
+
+def test_odometry_noise_matches_its_sigmas_and_is_deterministic():
+    noisy = {"odometry_position_sigma": 0.2, "odometry_attitude_sigma": 0.05}
+    sim = Simulation(world(uav=noisy), ["uav1", "uav2"], seed=3)
+    true = sim.vehicles()[0]
+    readings = [sim.fleet.odometry(0, t_ns) for t_ns in range(0, 4000 * 50_000_000, 50_000_000)]
+    errors = np.array([r.position - true.position for r in readings])
+    headings = np.array([(r.heading - true.heading + np.pi) % (2 * np.pi) - np.pi for r in readings])
+    assert np.allclose(errors.std(axis=0), 0.2, rtol=0.05) and np.abs(errors.mean(axis=0)).max() < 0.015
+    assert abs(headings.std() - 0.05) < 0.0025 and abs(headings.mean()) < 0.004
+    assert abs(np.corrcoef(errors[:, 0], errors[:, 1])[0, 1]) < 0.06  # independent axes
+    assert np.allclose(np.diag(readings[0].covariance), [0.04] * 3 + [0.0025] * 3)
+    assert readings[0].covariance.shape == (6, 6)
+    # The same for a run whoever asks and how often; different for another seed or UAV.
+    again = Simulation(world(uav=noisy), ["uav1", "uav2"], seed=3)
+    assert np.array_equal(sim.odometry("uav1").position, again.odometry("uav1").position)
+    assert np.array_equal(sim.odometry("uav1").position, sim.odometry("uav1").position)
+    other = Simulation(world(uav=noisy), ["uav1", "uav2"], seed=4)
+    assert not np.array_equal(sim.odometry("uav1").position, other.odometry("uav1").position)
+    sim.step(DT)
+    assert not np.array_equal(sim.odometry("uav1").position, again.odometry("uav1").position)
+
+
+def test_noiseless_odometry_is_the_truth_with_a_tiny_covariance():
+    sim = Simulation(world(), ["uav1", "uav2"], seed=3)
+    hovering(sim, seconds=2.0)
+    position, velocity, heading, covariance = sim.odometry("uav1")
+    state = sim.vehicles()[0]
+    assert np.array_equal(position, state.position) and np.array_equal(velocity, state.velocity)
+    assert heading == state.heading and np.all(np.linalg.eigvalsh(covariance) > 0)
+
+
+def test_odometry_jump_moves_the_estimate_and_the_vehicle_follows_it():
+    sim = Simulation(world(), ["uav1", "uav2"], seed=3)
+    hovering(sim)
+    before = sim.vehicles()[0].position
+    sim.jump_odometry("uav1", (2.0, -1.0, 0.5))
+    assert np.allclose(sim.odometry("uav1").position, before + [2.0, -1.0, 0.5])  # at once
+    hovering(sim, seconds=8.0)
+    # The controller flies on its estimate: the estimate settles on the reference, the vehicle off it.
+    assert np.allclose(sim.odometry("uav1").position, [0, 0, 5], atol=0.02)
+    assert np.allclose(sim.vehicles()[0].position, [-2.0, 1.0, 4.5], atol=0.02)
+    sim.jump_odometry("uav1", (-2.0, 1.0, -0.5))  # undone
+    hovering(sim, seconds=8.0)
+    assert np.allclose(sim.vehicles()[0].position, [0, 0, 5], atol=0.02)
+
+
+def test_emergency_landing_descends_gently_and_ignores_the_reference():
+    sim = Simulation(world(), ["uav1", "uav2"], seed=3)
+    assert hovering(sim) == [("takeoff", "uav1", "")]
+    sim.emergency_land("uav1", "lidar silent")
+    sim.emergency_land("uav1")  # a second call changes nothing
+    sim.set_reference("uav1", sim.time_ns, 1.0, np.array([[10.0, 0.0, 8.0]]), np.zeros(1), **LIMITS)
+    heights, events = [], []
+    for _ in range(int(6.0 / DT)):
+        events += sim.step(DT)
+        heights.append(sim.vehicles()[0].position[2])
+    assert events == [("emergency_landing", "uav1", "lidar silent"), ("landed", "uav1", "emergency")]
+    assert np.diff(heights).min() >= -1.0 * DT - 1e-9 and np.diff(heights).max() <= 1e-9
+    state = sim.vehicles()[0]
+    assert not state.airborne and state.position[2] == 0.0 and np.linalg.norm(state.position[:2]) < 0.01
+    assert hovering(sim, seconds=2.0) == [] and not sim.vehicles()[0].airborne  # stays down for good
+
+
+def test_airframe_envelope_caps_the_reference_profile():
+    slow = {"sweeping": {"max_speed": 2.0, "max_acceleration": 1.0},
+            "attack": {"max_speed": 3.0, "max_acceleration": 1.2, "max_vertical_speed": 1.0},
+            "overrides": {"uav2": {"attack": {"max_speed": 9.0, "max_acceleration": 4.0}}}}
+    sim = Simulation(world(uav=slow), ["uav1", "uav2"], seed=3)
+    attack = dict(max_speed=8.3, max_acceleration=3.0, max_heading_rate=1.0, max_vertical_speed=2.0)
+    for uav in ("uav1", "uav2"):
+        sim.set_reference(uav, 0, 1.0, np.array([[30.0, 0.0, 5.0]]), np.zeros(1), **attack)
+    speeds, climbs = [], []
+    for _ in range(int(8.0 / DT)):
+        sim.step(DT)
+        speeds.append([np.linalg.norm(v.velocity[:2]) for v in sim.vehicles()])
+        climbs.append(sim.vehicles()[0].velocity[2])
+    speeds = np.array(speeds)
+    assert 2.99 < speeds[:, 0].max() <= 3.0 + 1e-9 and max(climbs) <= 1.0 + 1e-9
+    assert speeds[:, 1].max() > 6.0  # uav2's own, faster airframe
