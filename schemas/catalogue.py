@@ -25,6 +25,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("falconry/sim/world", m.WorldModel, "simulator", "sensor_driver, job_manager", "at start, then 1 Hz"),
     Entry("falconry/sim/truth", m.GroundTruth, "simulator", "sensor_driver (simulated LiDAR only), launcher (truth log, summary)", "1/tick"),
     Entry("falconry/sim/events", m.SimEvent, "simulator, launcher (restarts)", "launcher", "on event"),
+    Entry("falconry/sim/resume", m.GroundTruth, "launcher (queryable: the last ground truth of the run)", "a restarted simulator", "on query"),
     Entry("falconry/sim/faults", m.FaultCommand, "simulator (from the scenario's fault schedule)", "sensor_driver, launcher; every service's runtime (lockstep: a silenced upstream is not waited for)", "at each fault's time"),
     Entry("falconry/<uav>/odometry", m.Odometry, "simulator (onboard: flight controller bridge)", "job_manager, planner", "1/tick"),
     Entry("falconry/<uav>/points", m.PointCloud, "sensor_driver", "classifier", "10 Hz"),

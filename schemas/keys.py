@@ -64,6 +64,7 @@ WORLD = sim("world")
 TRUTH = sim("truth")
 EVENTS = sim("events")
 FAULTS = sim("faults")
+RESUME = sim("resume")
 
 
 def parse_alive(key: str) -> tuple[str, str] | None:

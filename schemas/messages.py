@@ -225,6 +225,7 @@ class WorldModel(msgspec.Struct, kw_only=True):
     uavs: list[str] = []
     seed: int = 0
     duration: float = 0.0  # s of mission time
+    sensors: dict[str, str] = {}  # UAV -> LiDAR model its sensor driver simulates
 
 
 class VehicleTruth(msgspec.Struct, kw_only=True):

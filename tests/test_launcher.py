@@ -8,9 +8,11 @@ import signal
 import subprocess
 import time
 
+import msgspec
 import zenoh
 
 from schemas import keys
+from schemas.messages import SimClock
 from services.launcher.monitor import read_truth_log
 from tests.conftest import falconry_argv
 from tests.tools.health import health, wait_healthy
@@ -25,6 +27,10 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
     tokens: queue.SimpleQueue = queue.SimpleQueue()
     watcher = session.liveliness().declare_subscriber(
         keys.ALL_ALIVE, lambda s: tokens.put((str(s.key_expr), s.kind, time.monotonic())))
+    clock_decoder = msgspec.msgpack.Decoder(SimClock)
+    mission_time = [0]
+    clock = session.declare_subscriber(
+        keys.CLOCK, lambda s: mission_time.__setitem__(0, clock_decoder.decode(s.payload.to_bytes()).header.stamp))
     victims = [("uav1", s) for s in keys.UAV_SERVICES] + [(keys.SIM, "simulator")]
     try:
         wait_healthy(session, [("uav2", "job_manager")] + victims, timeout=60)
@@ -53,10 +59,18 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
             print(f"SIGKILL {scope}/{service}: liveliness gone after {gone * 1000:.1f} ms, "
                   f"restarted and alive again after {back:.2f} s")
             assert back < 2.0, f"{scope}/{service} took {back:.2f} s to come back"
+            if service == "simulator":  # a restarted simulator resumes the run where it was
+                at_kill = mission_time[0]
+                deadline = time.monotonic() + 10
+                while mission_time[0] <= at_kill + 1_000_000_000 and time.monotonic() < deadline:
+                    time.sleep(0.1)
+                print(f"mission time {at_kill / 1e9:.2f} s at the kill, {mission_time[0] / 1e9:.2f} s after")
+                assert mission_time[0] > at_kill + 1_000_000_000, "the run did not go on after the restart"
             time.sleep(0.5)
         launcher.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal does
         output, _ = launcher.communicate(timeout=30)
     finally:
+        clock.undeclare()
         watcher.undeclare()
         session.close()
     assert launcher.returncode == 130, output

@@ -26,7 +26,7 @@ from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, SimClock, StepAck
 from services.recorder.mcap_io import McapRecordWriter, ReadReport, RecordedMessage, read_recording
-from services.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Publish, Tick
+from services.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Tick
 from services.runtime import shm
 from services.runtime.zenoh_config import free_port
 from tests.conftest import REPO, falconry_argv
@@ -94,21 +94,11 @@ def _schedule(recorded: list[RecordedMessage]) -> list[str]:
 
 
 def test_schedule_restores_pipeline_order_from_lockstep_bookkeeping_not_file_order():
-    # The live classifier used the scan of tick 0 in tick 0 (its ack names detections): the
-    # upstream output of the first tick goes out before it, as a service takes what it holds then.
+    # A service joining at the replay's first tick takes what it holds: the upstream stand-in's
+    # output of that tick goes out before it. Later ticks follow the pipeline after the tick.
     assert _schedule(_pipeline_recording({"falconry/uav1/detections": 1})) == [
         "sim/world#1", "uav1/odometry#1", "uav1/points#1", "uav1/ack/sensor_driver#1", "tick0",
         "await uav1/classifier@0", "uav1/map#1", "uav1/ack/mapper#1",
-        "await all@0", "uav1/odometry#2", "tick1",
-        "uav1/ack/sensor_driver#2", "await uav1/classifier@1",
-    ]
-
-
-def test_schedule_replays_a_first_tick_the_live_service_missed_its_input_in():
-    # The live classifier published nothing in tick 0: the scan reached it after that tick.
-    assert _schedule(_pipeline_recording({})) == [
-        "sim/world#1", "uav1/odometry#1", "tick0", "await uav1/classifier@0",
-        "uav1/points#1", "uav1/ack/sensor_driver#1", "uav1/map#1", "uav1/ack/mapper#1",
         "await all@0", "uav1/odometry#2", "tick1",
         "uav1/ack/sensor_driver#2", "await uav1/classifier@1",
     ]
@@ -140,6 +130,21 @@ def test_writer_channels_schemas_and_times_round_trip(tmp_path):
     assert [m.payload for m in got] == [encode(det), b"\x01\x02"]
     decoded = msgspec.msgpack.decode(got[0].payload, type=Detections)
     assert to_numpy(decoded.point_counts).tolist() == [5, 6]
+
+
+def test_user_mistakes_are_one_line_errors(tmp_path):
+    not_mcap = tmp_path / "notes.mcap"
+    not_mcap.write_text("hello")
+    for argv, message in (
+        (["replay", str(not_mcap), "--connect", "tcp/127.0.0.1:9"], "is not an MCAP file"),
+        (["replay", str(tmp_path / "missing.mcap"), "--connect", "tcp/127.0.0.1:9"], "no such recording"),
+        (["record", str(tmp_path / "x.mcap"), "--keys", "a//b", "--connect", "tcp/127.0.0.1:9"], "invalid key expression"),
+        (["record", str(tmp_path / "no" / "x.mcap"), "--connect", "tcp/127.0.0.1:9"], "cannot write"),
+        (["record", str(tmp_path / "x.mcap")], "--connect"),
+    ):
+        result = subprocess.run(falconry_argv(*argv), cwd=REPO, capture_output=True, text=True, timeout=30)
+        assert result.returncode == 2 and message in result.stderr, (argv, result.stderr)
+        assert len(result.stderr.strip().splitlines()) == 1, result.stderr
 
 
 # ------------------------------------------------------------------ one live run, recorded

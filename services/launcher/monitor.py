@@ -57,6 +57,7 @@ class RunMonitor:
         self.digests: dict[str, tuple[int, "hashlib._Hash"]] | None = {} if digests else None
         self.step = -1
         self.truth_step = -1
+        self.last_truth: bytes | None = None  # what a restarted simulator resumes from
         self.mission_time = 0.0
         self.rtf = 0.0
         self.finished = False  # the clock's last tick went out
@@ -84,8 +85,10 @@ class RunMonitor:
         try:
             if key in self.decode:
                 msg = self.decode[key].decode(payload)
-                if key == keys.TRUTH and self.truth_log is not None:
-                    write_record(self.truth_log, payload)
+                if key == keys.TRUTH:
+                    self.last_truth = payload
+                    if self.truth_log is not None:
+                        write_record(self.truth_log, payload)
                 getattr(self, f"_on_{key.rsplit('/', 1)[-1]}")(msg)
                 return
             uav, topic = key.split("/")[1:3]
@@ -135,7 +138,7 @@ class RunMonitor:
         self.events.append(event)
         if event.kind == "mission_finished":
             self.over = True
-        elif event.kind == "target_destroyed":
+        elif event.kind in ("target_destroyed", "target_captured"):
             self.destroyed.append((seconds(event.header.stamp), event.subject, event.detail))
         elif event.kind == "service_restarted":
             self.restarts.append(f"{event.subject} ({event.detail})")

@@ -41,11 +41,13 @@ def add_parser(commands) -> None:
 
 
 def check_key_exprs(exprs: list[str]) -> list[str]:
+    from services.launcher.cli import CliError
+
     for expr in exprs:
         try:
             zenoh.KeyExpr(expr)
-        except Exception:
-            raise ValueError(f"invalid key expression {expr!r}") from None
+        except Exception:  # zenoh's message names a Rust source file: say it plainly
+            raise CliError(f"invalid key expression {expr!r}") from None
     return exprs
 
 
@@ -66,8 +68,11 @@ def run_record(args: argparse.Namespace) -> int:
     init_logging()
     session = open_session(zenoh_settings(args))
     try:
-        recorder = Recorder(session, args.file, key_exprs, compression=args.compression,
-                            chunk_size=args.chunk_size, flush_s=args.flush)
+        try:
+            recorder = Recorder(session, args.file, key_exprs, compression=args.compression,
+                                chunk_size=args.chunk_size, flush_s=args.flush)
+        except OSError as exc:
+            raise CliError(f"cannot write {args.file}: {exc.strerror or exc}") from None
         print(f"recording {' '.join(recorder.key_exprs)} to {args.file} (Ctrl-C to stop)", flush=True)
         started = time.monotonic()
         next_progress = started + args.progress

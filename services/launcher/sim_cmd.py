@@ -107,6 +107,7 @@ def run_sim(args: argparse.Namespace) -> int:
                    # digests need everything; one subscription keeps each payload from arriving twice
                    for k in ((f"{keys.ROOT}/**",) if args.digest_json else WATCHED + (keys.FAULTS,))]
     events_pub = session.declare_publisher(keys.EVENTS)
+    resume = session.declare_queryable(keys.RESUME, lambda query: inbox.put(("query", query)))
     encoder = msgspec.msgpack.Encoder()
     fault_decoder = msgspec.msgpack.Decoder(FaultCommand)
     event_seq = [0]
@@ -129,6 +130,17 @@ def run_sim(args: argparse.Namespace) -> int:
                    f"detector {args.detector}, zenoh {plan.hub_label}"
                    + (f", UAVs in network namespaces on {network.prefix}.0/24" if network else ""))
     faults = FaultExecutor(supervisor, network, report)
+
+    def dispatch(key: str, payload) -> None:
+        if key == "query":
+            answer_resume(payload, monitor.last_truth)
+        elif key == keys.FAULTS:
+            try:
+                faults.start(fault_decoder.decode(payload), monitor.mission_time)
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                pass
+        else:
+            monitor.handle(key, payload)
     outcome = "finished"
     signal.signal(signal.SIGTERM, _interrupt)  # `kill`, `timeout` and compose stop us like Ctrl-C does
     try:
@@ -142,14 +154,8 @@ def run_sim(args: argparse.Namespace) -> int:
             if finished_at is not None and time.monotonic() - finished_at > 3.0:
                 break  # the simulator's closing event went missing: the run is over all the same
             try:
-                key, payload = inbox.get(timeout=0.1)
-                if key == keys.FAULTS:
-                    faults.start(fault_decoder.decode(payload), monitor.mission_time)
-                else:
-                    monitor.handle(key, payload)
+                dispatch(*inbox.get(timeout=0.1))
             except queue.Empty:
-                pass
-            except (msgspec.DecodeError, msgspec.ValidationError):
                 pass
             faults.tick(monitor.mission_time)
             supervisor.poll()
@@ -168,7 +174,7 @@ def run_sim(args: argparse.Namespace) -> int:
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:
             try:
-                monitor.handle(*inbox.get(timeout=0.2))
+                dispatch(*inbox.get(timeout=0.2))
             except queue.Empty:
                 if monitor.truth_step >= monitor.step:
                     break
@@ -183,6 +189,7 @@ def run_sim(args: argparse.Namespace) -> int:
         for sub in subscribers:
             sub.undeclare()
         events_pub.undeclare()
+        resume.undeclare()
         session.close()
         outputs.close()
         if network:
@@ -201,6 +208,15 @@ def run_sim(args: argparse.Namespace) -> int:
     if outcome == "interrupted":
         return 130
     return 0 if outcome == "finished" and not summary["failed_services"] else 1
+
+
+def answer_resume(query, last_truth: bytes | None) -> None:
+    """A restarted simulator asks where the run was; before the first truth there is nothing to say."""
+    try:
+        if last_truth is not None:
+            query.reply(keys.RESUME, last_truth)
+    finally:
+        query.drop()
 
 
 class Outputs:
@@ -240,7 +256,7 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         f"{'lockstep' if s['lockstep'] else 'real time'}, detector {s['detector']} ===",
         f"outcome: {s['outcome']}; mission time {s['mission_time']:.1f}/{duration:g} s in {s['wall_time']:.1f} s "
         f"wall (real-time factor {s['mission_time'] / max(s['wall_time'], 1e-9):.2f}x)",
-        f"targets destroyed: {len(s['destroyed'])}/{s['targets']}"
+        f"targets destroyed or captured: {len(s['destroyed'])}/{s['targets']}"
         + "".join(f"\n  t={d['t']:.1f} s {d['target']} by {d['by']}" for d in s["destroyed"]),
     ]
     for name, u in s["uavs"].items():

@@ -33,6 +33,7 @@ from mcap.writer import CompressionType, Writer
 
 from schemas.catalogue import CATALOGUE
 from schemas.messages import Header
+from services.runtime.errors import UsageError
 
 PROFILE = "falconry"
 MESSAGE_ENCODING = "msgpack"
@@ -86,7 +87,7 @@ class McapRecordWriter:
     def __init__(self, path: str, key_exprs: tuple[str, ...] = (), compression: str = "zstd",
                  chunk_size: int = CHUNK_SIZE) -> None:
         if compression not in COMPRESSIONS:
-            raise ValueError(f"unknown compression {compression!r} (choose from {', '.join(COMPRESSIONS)})")
+            raise UsageError(f"unknown compression {compression!r} (choose from {', '.join(COMPRESSIONS)})")
         self.path = str(path)
         self._file = open(self.path, "wb")
         self._writer = Writer(self._file, chunk_size=chunk_size, compression=COMPRESSIONS[compression])
@@ -206,7 +207,7 @@ def read_recording(path: str, wanted: Callable[[str], bool] | None = None,
                 break
             except Exception as exc:  # whatever the damaged tail looks like, nothing after it is usable
                 if isinstance(exc, InvalidMagic):
-                    raise ValueError(f"{path} is not an MCAP file") from None
+                    raise UsageError(f"{path} is not an MCAP file") from None
                 report.cut_at = good_until
                 if not isinstance(exc, (EndOfFile, RecordLengthLimitExceeded)):
                     report.reason = f"{type(exc).__name__}: {exc}"

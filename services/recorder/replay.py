@@ -37,8 +37,11 @@ from schemas.messages import SimClock, StepAck
 from services.launcher.registry import node_class
 from services.recorder.mcap_io import ReadReport, header_of, read_recording
 from services.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Publish, Tick, ack_owner
+from services.runtime.errors import UsageError
 
-DEFAULT_REPLAY_KEYS = (keys.CLOCK, keys.WORLD, "falconry/*/points", "falconry/*/odometry")
+# The sensor stream and what perception needs; the faults tell a lockstep service when its
+# upstream is silenced on purpose (it must not wait for it then).
+DEFAULT_REPLAY_KEYS = (keys.CLOCK, keys.WORLD, keys.FAULTS, "falconry/*/points", "falconry/*/odometry")
 RESEND_S = 0.5
 ACK_TIMEOUT_S = 10.0
 SETTLE_S = 0.3  # lets services see the stand-in tokens before the first tick
@@ -66,7 +69,7 @@ def pipeline_order(say: Callable[[str], None] = print) -> list[str]:
     return sorted(upstream, key=lambda s: (depth_of(s), keys.SERVICES.index(s)))
 
 
-class ReplayError(Exception):
+class ReplayError(UsageError):
     """The replay cannot start (a service to wait for never came, a key set that cannot work)."""
 
 

@@ -15,8 +15,7 @@ bookkeeping in the recording says where each message really belongs:
 Within tick k the slots follow the pipeline (a service after its upstream services): a stand-in's
 messages then its acknowledgement go out in its slot; for any other service the replay waits for
 its live acknowledgement of k (if it runs). Before each tick every live service is waited for.
-The first tick needs care, since a service takes what it holds then without waiting
-(`_first_tick_plan`).
+At the first replayed tick the services under test are joining: see `_first_tick_plan`.
 """
 from __future__ import annotations
 
@@ -152,18 +151,15 @@ class LockstepSchedule:
         for item in before:
             yield Publish(item.msg.key, item.msg.payload, item.msg.sequence)
         order = self._slot_order()
-        early, acked_first = self._first_tick_plan(step, order) if first else ([], [])
+        early = self._first_tick_plan(order) if first else []
         for name in early:
             yield from self._slot(name, step, slots)
         yield Tick(clock, payload)
-        for name in acked_first:
-            yield AwaitAck(name, step)
         for name in order:
-            if name in self.stand_ins:
-                if name not in early:
-                    yield from self._slot(name, step, slots)
-            elif name not in acked_first:
+            if name not in self.stand_ins:
                 yield AwaitAck(name, step)
+            elif name not in early:
+                yield from self._slot(name, step, slots)
         for items in slots.values():  # stand-ins in no UAV scope (none today): after the pipeline
             for item in items:
                 yield Publish(item.msg.key, item.msg.payload, item.msg.sequence)
@@ -183,27 +179,19 @@ class LockstepSchedule:
         if recorded is not None:
             yield Publish(recorded[1].key, recorded[1].payload)
 
-    def _first_tick_plan(self, step: int, order: list[str]) -> tuple[list[str], list[str]]:
-        """At its first tick a service waits for nothing (it cannot know what was sent before it
-        existed) and takes what it holds. So the stand-ins at the head of a UAV's pipeline deliver
-        their first-tick output before the tick, and the service after them uses it in that tick,
-        as the protocol means; unless the recording shows that service published nothing in its
-        first tick (its input came after it had processed the tick): then the replay waits for its
-        acknowledgement first and it uses the input one tick later, as it did."""
+    def _first_tick_plan(self, order: list[str]) -> list[str]:
+        """Stand-in slots delivered before the first replayed tick. A service joins the replay at
+        that tick: at step 0 it waits for its upstream like at any tick, but joining later (a
+        recording started mid-run) it waits for nothing and takes what it holds. Sending the
+        output of the stand-ins at the head of each UAV's pipeline first makes the service after
+        them use it in that tick either way, as it did in the recorded run."""
         early: list[str] = []
-        acked_first: list[str] = []
         for scope in sorted(self._scopes):
             names = [n for n in order if n.split("/")[0] == scope]
             lead = list(takewhile(lambda n: n in self.stand_ins, names))
-            if not lead or len(lead) == len(names):
-                continue
-            after = names[len(lead)]
-            recorded = self._acks.get((after, step))
-            if recorded is not None and not recorded[0].published:
-                acked_first.append(after)
-            else:
+            if len(lead) < len(names):  # somebody to feed
                 early += lead
-        return early, acked_first
+        return early
 
     def _place(self, item: _Pending, step: int, clock: SimClock, clock_index: int, next_index: int | None):
         """'before' the tick, a stand-in's name (its slot in this tick), or None (a later tick)."""

@@ -1,8 +1,9 @@
-"""The simulator service: arena, static obstacles, targets, point-mass UAV dynamics, ground
-truth and the mission clock (one per run).
+"""The simulator service (one per run): arena, static obstacles, targets, point-mass UAV
+dynamics with noisy odometry and emergency landing, balloons swaying in wind, scripted
+intruder drones that can be captured, the scenario's fault schedule, ground truth and the
+mission clock.
 
-First version (walking skeleton): balloons on poles and circling intruder drones, point-mass
-vehicles tracking their trajectory reference, balloon destruction by proximity. Later issues
-deepen it with drone capture, scripted drone paths, a fault schedule and richer dynamics.
-`scenario.py` reads scenario files, `core.py` is the pure physics, `node.py` the clock and wiring.
+`scenario.py`, `specs.py` and `checks.py` read and validate scenario files; `vehicles.py`,
+`targets.py` and `paths.py` are the pure physics that `core.py` ties together; `node.py` drives
+the clock and wires it all to Zenoh.
 """

@@ -68,6 +68,28 @@ class Simulation:
         self.fleet.offset[self.index(uav)] += offset
         self.fleet.jumped = True
 
+    def resume(self, time_ns: int, vehicles: list, targets: list) -> None:
+        """Continue a run from its last ground truth (a restarted simulator): mission time, each
+        vehicle's position, velocity, heading, airborne and alive flags, and the targets already
+        destroyed or captured. References come again from the planners; odometry offsets and
+        emergency landings under way are not in the truth and start afresh."""
+        self.time_ns = int(time_ns)
+        fleet = self.fleet
+        for v in vehicles:
+            i = self.index(v.name)
+            fleet.position[i] = v.position
+            fleet.velocity[i] = v.velocity
+            fleet.heading[i] = v.heading
+            fleet.airborne[i] = v.airborne
+            fleet.alive[i] = v.alive
+            fleet.hold[i] = v.position
+        gone = {t.id: t for t in targets if t.destroyed}
+        self.balloons.destroyed[:] = [tid in gone for tid in self.balloons.ids]
+        for k, tid in enumerate(self.drones.ids):
+            if tid in gone:  # it falls (or rests) from where the truth last saw it
+                self.drones.captured_at[k] = self.time_ns / NS
+                self.drones.capture_points[k] = gone[tid].position
+
     # ------------------------------------------------------------ physics
     def step(self, dt: float) -> list[tuple[str, str, str]]:
         """Advance by dt seconds; returns the events (kind, subject, detail) in the order they happened."""

@@ -39,6 +39,7 @@ from services.runtime.errors import UsageError
 from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.node import Node
 from services.simulator.core import Simulation
+from services.simulator.checks import check_team
 from services.simulator.scenario import load_scenario
 
 RESEND_S = 0.5  # re-send a tick nobody acknowledged (a service may have joined late)
@@ -48,7 +49,10 @@ ACK_TIMEOUT_S = 10.0
 class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     startup_timeout: float = 60.0  # s of wall time to wait for every service before starting anyway
     world_period: float = 1.0  # s of mission time between WorldModel re-publications
-    odometry_position_sigma: float = 0.0  # m; noise models come with the full simulator
+
+
+def _vec(values) -> tuple[float, float, float]:
+    return (float(values[0]), float(values[1]), float(values[2]))
 
 
 def heading_quaternion(heading: float) -> tuple[float, float, float, float]:
@@ -73,10 +77,12 @@ class SimulatorNode(Node):
         if self.duration <= 0 or self.rtf <= 0 or self.tick_s <= 0:
             raise UsageError("--duration, --rtf and --tick must be positive")
         self._clock_kind = "master"  # this node makes the clock; it never follows one
+        check_team(self.scenario, self.uav_names)
         self.sim = Simulation(self.scenario, self.uav_names, self.seed)
         self._alive: set[str] = set()
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
         self._fault_windows = FaultWindows()
+        self._undo_jumps: list[tuple[int, str, np.ndarray]] = []  # (mission ns, uav, offset)
         self._acks: dict[str, StepAck] = {}
         self._sim_gate: LockstepGate = LockstepGate((), self._wants, self._order, joining=False)
 
@@ -121,13 +127,15 @@ class SimulatorNode(Node):
 
     def serve(self) -> None:
         self._lockstep = self.run_lockstep  # trajectories are gated by acknowledgements in lockstep
+        first_step = self.resume_from_launcher()
         if not self.wait_for_team():
             return
-        self.event("mission_started", "sim", f"{self.scenario.name}, {len(self.uav_names)} UAVs, seed {self.seed}, "
-                   f"{'lockstep' if self.run_lockstep else f'real time x{self.rtf:g}'}")
+        if first_step == 0:
+            self.event("mission_started", "sim", f"{self.scenario.name}, {len(self.uav_names)} UAVs, "
+                       f"seed {self.seed}, {'lockstep' if self.run_lockstep else f'real time x{self.rtf:g}'}")
         steps = int(round(self.duration / self.tick_s))
-        wall_start = time.monotonic()
-        for step in range(steps + 1):
+        wall_start, mission_start = time.monotonic(), seconds(to_ns(first_step * self.tick_s))
+        for step in range(first_step, steps + 1):
             if self.stopping:
                 return
             if step > 0:
@@ -139,7 +147,7 @@ class SimulatorNode(Node):
             self.clock.advance_to(now)
             self.inject_faults(now)
             self.publish_state(step, now)
-            rtf = seconds(now) / max(time.monotonic() - wall_start, 1e-9)
+            rtf = (seconds(now) - mission_start) / max(time.monotonic() - wall_start, 1e-9)
             tick = SimClock(header=Header(stamp=now), step=step, dt=self.tick_s, lockstep=self.run_lockstep,
                             real_time_factor=rtf, bounds=self.bounds(), finished=step == steps,
                             alive=sorted(self._alive | {self.sender}))
@@ -147,10 +155,32 @@ class SimulatorNode(Node):
             if self.run_lockstep:
                 self.wait_for_acks(tick)
             else:
-                self.pace(wall_start + seconds(now) / self.rtf + self.tick_s / self.rtf)
+                self.pace(wall_start + (seconds(now) - mission_start + self.tick_s) / self.rtf)
         self.event("mission_finished", "sim", f"{seconds(self.clock.now_ns()):.1f} s of mission time")
         while not self.stopping:  # stay reachable (health queries) until the launcher stops us
             self.pump(0.2)
+
+    def resume_from_launcher(self) -> int:
+        """A restarted simulator continues the run from the launcher's last ground truth
+        (falconry/sim/resume); returns the first step to simulate (0 for a new run)."""
+        decoder = msgspec.msgpack.Decoder(GroundTruth)
+        try:
+            replies = list(self.session.get(keys.RESUME, timeout=1.0))
+        except Exception as exc:  # no launcher (compose, onboard): a new run
+            self.log.debug("no resume answer: %s", exc)
+            return 0
+        for reply in replies:
+            if reply.ok is None:
+                continue
+            try:
+                truth = decoder.decode(reply.ok.payload.to_bytes())
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                continue
+            self.sim.resume(truth.header.stamp, truth.uavs, truth.targets)
+            self.clock.advance_to(truth.header.stamp)
+            self.event("simulator_resumed", "sim", f"from step {truth.step} (t={seconds(truth.header.stamp):.2f} s)")
+            return truth.step + 1
+        return 0
 
     def wait_for_team(self) -> bool:
         expected = self.expected_services()
@@ -213,21 +243,26 @@ class SimulatorNode(Node):
 
     # ------------------------------------------------------------ faults
     def inject_faults(self, now: int) -> None:
+        while self._undo_jumps and self._undo_jumps[0][0] <= now:
+            _, uav, offset = self._undo_jumps.pop(0)
+            self.sim.jump_odometry(uav, -offset)
+            self.event("fault_ended", uav, "odometry_jump")
         while self._pending_faults and to_ns(self._pending_faults[0].time) <= now:
             spec = self._pending_faults.pop(0)
-            if spec.uav not in self.uav_names:
-                self.log.warning("fault for %s skipped: no such UAV in this run", spec.uav)
-                continue
-            command = FaultCommand(header=Header(stamp=now), kind=spec.kind, uav=spec.uav,
-                                   service=spec.service, duration=spec.duration, offset=tuple(spec.offset))
+            command = spec.command()
             self._fault_windows.add(command)
             if spec.kind == "odometry_jump":
-                self.sim.jump_odometry(spec.uav, np.asarray(spec.offset, dtype=float))
+                offset = np.asarray(spec.offset, dtype=float)
+                self.sim.jump_odometry(spec.uav, offset)
+                if spec.duration > 0:
+                    self._undo_jumps.append((now + to_ns(spec.duration), spec.uav, offset))
+                    self._undo_jumps.sort(key=lambda u: u[0])
             elif spec.kind == "kill" and not spec.service:
-                self.sim.emergency_land(spec.uav)  # the flight controller's failsafe when its computer dies
+                # the flight controller's failsafe when the onboard computer dies
+                self.sim.emergency_land(spec.uav, "onboard computer lost")
             self.faults_pub.put(command)
             target = "/".join(filter(None, (spec.uav, spec.service)))
-            self.event("fault_injected", target, f"{spec.kind}" + (f" for {spec.duration:g} s" if spec.duration else ""))
+            self.event("fault_injected", target, spec.kind + (f" for {spec.duration:g} s" if spec.duration else ""))
 
     # ------------------------------------------------------------ output
     def publish_world(self) -> None:
@@ -235,17 +270,18 @@ class SimulatorNode(Node):
         self.world_pub.put(WorldModel(
             header=Header(stamp=self.clock.now_ns()), scenario=sc.name, arena=[tuple(p) for p in sc.arena],
             min_height=sc.min_height, max_height=sc.max_height, obstacles=self.sim.obstacles(),
-            uavs=list(self.uav_names), seed=self.seed, duration=self.duration))
+            uavs=list(self.uav_names), seed=self.seed, duration=self.duration,
+            sensors={u: sc.uav_spec(u).sensor for u in self.uav_names}))
 
     def publish_state(self, step: int, now: int) -> None:
         if step % max(1, int(round(self.params.world_period / self.tick_s))) == 0:
             self.publish_world()
         vehicles = self.sim.vehicles()
         for v in vehicles:
-            pos = tuple(float(x) for x in v.position)
+            position, velocity, heading, covariance = self.sim.odometry(v.name)
             self.odometry_pubs[v.name].put(Odometry(
-                header=Header(stamp=now), pose=Pose(position=pos, orientation=heading_quaternion(v.heading)),
-                velocity=tuple(float(x) for x in v.velocity), covariance=from_numpy(np.eye(6) * 1e-4)))
+                header=Header(stamp=now), pose=Pose(position=_vec(position), orientation=heading_quaternion(heading)),
+                velocity=_vec(velocity), covariance=from_numpy(np.asarray(covariance, dtype=np.float64))))
         self.truth_pub.put(GroundTruth(
             header=Header(stamp=now), step=step,
             uavs=[VehicleTruth(name=v.name, position=tuple(float(x) for x in v.position),
