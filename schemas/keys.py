@@ -15,6 +15,12 @@ UAV_SERVICES = ("sensor_driver", "classifier", "mapper", "tracker", "job_manager
 # points that really hit a target (simulation only; `falconry sim --detector oracle`).
 ORACLE = "oracle"
 SIM_SERVICES = ("simulator",)
+
+
+def uav_services(detector: str = "classifier") -> list[str]:
+    """The per-UAV services of a run: the oracle, when chosen, replaces the classifier."""
+    return [detector if s == "classifier" else s for s in UAV_SERVICES]
+
 SERVICES = SIM_SERVICES + UAV_SERVICES + (ORACLE,)
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")

@@ -1,6 +1,7 @@
 """The sensor driver and the oracle as running services: every scan comes with its truth
-(same stamp, same shape), the oracle turns the target hits into detections, and a scheduled
-`lidar_silent` fault silences exactly its window of mission time."""
+(same stamp, same shape), the oracle turns the target hits into detections, a scheduled
+`lidar_silent` fault silences exactly its window of mission time, and the LiDAR model is the
+parameters' or else the one the world model names for the UAV."""
 from __future__ import annotations
 
 import subprocess
@@ -50,15 +51,18 @@ def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes,
     config.write_text('[sensor_driver]\nmodel = "os1-64-1024"\nrange_noise = 0.0\n[oracle]\nsigma = 0.05\n')
     processes.start("run", "sensor_driver", "--uav", "uav1", "--connect", endpoint, "--config", str(config),
                     "--exit-with-parent")
+    processes.start("run", "sensor_driver", "--uav", "uav2", "--connect", endpoint, "--exit-with-parent")
     processes.procs.append(subprocess.Popen(
         [sys.executable, "-c", ORACLE, "run", "oracle", "--uav", "uav1", "--connect", endpoint,
          "--config", str(config), "--exit-with-parent"], cwd=REPO))
-    wait_healthy(session, [("uav1", "sensor_driver"), ("uav1", "oracle")])
+    wait_healthy(session, [("uav1", "sensor_driver"), ("uav2", "sensor_driver"), ("uav1", "oracle")])
 
-    got: dict[str, list] = {"points": [], "points_truth": [], "detections": []}
+    got: dict[str, list] = {"points": [], "points_truth": [], "detections": [], "uav2": []}
     decoders = {"points": PointCloud, "points_truth": PointTruth, "detections": Detections}
     subscribers = [session.declare_subscriber(keys.uav("uav1", topic), lambda s, t=topic: got[t].append(
-        msgspec.msgpack.decode(s.payload.to_bytes(), type=decoders[t]))) for topic in got]
+        msgspec.msgpack.decode(s.payload.to_bytes(), type=decoders[t]))) for topic in decoders]
+    subscribers.append(session.declare_subscriber(keys.uav("uav2", "points"), lambda s: got["uav2"].append(
+        msgspec.msgpack.decode(s.payload.to_bytes(), type=PointCloud))))
     time.sleep(0.5)
 
     def put(key: str, msg) -> None:
@@ -66,6 +70,7 @@ def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes,
 
     world = WorldModel(header=Header(sender="sim/simulator", seq=1), scenario="test", arena=[(0, 0), (1, 0), (0, 1)],
                        min_height=0.0, max_height=20.0, uavs=["uav1", "uav2"], seed=3,
+                       sensors={"uav1": "mid360", "uav2": "mid360"},  # uav1's parameters name its own
                        obstacles=[Obstacle(kind="plane", center=(0, 0, 0)),
                                   Obstacle(kind="box", center=(0, 20, 4), size=(6, 2, 8))])
     targets = [TargetTruth(id="balloon1", kind="balloon", position=(10.0, 0.0, 5.0), velocity=(0, 0, 0), radius=0.3),
@@ -80,7 +85,9 @@ def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes,
         now = stamp_ns(tick)
         put(keys.TRUTH, GroundTruth(header=Header(sender="sim/simulator", seq=tick, stamp=now), step=tick,
                                     uavs=[VehicleTruth(name="uav1", position=(0.0, 0.0, 5.0), velocity=(0, 0, 0),
-                                                       heading=0.4, airborne=True)],
+                                                       heading=0.4, airborne=True),
+                                          VehicleTruth(name="uav2", position=(5.0, 5.0, 5.0), velocity=(0, 0, 0),
+                                                       heading=0.0, airborne=True)],
                                     targets=targets))
         put(keys.CLOCK, SimClock(header=Header(sender="sim/simulator", seq=tick, stamp=now), step=tick, dt=0.05,
                                  lockstep=False))
@@ -116,3 +123,7 @@ def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes,
         assert np.linalg.norm(positions[1] - [0.0, -12.0, 6.0]) < 0.6
         assert np.allclose(to_numpy(msg.covariances)[0], 0.05 ** 2 * np.eye(3))
         assert (to_numpy(msg.point_counts) >= 2).all() and msg.sensor_position == (0.0, 0.0, 5.0)
+
+    uav2 = got["uav2"]
+    assert uav2 and all(m.sensor_model == "mid360" and to_numpy(m.points).shape == (4, 5000, 3) for m in uav2)
+    assert (uav2[0].min_range, uav2[0].max_range) == (0.1, 40.0)

@@ -268,12 +268,18 @@ def test_intensity_falls_with_range_and_incidence():
 
 def test_faulty_scans_hide_the_world():
     world = primitives_from_obstacles([Obstacle(kind="plane", center=(0, 0, 0))])
-    good = scan(np.array([0.0, 0.0, 5.0]), 0.0, beam_directions(8, 32, 90.0), world, np.random.default_rng(0))
-    nan = faulty_scan(good, "lidar_nan", np.array([0.0, 0.0, 5.0]), 50.0, np.random.default_rng(0))
+    beams = beam_directions(8, 32, 90.0)
+    origin = np.array([0.0, 0.0, 5.0])
+    good = scan(origin, 0.0, beams, world, np.random.default_rng(0))
+    nan = faulty_scan(good, "lidar_nan", origin, beams, 0.3, 50.0, np.random.default_rng(0))
     assert np.isnan(nan.points).all() and (nan.hits == -1).all()
-    garbage = faulty_scan(good, "lidar_garbage", np.array([0.0, 0.0, 5.0]), 50.0, np.random.default_rng(0))
+    garbage = faulty_scan(good, "lidar_garbage", origin, beams, 0.3, 50.0, np.random.default_rng(0))
     assert np.isfinite(garbage.points).all() and (garbage.hits == -1).all()
-    assert garbage.points.shape == good.points.shape and garbage.points[..., 2].std() > 10  # not the ground
+    assert garbage.points.shape == good.points.shape
+    offsets = garbage.points.astype(float) - origin
+    ranges = np.linalg.norm(offsets, axis=-1)
+    assert ranges.min() >= 0.3 - 1e-4 and ranges.max() <= 50.0 + 1e-3 and ranges.std() > 5  # random ranges ...
+    assert np.allclose(offsets / ranges[..., None], beams, atol=1e-5)  # ... along the real beams
 
 
 def test_mid360_scan_sees_a_balloon_with_a_few_points():

@@ -23,8 +23,10 @@ from schemas.messages import (
 from services.job_manager.core import NS, JobManager, JobManagerParams, MissionDecision
 from services.runtime.node import Node
 
-# Pre-flight check (seed 004 §3.6): every service this UAV's mission depends on is alive.
-REQUIRED_SERVICES = ("sensor_driver", "classifier", "mapper", "tracker", "planner")
+# Pre-flight check (seed 004 §3.6): every service this UAV's mission depends on is alive,
+# and one detector (the classifier, or the evaluation oracle that replaces it).
+REQUIRED_SERVICES = ("sensor_driver", "tracker", "planner")
+DETECTORS = ("classifier", keys.ORACLE)
 SWEEPING = ConstraintProfile(name="sweeping", max_speed=5.0, max_acceleration=1.5)
 PROFILES = {SWEEPING.name: SWEEPING}
 
@@ -100,7 +102,8 @@ class JobManagerNode(Node):
     # ------------------------------------------------------------------ tick
     @property
     def services_ready(self) -> bool:
-        return all(s in self.alive_services for s in REQUIRED_SERVICES)
+        return all(s in self.alive_services for s in REQUIRED_SERVICES) and \
+            any(d in self.alive_services for d in DETECTORS)
 
     def on_tick(self, now_ns: int) -> None:
         if self.position is not None:

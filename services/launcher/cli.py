@@ -41,7 +41,7 @@ def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from services.launcher import health_cmd, params_cmd, run_cmd, sim_cmd
+    from services.launcher import health_cmd, params_cmd, record_cmd, replay_cmd, run_cmd, sim_cmd
 
     parser = Parser(
         prog="falconry",
@@ -55,9 +55,8 @@ def build_parser() -> argparse.ArgumentParser:
     run_cmd.add_parser(commands)
     health_cmd.add_parser(commands)
     params_cmd.add_parser(commands)
-    from services.launcher import record_cmd, replay_cmd  # TEMP-RECORDER
-    record_cmd.add_parser(commands)  # TEMP-RECORDER
-    replay_cmd.add_parser(commands)  # TEMP-RECORDER
+    record_cmd.add_parser(commands)
+    replay_cmd.add_parser(commands)
     return parser
 
 

@@ -5,23 +5,15 @@ import argparse
 import sys
 from dataclasses import dataclass, field
 
-from schemas import keys
+from schemas.keys import uav_services
 from services.launcher.netns import UavNetwork
 from services.runtime.zenoh_config import ZenohSettings
-
-DETECTORS = ("classifier", keys.ORACLE)
-
 
 @dataclass
 class RunPlan:
     hub_settings: ZenohSettings
     hub_label: str
     children: dict[str, list[str]] = field(default_factory=dict)  # name -> argv
-
-
-def uav_services(detector: str) -> list[str]:
-    """The per-UAV services of a run: the oracle, when chosen, replaces the classifier."""
-    return [detector if s == "classifier" else s for s in keys.UAV_SERVICES]
 
 
 def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: float, port: int,
@@ -52,7 +44,7 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
     plan.children["sim/simulator"] = base + [
         "simulator", *extra, *zenoh_args(loopback_hub, sim_listen), "--scenario", args.scenario,
         "--uavs", str(len(uavs)), "--seed", str(seed), "--duration", str(duration), "--rtf", str(args.rtf),
-        "--tick", str(args.tick)] + (["--lockstep"] if args.lockstep else [])
+        "--tick", str(args.tick), "--detector", args.detector] + (["--lockstep"] if args.lockstep else [])
     for uav in uavs:
         for service in uav_services(args.detector):
             if network:

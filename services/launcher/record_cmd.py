@@ -22,8 +22,8 @@ def add_parser(commands) -> None:
                     "MCAP file: one channel per key, the raw msgpack payload as message data, the type's JSON "
                     "Schema per channel, log_time = receive time, publish_time = header.stamp. Chunks are "
                     "closed every --flush seconds, so a crash loses at most that much; Ctrl-C, SIGTERM or "
-                    "--duration finish the file properly. Open it with `mcap info FILE` or Foxglove; replay "
-                    "it with `falconry replay FILE`.",
+                    "--duration finish the file properly. Any MCAP reader opens it (`mcap info FILE`, Foxglove: "
+                    "channels, schemas, timing; the payloads are msgpack); replay it with `falconry replay FILE`.",
     )
     p.add_argument("file", metavar="FILE", help="the MCAP file to write (replaced if it exists)")
     p.add_argument("--keys", nargs="+", action="extend", metavar="EXPR",

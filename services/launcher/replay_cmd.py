@@ -7,7 +7,8 @@ import threading
 from pathlib import Path
 
 from services.launcher.record_cmd import check_key_exprs
-from services.recorder.replay import DEFAULT_REPLAY_KEYS, Replayer, ReplayError
+from services.recorder.replay import Replayer, ReplayError
+from services.recorder.selection import DEFAULT_REPLAY_KEYS
 from services.runtime.zenoh_config import init_logging, open_session
 
 
@@ -16,15 +17,16 @@ def add_parser(commands) -> None:
 
     p = commands.add_parser(
         "replay", help="publish a recording (falconry record) back, e.g. to re-run perception on it",
-        description="Publish the recorded messages of FILE again, unchanged, on their original keys and in "
-                    "recorded order. By default only the sensor stream and what perception needs is replayed "
+        description="Publish the recorded messages of FILE again, unchanged, on their original keys. By "
+                    "default only the sensor stream and what perception needs is replayed "
                     f"({', '.join(DEFAULT_REPLAY_KEYS)}); the services' own outputs and their "
                     "acknowledgements are not, so the services you run produce them afresh. Without "
-                    "--lockstep, messages are paced by their recorded receive times at --rate. With "
-                    "--lockstep the replayer is the clock master, like the simulator: it stands in for the "
-                    "recorded publishers of the replayed data and waits for every live service to "
-                    "acknowledge each tick, so a service sees exactly the inputs of the recorded run, tick "
-                    "by tick. A file cut short by a crash replays up to its last complete chunk.",
+                    "--lockstep, messages go out in recorded order, paced by their recorded receive times at "
+                    "--rate. With --lockstep the replayer is the clock master, like the simulator: it stands "
+                    "in for the recorded publishers of the replayed data, orders the messages by the recorded "
+                    "lockstep bookkeeping and waits for every live service to acknowledge each tick, so a "
+                    "service sees exactly the inputs of the recorded run, tick by tick. A file cut short by a "
+                    "crash replays up to its last complete chunk.",
     )
     p.add_argument("file", metavar="FILE", help="an MCAP file written by `falconry record`")
     p.add_argument("--keys", nargs="+", action="extend", metavar="EXPR",

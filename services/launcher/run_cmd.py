@@ -34,7 +34,7 @@ def run(args: argparse.Namespace) -> int:
     from services.launcher.cli import CliError, zenoh_settings
 
     cls = node_class(args.service)
-    if args.service in keys.UAV_SERVICES:
+    if args.service not in keys.SIM_SERVICES:
         if not args.uav:
             raise CliError(f"{args.service} is a per-UAV service: give --uav (e.g. --uav uav1)")
         try:

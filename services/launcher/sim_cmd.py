@@ -19,9 +19,10 @@ import msgspec
 from schemas import keys
 from schemas.messages import FaultCommand, Header, SimEvent
 from services.launcher import netns
+from services.recorder.record import Recorder, summary_lines
 from services.launcher.faults import FaultExecutor
 from services.launcher.monitor import RunMonitor
-from services.launcher.plan import DETECTORS, plan_run, uav_services
+from services.launcher.plan import plan_run
 from services.launcher.params import ParamsError, params_for, read_tables
 from services.launcher.registry import node_class
 from services.launcher.supervisor import Supervisor, describe_exit
@@ -44,9 +45,6 @@ def add_parser(commands) -> None:
     )
     add_simulator_options(p, positional_scenario=True)
     run = p.add_argument_group("run")
-    run.add_argument("--detector", choices=DETECTORS, default="classifier",
-                     help="classifier: the LiDAR perception pipeline (default); oracle: noisy detections made "
-                          "only from LiDAR points that really hit a target (evaluation, simulation only)")
     run.add_argument("--isolate", action="store_true",
                      help="run each UAV's processes in its own network namespace (root; automatic when the "
                           "scenario schedules link_cut faults)")
@@ -56,6 +54,8 @@ def add_parser(commands) -> None:
     run.add_argument("--truth-log", metavar="FILE",
                      help="write every ground-truth message (u32 length + msgpack) to FILE")
     run.add_argument("--summary-json", metavar="FILE", help="also write the summary as JSON to FILE")
+    run.add_argument("--record", metavar="FILE.mcap",
+                     help="record every message of the run to an MCAP file (replay it with `falconry replay`)")
     run.add_argument("--log-file", metavar="FILE", help="write every service's log lines to FILE")
     run.add_argument("--digest-json", metavar="FILE",
                      help="write, per key expression, the count and SHA-256 of every payload published in the run "
@@ -76,7 +76,7 @@ def run_sim(args: argparse.Namespace) -> int:
     try:
         scenario = load_scenario(args.scenario)
         read_tables(args.config)
-        for service in ["simulator", *uav_services(args.detector)]:
+        for service in ["simulator", *keys.uav_services(args.detector)]:
             params_for(service, node_class(service).params_type, args.config)
     except (ScenarioError, ParamsError) as exc:
         raise CliError(str(exc)) from None
@@ -108,6 +108,7 @@ def run_sim(args: argparse.Namespace) -> int:
                    for k in ((f"{keys.ROOT}/**",) if args.digest_json else WATCHED + (keys.FAULTS,))]
     events_pub = session.declare_publisher(keys.EVENTS)
     resume = session.declare_queryable(keys.RESUME, lambda query: inbox.put(("query", query)))
+    recorder = Recorder(session, args.record) if args.record else None
     encoder = msgspec.msgpack.Encoder()
     fault_decoder = msgspec.msgpack.Decoder(FaultCommand)
     event_seq = [0]
@@ -190,6 +191,8 @@ def run_sim(args: argparse.Namespace) -> int:
             sub.undeclare()
         events_pub.undeclare()
         resume.undeclare()
+        if recorder:
+            print("\n".join(summary_lines(args.record, recorder.close(), time.time() - started_wall)))
         session.close()
         outputs.close()
         if network:
@@ -227,7 +230,7 @@ class Outputs:
 
         self.truth = self.log = None
         try:
-            for path in (args.summary_json, args.digest_json):
+            for path in (args.summary_json, args.digest_json, args.record):
                 if path and not Path(path).resolve().parent.is_dir():
                     raise FileNotFoundError(f"no such directory: {Path(path).resolve().parent}")
             self.truth = open(args.truth_log, "wb") if args.truth_log else None

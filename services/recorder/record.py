@@ -50,7 +50,8 @@ class Recorder:
         self.started = time.monotonic()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+        if self._error is None:  # after a write error (disk full) nothing would drain the queue
+            self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
 
     def handle(self, key: str, payload: bytes, receive_ns: int | None = None) -> None:
         """Record one message received by the caller (thread-safe)."""

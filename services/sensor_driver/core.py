@@ -34,10 +34,13 @@ DRONE_BODY_HEIGHT = 0.3  # m: an intruder multirotor is a flat disk of its radiu
 REFLECTIVITY = {"ground": 0.2, "static": 0.3, "target": 0.6}
 INTENSITY_FULL_RANGE = 5.0  # m: intensity falls as 1/r² beyond this
 DEFAULT_BODY_BOX = (-0.4, -0.4, -0.4, 0.4, 0.4, 0.4)
+FALLBACK_MODEL = "os0-32-512"  # when neither the parameters nor the scenario name one
 
 
 class SensorDriverParams(msgspec.Struct, forbid_unknown_fields=True):
-    model: str = "os0-32-512"  # LiDAR model (models.py): os0-/os1- 32/64/128 [-512/-1024/-2048], mid360
+    # LiDAR model (models.py): os0-/os1- 32/64/128 [-512/-1024/-2048], mid360. "" = the one the
+    # scenario names for this UAV (falconry/sim/world `sensors`), FALLBACK_MODEL if it names none.
+    model: str = ""
     rate_hz: float = 10.0  # frames per second of mission time
     min_range: float = 0.0  # m; 0 = the model's datasheet value
     max_range: float = 0.0  # m; 0 = the model's datasheet value
@@ -51,7 +54,8 @@ class SensorDriverParams(msgspec.Struct, forbid_unknown_fields=True):
     intensity: bool = False  # publish a per-point intensity (reflectivity · |cos incidence| / range²)
 
     def __post_init__(self) -> None:  # msgspec reports these as validation errors naming the table
-        lidar_model(self.model, self.rate_hz if self.rate_hz > 0 else 10.0)
+        if self.model:
+            lidar_model(self.model, self.rate_hz if self.rate_hz > 0 else 10.0)
         if not self.rate_hz > 0:
             raise ValueError(f"rate_hz must be > 0, got {self.rate_hz}")
         for name in ("min_range", "max_range", "range_noise", "position_noise", "attitude_noise"):

@@ -2,11 +2,12 @@
 evaluation only the id of what every ray hit on falconry/<uav>/points_truth.
 
 Ray-casts the simulator's world (static obstacles from falconry/sim/world, standing targets and
-the own pose from falconry/sim/truth) at `rate_hz` of mission time with the chosen LiDAR model
+the own pose from falconry/sim/truth) at `rate_hz` of mission time with the LiDAR model the
+parameters name, or else the one the scenario names for this UAV in the world model
 (core.SensorDriverParams, models.py). Both messages of a scan carry the same stamp; the
 PointTruth never enters the PointCloud, so perception cannot see it. LiDAR faults scheduled on
 falconry/sim/faults for this UAV are acted on here: `lidar_silent` publishes nothing,
-`lidar_nan` an all-NaN cloud, `lidar_garbage` random points (truth -1 for both).
+`lidar_nan` an all-NaN cloud, `lidar_garbage` random ranges on every beam (truth -1 for both).
 Only this service and the simulator may read ground truth. Later issues add a recorded-file
 source and real hardware behind the same output.
 """
@@ -21,7 +22,14 @@ from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import FaultCommand, GroundTruth, Header, PointCloud, PointTruth, Pose, WorldModel
 from services.runtime.node import Node
-from services.sensor_driver.core import Primitives, SensorDriverParams, primitives_from_obstacles, scan
+from services.sensor_driver.core import (
+    FALLBACK_MODEL,
+    Primitives,
+    SensorDriverParams,
+    primitives_from_obstacles,
+    scan,
+    yaw_rotation,
+)
 from services.sensor_driver.faults import LIDAR_FAULTS, LidarFaults, faulty_scan
 from services.sensor_driver.models import lidar_model
 
@@ -37,9 +45,7 @@ class SensorDriverNode(Node):
         p: SensorDriverParams = self.params
         if not p.rate_hz > 0:
             raise ValueError(f"sensor_driver.rate_hz must be > 0, got {p.rate_hz}")
-        self.model = lidar_model(p.model, p.rate_hz)
-        self.min_range = p.min_range or self.model.min_range
-        self.max_range = p.max_range or self.model.max_range
+        self._use_model(p.model or FALLBACK_MODEL)
         self.period_ns = max(1, int(round(1e9 / p.rate_hz)))
         self.static: Primitives | None = None
         self.obstacles = None
@@ -56,7 +62,20 @@ class SensorDriverNode(Node):
         self.subscribe(keys.TRUTH, GroundTruth, self.on_truth)
         self.subscribe(keys.FAULTS, FaultCommand, self.on_fault)
 
+    def _use_model(self, name: str) -> None:
+        p: SensorDriverParams = self.params
+        self.model = lidar_model(name, p.rate_hz)
+        self.min_range = p.min_range or self.model.min_range
+        self.max_range = p.max_range or self.model.max_range
+
     def on_world(self, world: WorldModel, key: str) -> None:
+        wanted = world.sensors.get(self.uav, "")
+        if not self.params.model and wanted and wanted.strip().lower() != self.model.name:
+            try:
+                self._use_model(wanted)
+                self.log.info("LiDAR model %s (the scenario's)", self.model.name)
+            except ValueError as err:
+                self.log.error("keeping LiDAR model %s: %s", self.model.name, err)
         if world.obstacles != self.obstacles:
             self.obstacles = world.obstacles
             self.static = primitives_from_obstacles(world.obstacles)
@@ -98,7 +117,8 @@ class SensorDriverNode(Node):
         world = self.static.with_targets(self.truth.targets)
         result = self._scan(origin, me.heading, world, self.rng, frame=int(slot))
         if fault is not None:
-            result = faulty_scan(result, fault, origin, self.max_range, self.rng)
+            beams = self.model.directions(int(slot)) @ yaw_rotation(me.heading).T
+            result = faulty_scan(result, fault, origin, beams, self.min_range, self.max_range, self.rng)
         half = me.heading / 2.0
         rows, cols = result.hits.shape
         self.points_pub.put(PointCloud(

@@ -123,7 +123,8 @@ class SimulatorNode(Node):
 
     # --------------------------------------------------------------- loop
     def expected_services(self) -> set[str]:
-        return {f"{u}/{s}" for u in self.uav_names for s in keys.UAV_SERVICES}
+        detector = getattr(self.options, "detector", "classifier") or "classifier"
+        return {f"{u}/{s}" for u in self.uav_names for s in keys.uav_services(detector)}
 
     def serve(self) -> None:
         self._lockstep = self.run_lockstep  # trajectories are gated by acknowledgements in lockstep

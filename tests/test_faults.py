@@ -1,0 +1,203 @@
+"""Every fault type of the scenario's schedule happens at its mission time, has its effect,
+and shows in the event log and the summary (one lockstep run with all of them)."""
+from __future__ import annotations
+
+import math
+import queue
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+import zenoh
+
+from schemas import keys
+from schemas.arrays import to_numpy
+from schemas.messages import GroundTruth, Odometry, PointCloud, SimEvent
+from services.launcher import netns
+from services.simulator.scenario import SCENARIO_DIR
+from tests.conftest import falconry_argv
+from tests.tools.run import join_run, processes_mentioning, read_summary
+
+FAULTS = """
+[[faults]]
+time = 2.0
+kind = "lidar_silent"
+uav = "uav1"
+duration = 2.0
+
+[[faults]]
+time = 5.0
+kind = "lidar_nan"
+uav = "uav1"
+duration = 1.0
+
+[[faults]]
+time = 7.0
+kind = "lidar_garbage"
+uav = "uav1"
+duration = 1.0
+
+[[faults]]
+time = 3.0
+kind = "odometry_jump"
+uav = "uav2"
+offset = [2.0, 0.0, 0.0]
+duration = 4.0
+
+[[faults]]
+time = 4.0
+kind = "freeze"
+uav = "uav2"
+service = "tracker"
+duration = 3.0
+
+[[faults]]
+time = 9.0
+kind = "kill"
+uav = "uav2"
+service = "planner"
+
+[[faults]]
+time = 10.0
+kind = "link_cut"
+uav = "uav2"
+duration = 3.0
+
+[[faults]]
+time = 15.0
+kind = "kill"
+uav = "uav1"
+"""
+
+
+def fault_scenario(tmp_path: Path) -> Path:
+    text = (SCENARIO_DIR / "mbzirc.toml").read_text()
+    text = text.replace('sensor = "os0-64-512"', 'sensor = "os0-32-512"', 1)  # a light LiDAR keeps the test quick
+    assert 'sensor = "os0-32-512"' in text
+    path = tmp_path / "faults.toml"
+    path.write_text(text + FAULTS)
+    return path
+
+
+class Observer:
+    """What the test sees from its own session on the run (like a ground station would)."""
+
+    def __init__(self, session) -> None:
+        self.scans: list[tuple[float, float, float]] = []  # (t, NaN fraction, spread of finite points)
+        self.odometry: dict[int, np.ndarray] = {}
+        self.truth: dict[int, np.ndarray] = {}
+        self.events: list[SimEvent] = []
+        self.tokens: list[tuple[float, str, bool]] = []
+        self.lock = threading.Lock()
+        decode_cloud = msgspec.msgpack.Decoder(PointCloud)
+        decode_odometry = msgspec.msgpack.Decoder(Odometry)
+        decode_truth = msgspec.msgpack.Decoder(GroundTruth)
+        decode_event = msgspec.msgpack.Decoder(SimEvent)
+
+        def on_cloud(sample):
+            cloud = decode_cloud.decode(sample.payload.to_bytes())
+            points = to_numpy(cloud.points).reshape(-1, 3)
+            finite = points[np.isfinite(points).all(axis=1)]
+            spread = float(np.linalg.norm(finite - finite.mean(axis=0), axis=1).max()) if len(finite) else 0.0
+            with self.lock:
+                self.scans.append((cloud.header.stamp / 1e9, float(np.isnan(points).any(axis=1).mean()), spread))
+
+        def on_odometry(sample):
+            odo = decode_odometry.decode(sample.payload.to_bytes())
+            self.odometry[odo.header.stamp] = np.array(odo.pose.position)
+
+        def on_truth(sample):
+            truth = decode_truth.decode(sample.payload.to_bytes())
+            self.truth[truth.header.stamp] = np.array(next(u.position for u in truth.uavs if u.name == "uav2"))
+
+        def on_token(sample):
+            with self.lock:
+                self.tokens.append((time.monotonic(), str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT))
+
+        self.handles = [
+            session.declare_subscriber(keys.uav("uav1", "points"), on_cloud),
+            session.declare_subscriber(keys.uav("uav2", "odometry"), on_odometry),
+            session.declare_subscriber(keys.TRUTH, on_truth),
+            session.declare_subscriber(keys.EVENTS, lambda s: self.events.append(decode_event.decode(s.payload.to_bytes()))),
+            session.liveliness().declare_subscriber(keys.ALL_ALIVE, on_token),
+        ]
+
+    def close(self) -> None:
+        for handle in self.handles:
+            handle.undeclare()
+
+    def event_times(self, kind: str) -> dict[str, float]:
+        return {e.subject + ":" + e.detail: e.header.stamp / 1e9 for e in self.events if e.kind == kind}
+
+
+@pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
+def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
+    scenario, summary_path = fault_scenario(tmp_path), tmp_path / "summary.json"
+    launcher = subprocess.Popen(
+        falconry_argv("sim", str(scenario), "--uavs", "2", "--lockstep", "--duration", "18", "--port", str(port),
+                      "--lease-ms", "1000", "--quiet", "--progress", "0", "--summary-json", str(summary_path)),
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    session = join_run(port)
+    observer = Observer(session)
+    frozen_seen = False
+    try:
+        deadline = time.monotonic() + 300
+        while launcher.poll() is None and time.monotonic() < deadline:
+            # the frozen tracker is in state T while the freeze lasts
+            for pid in processes_mentioning("tracker\0--uav\0uav2\0"):
+                try:
+                    frozen_seen |= Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "T"
+                except OSError:
+                    pass
+            time.sleep(0.05)
+        output, _ = launcher.communicate(timeout=60)
+    finally:
+        observer.close()
+        session.close()
+    assert launcher.returncode == 0, output[-3000:]
+
+    injected = observer.event_times("fault_injected")
+    expected = {"uav1:lidar_silent for 2 s": 2.0, "uav1:lidar_nan for 1 s": 5.0, "uav1:lidar_garbage for 1 s": 7.0,
+                "uav2:odometry_jump for 4 s": 3.0, "uav2/tracker:freeze for 3 s": 4.0, "uav2/planner:kill": 9.0,
+                "uav2:link_cut for 3 s": 10.0, "uav1:kill": 15.0}
+    assert injected == pytest.approx(expected), injected
+
+    scans = sorted(observer.scans)
+    silent = [t for t, _, _ in scans if 2.0 <= t < 4.0]
+    assert not silent, f"uav1 scanned during its LiDAR silence: {silent}"
+    assert any(t < 2.0 for t, _, _ in scans) and any(4.0 <= t < 5.0 for t, _, _ in scans)
+    assert all(nan == 1.0 for t, nan, _ in scans if 5.0 <= t < 6.0) and any(5.0 <= t < 6.0 for t, _, _ in scans)
+    garbage = [(nan, spread) for t, nan, spread in scans if 7.0 <= t < 8.0]
+    assert garbage and all(nan == 0.0 and spread > 20 for nan, spread in garbage), garbage
+    assert all(nan < 1.0 for t, nan, _ in scans if 8.0 <= t < 15.0)
+
+    def odometry_error(t: float) -> np.ndarray:
+        stamp = int(round(t * 1e9))
+        return observer.odometry[stamp] - observer.truth[stamp]
+    assert np.allclose(odometry_error(5.0), [2, 0, 0], atol=0.3) and np.allclose(odometry_error(2.5), 0, atol=0.3)
+    assert np.allclose(odometry_error(8.0), 0, atol=0.3)
+
+    assert frozen_seen, "the tracker was never seen stopped (SIGSTOP)"
+    started = observer.event_times("fault_started")
+    assert any(k.startswith("uav2/tracker") for k in started) and any(k.startswith("uav2:link_cut") for k in started)
+    ended = observer.event_times("fault_ended")
+    assert any(k.startswith("uav2/tracker") for k in ended) and any(k.startswith("uav2:link_cut") for k in ended)
+    assert any(e.kind == "service_restarted" and e.subject == "uav2/planner" for e in observer.events)
+
+    # link_cut: the partner's tokens vanish (lease 1 s) and come back when the link is restored
+    uav2_gone = [t for t, key, alive in observer.tokens if key.startswith("falconry/uav2/") and not alive]
+    uav2_back = [t for t, key, alive in observer.tokens if key.startswith("falconry/uav2/") and alive]
+    assert uav2_gone and uav2_back and max(uav2_back) > min(uav2_gone)
+    # the whole-UAV kill: uav1 lands by failsafe and its processes stay down
+    assert any(e.kind == "emergency_landing" and e.subject == "uav1" for e in observer.events)
+    restarted = [e.subject for e in observer.events if e.kind == "service_restarted"]
+    assert not any(s.startswith("uav1/") for s in restarted), f"uav1 came back after a whole-UAV kill: {restarted}"
+
+    summary = read_summary(summary_path)
+    assert sum("fault_injected" in f for f in summary["faults"]) == len(expected)
+    assert "faults injected: 8" in output
+    assert netns.leftovers(f"f{port}") == [], "network namespaces left behind"
