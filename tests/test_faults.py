@@ -134,6 +134,7 @@ class Observer:
         return {e.subject + ":" + e.detail: e.header.stamp / 1e9 for e in self.events if e.kind == kind}
 
 
+@pytest.mark.timeout(600)
 @pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
 def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
     scenario, summary_path = fault_scenario(tmp_path), tmp_path / "summary.json"
@@ -156,6 +157,9 @@ def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
             time.sleep(0.05)
         output, _ = launcher.communicate(timeout=60)
     finally:
+        if launcher.poll() is None:  # a failed test still lets the launcher tear down its namespaces
+            launcher.terminate()
+            launcher.wait(timeout=30)
         observer.close()
         session.close()
     assert launcher.returncode == 0, output[-3000:]

@@ -92,9 +92,25 @@ def test_fault_windows_silence_only_the_faulted_services_for_their_duration():
                              duration=3.0))
     windows.add(FaultCommand(header=Header(stamp=20_000_000_000), kind="link_cut", uav="uav1", duration=0.0))
     windows.add(FaultCommand(header=Header(stamp=5_000_000_000), kind="lidar_silent", uav="uav1", duration=9.0))
+    windows.add(FaultCommand(header=Header(stamp=1_000_000_000), kind="kill", uav="uav2", service="mapper"))
     names = {"uav1/classifier", "uav2/tracker", "uav2/mapper"}
     assert windows.unaffected(names, 9.9) == names
     assert windows.unaffected(names, 10.0) == {"uav1/classifier", "uav2/mapper"}
     assert windows.unaffected(names, 13.0) == names  # the freeze is over
     assert windows.unaffected(names, 20.0) == {"uav2/tracker", "uav2/mapper"}  # cut for good
     assert windows.unaffected(names, 1e6) == {"uav2/tracker", "uav2/mapper"}
+
+
+def test_a_joined_service_never_waits_for_what_was_sent_before_it_joined():
+    gate = LockstepGate(("classifier",), wants=lambda key: True)
+    gate.begin(40, {"falconry/uav1/command": 6})  # command #6 went out before we existed
+    assert gate.missing(UP) == []
+    gate.release(UP)
+    gate.begin(41, {"falconry/uav1/command": 6})
+    gate.record_ack("classifier", 41, {})
+    assert gate.missing(UP) == []  # still #6: nothing to wait for
+    gate.begin(42, {"falconry/uav1/command": 7})
+    gate.record_ack("classifier", 42, {})
+    assert gate.missing(UP) == ["falconry/uav1/command#7"]  # news: wait for it
+    gate.hold("falconry/uav1/command", 7, "cmd7")
+    assert [i for _, i in gate.release(UP)] == ["cmd7"]

@@ -109,3 +109,15 @@ def test_model_pieces():
     r = measurement_noise(params, np.diag([0.02, 0.5, 0.05]))
     assert np.allclose(np.diag(r), [0.1, 0.5, 0.1])
     assert np.allclose(measurement_noise(params, None), 0.1 * np.eye(3))
+
+
+def test_the_number_of_tracks_is_bounded_whatever_the_detections():
+    import numpy as np
+    from services.tracker.core import TrackerCore, TrackerParams
+
+    core = TrackerCore(TrackerParams(max_tracks=10))
+    rng = np.random.default_rng(3)
+    for k in range(5):
+        ids = core.update(k * 100_000_000, rng.uniform(-50, 50, size=(300, 3)), None)
+        assert len(set(i for i in ids if i >= 0)) <= 10
+    assert len(core.estimates(500_000_000)) <= 10

@@ -33,12 +33,17 @@ class LockstepGate(Generic[Item]):
         self._acks: dict[str, dict[int, dict[str, int]]] = {}
         self._fifo: dict[str, deque[tuple[int, Item]]] = {}
         self._released: dict[str, int] = {}
+        # Per key, the bound in force when we (re)joined: messages up to it were sent before we
+        # could receive them, so no later tick waits for them either.
+        self._floor: dict[str, int] = {}
         # A service joining a run already under way (started late, restarted, or back after
         # missing ticks) cannot have what was sent before: its first tick waits for nothing.
         self.joining = joining
 
     # -- inputs -------------------------------------------------------------
     def hold(self, key: str, seq: int, item: Item) -> None:
+        if seq < self._floor.get(key, 0) and not self._fifo.get(key):
+            del self._floor[key]  # its publisher restarted: the new numbers are all news to us
         self._fifo.setdefault(key, deque()).append((seq, item))
 
     def begin(self, step: int, clock_bounds: dict[str, int]) -> None:
@@ -67,6 +72,7 @@ class LockstepGate(Generic[Item]):
         if self.step is None:
             return ["clock tick"]
         if self.joining and self.step > 0:  # at step 0 everyone was there from the start
+            self._floor.update(self.bounds(alive_upstream))
             return []
         waits = [
             f"ack of {service}"
@@ -78,7 +84,7 @@ class LockstepGate(Generic[Item]):
                 continue
             # bound == released: nothing new. A bound *below* what we released means the
             # publisher restarted and counts from 1 again: its message `bound` is a new one.
-            if bound == self._released.get(key, 0):
+            if bound == self._released.get(key, 0) or bound <= self._floor.get(key, 0):
                 continue
             if not any(seq == bound for seq, _ in self._fifo.get(key, ())):
                 waits.append(f"{key}#{bound}")
@@ -119,6 +125,9 @@ class FaultWindows:
         self._windows: list[tuple[str, str, float, float]] = []  # uav, service ("" = all), start, end
 
     def add(self, command) -> None:
+        # One killed service is restarted by supervision: liveliness covers its absence.
+        if command.kind == "kill" and command.service:
+            return
         if command.kind in self.SILENCING:
             start = command.header.stamp / 1e9
             end = start + command.duration if command.duration > 0 else float("inf")

@@ -40,6 +40,9 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     radius_confidence: float = 1.5  # c_r of eq. 26
     radius_max: float = 5.0  # m, tracks more uncertain than this are dropped
     confirm_detections: int = 2
+    # Bounded work per scan whatever the input: a LiDAR returning garbage must not make the
+    # tracker spend the whole tick on thousands of spurious tracks.
+    max_tracks: int = 64
     alive_period: float = 1.0  # s; the node sends an empty Tracks at least this often
 
 
@@ -140,7 +143,7 @@ class TrackerCore:
                 track.last_detection = max(track.last_detection, stamp_ns)
                 assigned[col] = track.id
         for col in range(len(positions)):
-            if assigned[col] < 0:
+            if assigned[col] < 0 and len(self._tracks) < p.max_tracks:
                 track = _Track(self._next_id, p, positions[col], stamp_ns)
                 self._next_id += 1
                 self._tracks.append(track)
