@@ -80,7 +80,7 @@ def run_sim(args: argparse.Namespace) -> int:
             params_for(service, node_class(service).params_type, args.config)
     except (ScenarioError, ParamsError) as exc:
         raise CliError(str(exc)) from None
-    outputs = open_outputs(args)
+    outputs = Outputs(args)
     for name, value in (("--duration", args.duration), ("--rtf", args.rtf), ("--tick", args.tick)):
         if value is not None and value <= 0:
             raise CliError(f"{name} must be positive")
@@ -244,8 +244,6 @@ class Outputs:
             if f is not None:
                 f.close()
 
-
-open_outputs = Outputs
 
 
 def _interrupt(signum, frame) -> None:
