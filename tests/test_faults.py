@@ -146,7 +146,8 @@ def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
     observer = Observer(session)
     frozen_seen = False
     try:
-        deadline = time.monotonic() + 300
+        # wall time only: a cut link makes lockstep wait on the dead peer for a varying while
+        deadline = time.monotonic() + 500
         while launcher.poll() is None and time.monotonic() < deadline:
             # the frozen tracker is in state T while the freeze lasts
             for pid in processes_mentioning("tracker\0--uav\0uav2\0"):
@@ -155,7 +156,7 @@ def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
                 except OSError:
                     pass
             time.sleep(0.05)
-        output, _ = launcher.communicate(timeout=60)
+        output, _ = launcher.communicate(timeout=30)
     finally:
         if launcher.poll() is None:  # a failed test still lets the launcher tear down its namespaces
             launcher.terminate()
