@@ -134,7 +134,8 @@ class ConstraintProfile(msgspec.Struct, kw_only=True):
 
 
 MissionAction = Literal[
-    "idle", "takeoff", "scan", "goto", "attack", "hover", "land", "emergency_land"
+    "idle", "takeoff", "scan", "goto", "attack", "hover", "land", "emergency_land",
+    "stop", "approach", "intercept",
 ]
 
 
@@ -175,6 +176,7 @@ class UavStatus(msgspec.Struct, kw_only=True):
     position: Vec3
     working_area: list[Point2] = []
     target: Vec3 | None = None
+    fallen_partners: list[str] = []  # partners this UAV's job manager counts as fallen (revenge mode)
 
 
 class SimClock(msgspec.Struct, kw_only=True):

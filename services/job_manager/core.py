@@ -1,16 +1,26 @@
-"""The job manager's mission state machine (seed 004, ch. 3) — FIRST VERSION.
+"""The job manager's mission state machine (seed 004, ch. 3), pure and clock-injected.
 
-Walking skeleton: after the pre-flight check (every service of this UAV alive: seed 004
-§3.6, automatic start) the UAV takes off, sweeps its working area with a lawnmower
-(GOING_AROUND) and lands when the mission timer runs out. Odometry silent for longer than
-`sensor_timeout` triggers EMERGENCY_LANDING (placeholder of the abort system, §3.5.3).
+Automatic start (§3.6) wraps the seed's five states: PREFLIGHT (every required service alive)
+→ TAKING_OFF → the state machine proper — IDLE, GOING_AROUND, CHECKING_TARGET,
+GOING_TO_TARGET, DESTROYING (§3.4) — until the mission timer says LANDING → LANDED. The abort
+system (§3.5.3) sends any flying state to EMERGENCY_LANDING when the LiDAR stream (one
+Detections message per scan) or odometry has been silent for `sensor_timeout`.
 
-Later issues deepen it: CHECKING_TARGET / GOING_TO_TARGET / DESTROYING driven by tracks,
-state timers and forbidden zones (§3.5.1–2), the abort system on the LiDAR stream, and
-revenge mode (§3.5.4: a silent or landed partner's area is taken over). Partner
-bookkeeping already exists so that can plug in. The structure is meant to grow: the
-states are an explicit enum, every transition is decided in `_next_state`, the command
-each state wants is built in `_decision_for`, and time is always passed in (int ns).
+Routines beside the machine (§3.5): state timers T_c, T_g, T_d that forbid the current target
+and return to IDLE; forbidden zones and the tries counter (targets.py); the detection filter
+(working area, forbidden zones, partners' claims); the team rules — revenge mode, one chaser
+per target, separation (team.py).
+
+Deviations from the seed, and why: the seed's camera needed the search height and a stop to
+see well; a 360° LiDAR does not, so CHECKING_TARGET only waits for the stop manoeuvre and the
+approach (planner) handles height. The attack is "done" when the UAV has passed the target and
+slowed down at the end of its overshoot; the next decision then starts from IDLE, and a target
+that is still there is tried again (n_f tries make a forbidden zone). Moving targets (a
+confirmed track faster than `moving_speed`) are intercepted instead of approached; static
+targets are preferred when both are in view.
+
+Every transition is decided in `_next_state`; every command in `_decision_for`; time is
+always passed in (int ns of mission time).
 """
 from __future__ import annotations
 
@@ -21,37 +31,72 @@ import msgspec
 import numpy as np
 
 from services.job_manager.areas import split_area
-
-NS = 1_000_000_000
+from services.job_manager.targets import NS, ForbiddenZones, TargetFilter, usable_detections
+from services.job_manager.team import Team
 
 
 class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
-    """Defaults from design §6 / seed 004 Table 3.1."""
+    """Defaults from design §6 / seed 004 Table 3.1 (symbol in brackets)."""
 
-    search_height: float = 5.0  # m, world z of the sweep
-    scan_spacing: float = 10.0  # m between lawnmower lines
+    search_height: float = 5.0  # [H] m, world z of the sweep
+    scan_spacing: float = 20.0  # m between lawnmower lines (the LiDAR sees well beyond ±10 m)
     landing_margin: float = 15.0  # s before the mission's end at which to land
-    partner_timeout: float = 15.0  # s without a partner's status before it counts as silent (t_s)
     status_rate_hz: float = 5.0
-    sensor_timeout: float = 1.0  # s of silent odometry before an emergency landing
+    sensor_timeout: float = 1.0  # s of silent LiDAR or odometry before an emergency landing
     height_tolerance: float = 0.3  # m below search_height that counts as "at height"
     airborne_height: float = 0.3  # m above the ground that counts as airborne
     command_repeat: float = 2.0  # s between re-sends of the current command (0: only on change)
+    detection_gate: float = 3.0  # [d_e] m: a detection this close to the locked target is the target
+    filter_switch_distance: float = 5.5  # [D_k] m: GOING_TO_TARGET hands over to DESTROYING inside it
+    target_time: float = 3.0  # [t_m] s: unseen this long = lost; seen this long = confirmed for attack
+    checking_timeout: float = 30.0  # [T_c] s
+    going_timeout: float = 30.0  # [T_g] s
+    destroying_timeout: float = 20.0  # [T_d] s
+    forbidden_radius: float = 4.5  # [r_f] m
+    forbidden_lifetime: float = 15.0  # [t_f] s
+    forbidden_tries: int = 2  # [n_f] attacks at one place before it is forbidden
+    partner_timeout: float = 15.0  # [t_s] s without a partner's status: it has fallen (revenge mode)
+    rejoin_time: float = 3.0  # s a fallen partner must fly normally again before it gets an area back
+    stop_speed: float = 0.5  # m/s: the stop manoeuvre is over
+    detection_max_age: float = 0.35  # s: older detections are not "in view"
+    min_target_height: float = 1.0  # m above the ground: lower detections are no targets
+    replan_distance: float = 0.3  # m the locked target must move before a new approach/attack goes out
+    attack_pass_margin: float = 0.5  # m past the target (along the attack) that counts as through it
+    attack_done_speed: float = 1.0  # m/s: the overshoot is flown out
+    moving_speed: float = 1.0  # m/s: a target whose track is faster is intercepted
+    track_gate: float = 2.0  # m between a detection and a track for them to be the same object
+    intercept_replan_distance: float = 1.0  # m of prediction change before a new intercept goes out
+    filter_sigma: float = 0.15  # m, target filter measurement noise
+    filter_process_sigma: float = 0.05  # m/√s, target filter process noise (a balloon sways)
+    streak_gap: float = 1.0  # s without a detection that breaks "seen continuously"
+    claim_radius: float = 4.5  # m around a partner's target that is left to it
+    safety_distance: float = 5.0  # m: closer than this to a partner, the lower-priority UAV yields
+    vertical_separation: float = 3.0  # m above the partner a yielding UAV climbs to
+    separation_hysteresis: float = 2.0  # m beyond safety_distance before a yield ends
+    sweeping_speed: float = 5.0  # m/s, constraint profile "sweeping" (scan, approach, climbs)
+    sweeping_acceleration: float = 1.5  # m/s²
+    attack_speed: float = 8.3  # m/s, constraint profile "attack" (attack, intercept)
+    attack_acceleration: float = 3.0  # m/s²
 
 
 class State(enum.Enum):
-    IDLE = "IDLE"  # on the ground, waiting for the pre-flight check
+    PREFLIGHT = "PREFLIGHT"  # on the ground until every required service is alive
     TAKING_OFF = "TAKING_OFF"
-    GOING_AROUND = "GOING_AROUND"  # sweeping the working area
+    IDLE = "IDLE"
+    GOING_AROUND = "GOING_AROUND"
+    CHECKING_TARGET = "CHECKING_TARGET"
+    GOING_TO_TARGET = "GOING_TO_TARGET"
+    DESTROYING = "DESTROYING"
     LANDING = "LANDING"
     LANDED = "LANDED"
     EMERGENCY_LANDING = "EMERGENCY_LANDING"
 
 
-# States in which the UAV is (or should be) in the air and the mission clock can stop it.
-_FLYING = (State.TAKING_OFF, State.GOING_AROUND)
+MISSION_STATES = (State.IDLE, State.GOING_AROUND, State.CHECKING_TARGET, State.GOING_TO_TARGET, State.DESTROYING)
+_WATCHED = (State.TAKING_OFF, *MISSION_STATES)  # the abort system and the mission timer act here
 _DESCENDING = (State.LANDING, State.EMERGENCY_LANDING)
-_SWEEPING_PROFILE = "sweeping"
+_TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "going_timeout",
+          State.DESTROYING: "destroying_timeout"}
 
 
 @dataclass(frozen=True)
@@ -62,8 +107,9 @@ class MissionDecision:
     area: tuple[tuple[float, float], ...] = ()
     height: float = 5.0
     spacing: float = 10.0
-    profile: str = _SWEEPING_PROFILE
+    profile: str = "sweeping"  # or "attack"
     target: tuple[float, float, float] | None = None
+    target_velocity: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -74,27 +120,74 @@ class Transition:
     reason: str
 
 
+@dataclass
+class Engagement:
+    """The locked target b_c: a static one through the target filter, a moving one through its track."""
+
+    filter: TargetFilter | None = None
+    track_id: int | None = None
+    track_position: np.ndarray | None = None  # at track_stamp
+    track_velocity: np.ndarray | None = None
+    track_stamp: int = 0
+    track_seen: int = 0
+    attacking: bool = False
+    attack_direction: np.ndarray | None = None  # horizontal unit vector
+    attack_target: np.ndarray | None = None
+
+    @property
+    def moving(self) -> bool:
+        return self.track_id is not None
+
+    def position(self, now: int) -> np.ndarray:
+        if self.moving:
+            return self.track_position + self.track_velocity * ((now - self.track_stamp) / NS)
+        return self.filter.estimate
+
+    def last_seen(self) -> int:
+        return self.track_seen if self.moving else self.filter.last_seen
+
+
+def _tuple(v) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
 class JobManager:
     def __init__(self, params: JobManagerParams, uav: str) -> None:
         self.params = params
         self.uav = uav
-        self.state = State.IDLE
+        self.state = State.PREFLIGHT
         self.state_since = 0
         self.working_area: np.ndarray | None = None
         self.arena: np.ndarray | None = None
+        self.team: Team | None = None
         self.ground_z = 0.0
         self.duration_ns = 0  # 0: no mission timer
         self.transitions: list[Transition] = []
+        self.notes: list[str] = []  # what happened beside transitions, for the node's log (it drains them)
+        self.zones = ForbiddenZones(params.forbidden_radius, int(params.forbidden_lifetime * NS), params.forbidden_tries)
+        self.engagement: Engagement | None = None
+        self.takeoff_at: int | None = None
         self._world_key: tuple | None = None
         self._decision: MissionDecision | None = None
         self._landing_target: tuple[float, float, float] | None = None
-        self._partners: dict[str, tuple[int, bool]] = {}  # name → (last heard, flying normally)
-        self._confirmed_tracks: set[int] = set()
+        self._scan_stamp: int | None = None  # stamp of the latest Detections (the LiDAR heartbeat)
+        self._detections = np.zeros((0, 3))
+        self._candidate_seen: int | None = None
+        self._checked: np.ndarray | None = None  # closest candidate while CHECKING_TARGET (b_c before the lock)
+        self._tracks: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # stamp, ids, pos, vel
+        self._stopping = False
+        self._climbed = False
+        self._yield: tuple[str, tuple[float, float, float]] | None = None
+        self._sent_target: np.ndarray | None = None
+        self._sent_velocity: np.ndarray | None = None
+        self._sent_at = 0
+        self._now = 0
+        self._detections_stamp = 0
 
     # ----------------------------------------------------------------- inputs
     def set_world(self, arena: np.ndarray, uavs: list[str], duration_s: float, ground_z: float = 0.0) -> bool:
-        """Working area = this UAV's equal-area share of the arena. Cheap when nothing
-        changed (the world is re-sent every second); returns True when it did change."""
+        """The arena and team; this UAV's working area is its share among the active UAVs.
+        Cheap when nothing changed (the world is re-sent every second); True when it did."""
         arena = np.asarray(arena, dtype=np.float64).reshape(-1, 2)
         key = (arena.tobytes(), tuple(uavs), float(duration_s), float(ground_z))
         if key == self._world_key:
@@ -103,28 +196,49 @@ class JobManager:
             raise ValueError(f"{self.uav} is not in the world's team {uavs}")
         self._world_key = key
         self.arena = arena
-        self.working_area = split_area(arena, len(uavs))[uavs.index(self.uav)]
+        p = self.params
+        if self.team is None or self.team.members != list(uavs):
+            self.team = Team(self.uav, list(uavs), int(p.partner_timeout * NS), int(p.rejoin_time * NS))
         self.duration_ns = int(round(duration_s * NS))
         self.ground_z = float(ground_z)
+        self._split()
         return True
 
-    def partner_status(self, name: str, now_ns: int, flying_normally: bool) -> None:
-        if name != self.uav:
-            self._partners[name] = (now_ns, flying_normally)
+    def _split(self) -> None:
+        active = self.team.active
+        self.working_area = split_area(self.arena, len(active))[active.index(self.uav)]
 
-    def partners_silent(self, now_ns: int) -> list[str]:
-        """Partners heard at least once but not within partner_timeout (seed 004 t_s)."""
-        limit = int(self.params.partner_timeout * NS)
-        return sorted(name for name, (heard, _) in self._partners.items() if now_ns - heard > limit)
+    def observe_detections(self, stamp: int, positions: np.ndarray) -> None:
+        """One scan's detections (N, 3), world frame; also the LiDAR heartbeat of the abort system."""
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        positions = positions[np.isfinite(positions).all(axis=1)]
+        self._scan_stamp = stamp if self._scan_stamp is None else max(self._scan_stamp, stamp)
+        self._detections = positions
+        self._detections_stamp = stamp
+        e = self.engagement
+        if e is not None and not e.moving:
+            e.filter.update(positions[positions[:, 2] >= self.ground_z + self.params.min_target_height], stamp)
 
-    def partners_grounded(self) -> list[str]:
-        return sorted(name for name, (_, flying) in self._partners.items() if not flying)
+    def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
+        """Confirmed tracks: ids (K,), positions and velocities (K, 3)."""
+        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
+        self._tracks = (stamp, ids, np.asarray(positions, float).reshape(-1, 3), np.asarray(velocities, float).reshape(-1, 3))
+        e = self.engagement
+        if e is not None and e.moving:
+            hit = np.flatnonzero(ids == e.track_id)
+            if len(hit):
+                e.track_position, e.track_velocity = self._tracks[2][hit[0]].copy(), self._tracks[3][hit[0]].copy()
+                e.track_stamp = e.track_seen = stamp
 
-    def note_confirmed_tracks(self, track_ids: list[int]) -> list[int]:
-        """Confirmed track ids not seen confirmed before (first version: only logged)."""
-        new = sorted(set(track_ids) - self._confirmed_tracks)
-        self._confirmed_tracks.update(new)
-        return new
+    def partner_status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool = True,
+                       position=(0.0, 0.0, 0.0), state: str = "", target=None) -> None:
+        if self.team is not None and name != self.uav:
+            self.team.status(name, stamp, flying_normally=flying_normally, airborne=airborne,
+                             position=position, state=state, target=target)
+
+    def partner_token(self, name: str, alive: bool, stamp: int) -> None:
+        if self.team is not None and name != self.uav:
+            self.team.token(name, alive, stamp)
 
     def is_airborne(self, z: float) -> bool:
         return bool(z - self.ground_z > self.params.airborne_height)
@@ -132,85 +246,273 @@ class JobManager:
     @property
     def flying_normally(self) -> bool:
         """Seed 004 §3.5.4: False until take-off succeeded, and again once landing."""
-        return self.state is State.GOING_AROUND
+        return self.state in MISSION_STATES
 
     @property
-    def airborne_state(self) -> bool:
-        return self.state in _FLYING or self.state in _DESCENDING
-
-    # ------------------------------------------------------------------ step
-    def update(
-        self,
-        now_ns: int,
-        position: np.ndarray,
-        airborne: bool,
-        services_ready: bool,
-        position_stamp_ns: int | None = None,
-    ) -> MissionDecision | None:
-        """Advance the state machine; returns the new decision when it changed, else None.
-        `position_stamp_ns` is the stamp of the odometry `position` came from (default: now)."""
-        position = np.asarray(position, dtype=np.float64).reshape(3)
-        stamp = now_ns if position_stamp_ns is None else position_stamp_ns
-        target, reason = self._next_state(now_ns, position, airborne, services_ready, stamp)
-        if target is not self.state:
-            self.transitions.append(Transition(now_ns, self.state, target, reason))
-            self.state, self.state_since = target, now_ns
-            if target in _DESCENDING:
-                self._landing_target = (float(position[0]), float(position[1]), self.ground_z)
-        decision = self._decision_for(self.state)
-        if decision == self._decision:
+    def target(self) -> tuple[float, float, float] | None:
+        """The claimed target b_c (in the status, so partners leave it alone)."""
+        if self.engagement is None or self.state not in (State.GOING_TO_TARGET, State.DESTROYING):
             return None
-        self._decision = decision
-        return decision
+        return _tuple(self.engagement.position(self._now))
 
     @property
     def decision(self) -> MissionDecision | None:
         return self._decision
 
-    def _mission_over(self, now_ns: int) -> bool:
-        if self.duration_ns <= 0:
-            return False
-        return now_ns >= self.duration_ns - int(self.params.landing_margin * NS)
+    # ------------------------------------------------------------------ step
+    def update(self, now_ns: int, position: np.ndarray, airborne: bool, services_ready: bool,
+               position_stamp_ns: int | None = None, velocity: np.ndarray | None = None) -> MissionDecision | None:
+        """Advance the machine; returns the new decision when it changed, else None.
+        `position_stamp_ns` is the stamp of the odometry `position` came from (default: now)."""
+        self._now = now_ns
+        position = np.asarray(position, dtype=np.float64).reshape(3)
+        velocity = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64).reshape(3)
+        stamp = now_ns if position_stamp_ns is None else position_stamp_ns
+        for zone in self.zones.expire(now_ns):
+            self.notes.append(f"forbidden zone at ({zone.center[0]:.1f}, {zone.center[1]:.1f}, "
+                              f"{zone.center[2]:.1f}) expired")
+        if self.team is not None:
+            changes = self.team.update(now_ns, self.takeoff_at)
+            for change in changes:
+                self.notes.append(f"partner {change.partner} {'fell' if change.fallen else 'is back'}: {change.reason}")
+            if changes:
+                self._split()
+                self.notes.append(f"working area now {len(self.team.active)}-way split "
+                                  f"(active: {', '.join(self.team.active)}): x {self.working_area[:, 0].min():.1f}"
+                                  f"..{self.working_area[:, 0].max():.1f}")
+        target, reason = self._next_state(now_ns, position, velocity, airborne, services_ready, stamp)
+        if target is not self.state:
+            self._enter(target, now_ns, reason, position)
+        decision = self._yielding(now_ns, position) or self._decision_for(now_ns, position)
+        if decision == self._decision:
+            return None
+        self._decision = decision
+        return decision
 
-    def _next_state(
-        self, now_ns: int, position: np.ndarray, airborne: bool, services_ready: bool, stamp: int
-    ) -> tuple[State, str]:
-        """Every transition of the machine, in one place."""
+    def _enter(self, target: State, now: int, reason: str, position: np.ndarray) -> None:
+        self.transitions.append(Transition(now, self.state, target, reason))
+        if target is State.TAKING_OFF:
+            self.takeoff_at = now
+        if target in _DESCENDING:
+            self._landing_target = (float(position[0]), float(position[1]), self.ground_z)
+        if target in (State.IDLE, *_DESCENDING, State.LANDED):
+            self.engagement = None
+        if target is State.CHECKING_TARGET:
+            self._checked = None
+        if target is State.GOING_AROUND:
+            self._stopping = False
+            self._climbed = False
+        self.state, self.state_since = target, now
+
+    def _mission_over(self, now: int) -> bool:
+        return self.duration_ns > 0 and now >= self.duration_ns - int(self.params.landing_margin * NS)
+
+    def candidates(self, now: int, position: np.ndarray) -> np.ndarray:
+        """(N, 3) detections in view that this UAV may act on (seed 004 §3.5.2 filter)."""
         p = self.params
-        state = self.state
-        if state in _FLYING or state is State.LANDING:
-            if now_ns - stamp > int(p.sensor_timeout * NS):
-                return State.EMERGENCY_LANDING, f"odometry silent {(now_ns - stamp) / NS:.1f} s"
-        if state is State.IDLE:
-            if self._mission_over(now_ns):
+        if self._scan_stamp is None or now - self._detections_stamp > int(p.detection_max_age * NS):
+            return np.zeros((0, 3))
+        mine = None if self.engagement is None else self.engagement.position(now)
+        claimed = self.team.claimed_targets(mine, position, p.claim_radius) if self.team else np.zeros((0, 3))
+        keep = usable_detections(self._detections, area=self.working_area, zones=self.zones, claimed=claimed,
+                                 claim_radius=p.claim_radius, min_z=self.ground_z + p.min_target_height)
+        return self._detections[keep]
+
+    def _moving_track(self, detection: np.ndarray, now: int):
+        """(id, position, velocity, stamp) of a fast confirmed track at this detection, else None."""
+        if self._tracks is None:
+            return None
+        stamp, ids, positions, velocities = self._tracks
+        if not len(ids) or now - stamp > int(self.params.detection_max_age * NS):
+            return None
+        gaps = np.linalg.norm(positions - detection, axis=1)
+        k = int(np.argmin(gaps))
+        if gaps[k] <= self.params.track_gate and np.linalg.norm(velocities[k]) >= self.params.moving_speed:
+            return int(ids[k]), positions[k].copy(), velocities[k].copy(), stamp
+        return None
+
+    def _lock(self, candidates: np.ndarray, position: np.ndarray, now: int) -> None:
+        """Select b_c: the closest static candidate (a moving one only when none is static)."""
+        order = np.argsort(np.linalg.norm(candidates - position, axis=1), kind="stable")
+        moving = [self._moving_track(candidates[k], now) for k in order]
+        static = [k for k, m in zip(order, moving) if m is None]
+        p = self.params
+        if static:
+            self.engagement = Engagement(filter=TargetFilter(
+                candidates[static[0]], self._detections_stamp, gate=p.detection_gate, measurement_sigma=p.filter_sigma,
+                process_sigma=p.filter_process_sigma, max_gap_ns=int(p.streak_gap * NS)))
+        else:
+            track_id, tp, tv, ts = moving[0]
+            self.engagement = Engagement(track_id=track_id, track_position=tp, track_velocity=tv, track_stamp=ts,
+                                         track_seen=ts)
+        self._sent_target = None
+
+    def _next_state(self, now: int, position: np.ndarray, velocity: np.ndarray, airborne: bool,
+                    services_ready: bool, stamp: int) -> tuple[State, str]:
+        """Every transition of the machine, in one place."""
+        p, state = self.params, self.state
+        timeout = int(p.sensor_timeout * NS)
+        if state in _WATCHED or state is State.LANDING:
+            if now - stamp > timeout:
+                return State.EMERGENCY_LANDING, f"odometry silent {(now - stamp) / NS:.1f} s"
+        if state in _WATCHED:
+            heard = self._scan_stamp if self._scan_stamp is not None else self.takeoff_at
+            if heard is not None and now - max(heard, self.takeoff_at) > timeout:
+                return State.EMERGENCY_LANDING, f"LiDAR silent {(now - max(heard, self.takeoff_at)) / NS:.1f} s"
+            if self._mission_over(now):
+                return State.LANDING, "mission timer"
+        if state in _TIMED and now - self.state_since > int(getattr(p, _TIMED[state]) * NS):
+            limit = getattr(p, _TIMED[state])
+            b_c = self.engagement.position(now) if self.engagement is not None else self._checked
+            if b_c is not None:
+                zone = self.zones.add(b_c, now, f"{state.value} took over {limit:g} s")
+                self.notes.append(f"forbidden zone at ({zone.center[0]:.1f}, {zone.center[1]:.1f}, "
+                                  f"{zone.center[2]:.1f}): {zone.reason}")
+            return State.IDLE, f"state timer {limit:g} s"
+        if state is State.PREFLIGHT:
+            if self._mission_over(now):
                 return State.LANDED, "mission over before take-off"
             if services_ready and self.working_area is not None:
                 return State.TAKING_OFF, "pre-flight check passed"
         elif state is State.TAKING_OFF:
-            if self._mission_over(now_ns):
-                return State.LANDING, "mission timer"
             if airborne and position[2] >= p.search_height - p.height_tolerance:
-                return State.GOING_AROUND, "at search height"
+                return State.IDLE, "in the air: state machine started"
+        elif state is State.IDLE:
+            if len(self.candidates(now, position)):
+                return State.CHECKING_TARGET, "target in view"
+            return State.GOING_AROUND, "nothing in view"
         elif state is State.GOING_AROUND:
-            if self._mission_over(now_ns):
-                return State.LANDING, "mission timer"
+            seen = len(self.candidates(now, position)) > 0
+            if seen:
+                self._candidate_seen = now
+                self._stopping = True
+            elif self._stopping and now - self._candidate_seen > int(p.target_time * NS):
+                self._stopping = False  # a false alarm: back to the sweep
+            if self._stopping and np.linalg.norm(velocity) < p.stop_speed:
+                return State.CHECKING_TARGET, "stopped with a target in view"
+        elif state is State.CHECKING_TARGET:
+            candidates = self.candidates(now, position)
+            if len(candidates):
+                self._candidate_seen = now
+                self._checked = candidates[np.argmin(np.linalg.norm(candidates - position, axis=1))]
+                if np.linalg.norm(velocity) < p.stop_speed:
+                    self._lock(candidates, position, now)
+                    kind = "moving" if self.engagement.moving else "static"
+                    return State.GOING_TO_TARGET, f"{kind} target at {self._fmt(self.engagement.position(now))}"
+            elif now - max(self.state_since, self._candidate_seen or 0) > int(p.target_time * NS):
+                return State.IDLE, f"no target for {p.target_time:g} s"
+        elif state is State.GOING_TO_TARGET:
+            e = self.engagement
+            if now - e.last_seen() > int(p.target_time * NS):
+                return State.CHECKING_TARGET, f"target unseen for {p.target_time:g} s"
+            gap = e.position(now) - position
+            filter_ready = e.moving or e.filter.updates >= 2
+            if np.linalg.norm(gap[:2]) < p.filter_switch_distance and filter_ready:
+                return State.DESTROYING, f"within {p.filter_switch_distance:g} m"
+        elif state is State.DESTROYING:
+            return self._destroying(now, position, velocity)
         elif state in _DESCENDING:
             if not airborne:
                 return State.LANDED, "on the ground"
         return state, ""
 
-    def _decision_for(self, state: State) -> MissionDecision:
+    def _destroying(self, now: int, position: np.ndarray, velocity: np.ndarray) -> tuple[State, str]:
+        p, e = self.params, self.engagement
+        if e.moving:
+            if now - e.last_seen() > int(p.target_time * NS):
+                return State.IDLE, f"moving target gone for {p.target_time:g} s (captured or lost)"
+            if e.position(now)[2] < self.ground_z + p.min_target_height:
+                return State.IDLE, "moving target down"
+            return self.state, ""
+        if not e.attacking:
+            if now - e.last_seen() > int(p.target_time * NS):
+                return State.CHECKING_TARGET, f"target unseen for {p.target_time:g} s"
+            if e.filter.confirmed_for(now) >= p.target_time:
+                target = e.filter.estimate
+                direction = target[:2] - position[:2]
+                e.attacking = True
+                e.attack_target = target
+                e.attack_direction = direction / max(np.linalg.norm(direction), 1e-9)
+                self.notes.append(f"attack on {self._fmt(target)}: confirmed for {e.filter.confirmed_for(now):.1f} s")
+            return self.state, ""
+        past = float(np.dot(position[:2] - e.attack_target[:2], e.attack_direction))
+        if past > p.attack_pass_margin and np.linalg.norm(velocity) < p.attack_done_speed:
+            zone = self.zones.count_try(e.attack_target, now)
+            if zone is not None:
+                self.notes.append(f"forbidden zone at {self._fmt(zone.center)}: {zone.reason}")
+            return State.IDLE, f"attack flown through ({self.zones.tries_at(e.attack_target)} tries here)"
+        return self.state, ""
+
+    # -------------------------------------------------------------- decisions
+    def _yielding(self, now: int, position: np.ndarray) -> MissionDecision | None:
+        """Separation rule (team.py): hold position and climb above the partner while too close."""
         p = self.params
-        if state is State.LANDED and self._decision is not None:
-            return self._decision  # once down, nothing new goes out
+        if self.team is None or self.state not in MISSION_STATES:
+            self._yield = None
+            return None
+        current = self._yield[0] if self._yield else None
+        partner = self.team.yield_to(position, self.state.value, p.safety_distance, p.separation_hysteresis, current)
+        if partner is None:
+            if self._yield is not None:
+                self.notes.append(f"separation from {current} restored")
+                self._sent_target = None  # re-issue the mission command
+            self._yield = None
+            return None
+        if self._yield is None or self._yield[0] != partner.name:
+            spot = (float(position[0]), float(position[1]),
+                    float(max(position[2], partner.position[2] + p.vertical_separation)))
+            self._yield = (partner.name, spot)
+            self.notes.append(f"yielding to {partner.name} "
+                              f"({np.linalg.norm(partner.position - position):.1f} m apart): holding at {self._fmt(spot)}")
+        return MissionDecision("goto", height=self._yield[1][2], spacing=p.scan_spacing, target=self._yield[1])
+
+    def _decision_for(self, now: int, position: np.ndarray) -> MissionDecision:
+        p, state = self.params, self.state
+        previous = self._decision
         if state is State.TAKING_OFF:
             return MissionDecision("takeoff", height=p.search_height, spacing=p.scan_spacing)
         if state is State.GOING_AROUND:
+            if self._stopping:
+                return MissionDecision("stop", height=p.search_height, spacing=p.scan_spacing)
+            if not self._climbed and position[2] < p.search_height - p.height_tolerance:
+                return MissionDecision("takeoff", height=p.search_height, spacing=p.scan_spacing)
+            self._climbed = True
             area = tuple((float(x), float(y)) for x, y in self.working_area)
             return MissionDecision("scan", area=area, height=p.search_height, spacing=p.scan_spacing)
+        if state in (State.GOING_TO_TARGET, State.DESTROYING):
+            return self._engage(now)
         if state is State.LANDING:
             return MissionDecision("land", height=self.ground_z, spacing=p.scan_spacing, target=self._landing_target)
         if state is State.EMERGENCY_LANDING:
             return MissionDecision("emergency_land", height=self.ground_z, spacing=p.scan_spacing,
                                    target=self._landing_target)
-        return MissionDecision("idle", height=p.search_height, spacing=p.scan_spacing)
+        if state is State.PREFLIGHT:
+            return MissionDecision("idle", height=p.search_height, spacing=p.scan_spacing)
+        if state is State.CHECKING_TARGET:  # the stop manoeuvre (a no-op when already at rest)
+            return MissionDecision("stop", height=p.search_height, spacing=p.scan_spacing)
+        # IDLE lasts one tick: keep what is flying
+        return previous if previous is not None else MissionDecision("hover", spacing=p.scan_spacing)
+
+    def _engage(self, now: int) -> MissionDecision:
+        p, e = self.params, self.engagement
+        if e.moving:
+            target, velocity = e.position(now), e.track_velocity
+            predicted = None
+            if self._sent_target is not None:
+                predicted = self._sent_target + self._sent_velocity * ((now - self._sent_at) / NS)
+            if (predicted is None or np.linalg.norm(predicted - target) > p.intercept_replan_distance
+                    or np.linalg.norm(self._sent_velocity - velocity) > p.intercept_replan_distance):
+                self._sent_target, self._sent_velocity, self._sent_at = target, velocity.copy(), now
+            return MissionDecision("intercept", height=float(target[2]), spacing=p.scan_spacing, profile="attack",
+                                   target=_tuple(self._sent_target), target_velocity=_tuple(self._sent_velocity))
+        action, profile = ("attack", "attack") if e.attacking else ("approach", "sweeping")
+        target = e.attack_target if e.attacking else e.filter.estimate
+        if (self._sent_target is None or self._decision is None or self._decision.action != action
+                or np.linalg.norm(self._sent_target - target) > p.replan_distance):
+            self._sent_target = target.copy()
+        return MissionDecision(action, height=float(self._sent_target[2]), spacing=p.scan_spacing, profile=profile,
+                               target=_tuple(np.round(self._sent_target, 3)))
+
+    @staticmethod
+    def _fmt(v) -> str:
+        return f"({v[0]:.1f}, {v[1]:.1f}, {v[2]:.1f})"

@@ -1,9 +1,10 @@
 """job_manager service: wires the mission state machine (core.JobManager) to Zenoh.
 
-FIRST VERSION (walking skeleton): pre-flight check on liveliness, take-off, lawnmower
-sweep of this UAV's equal-area share of the arena, landing on the mission timer. Tracks
-and partners' statuses are only logged; targets, forbidden zones and revenge mode come
-with the full state machine (see core.py).
+In: the world (arena, team, mission length), this UAV's odometry, detections (one message per
+LiDAR scan, also the abort system's heartbeat) and tracks, every partner's status and the
+liveliness tokens (pre-flight check of this UAV's services; partners' job managers for revenge
+mode). Out: mission commands for the planner and this UAV's status for its partners. Every
+decision is the core's; the node only converts messages and logs what the core noted.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import (
     ConstraintProfile,
+    Detections,
     Header,
     MissionCommand,
     Odometry,
@@ -27,33 +29,37 @@ from services.runtime.node import Node
 # and one detector (the classifier, or the evaluation oracle that replaces it).
 REQUIRED_SERVICES = ("sensor_driver", "tracker", "planner")
 DETECTORS = ("classifier", keys.ORACLE)
-SWEEPING = ConstraintProfile(name="sweeping", max_speed=5.0, max_acceleration=1.5)
-PROFILES = {SWEEPING.name: SWEEPING}
 
 
 class JobManagerNode(Node):
     service = "job_manager"
-    upstream = ("tracker",)
+    upstream = ("tracker", "classifier", keys.ORACLE)  # the detector that runs, and the tracker
     params_type = JobManagerParams
 
     def setup(self) -> None:
         self.core = JobManager(self.params, self.uav)
+        p = self.params
+        self.profiles = {
+            "sweeping": ConstraintProfile(name="sweeping", max_speed=p.sweeping_speed,
+                                          max_acceleration=p.sweeping_acceleration),
+            "attack": ConstraintProfile(name="attack", max_speed=p.attack_speed, max_acceleration=p.attack_acceleration),
+        }
         self.position: np.ndarray | None = None
+        self.velocity = np.zeros(3)
         self.position_stamp = 0
         self.alive_services: set[str] = set()
-        self.latest_tracks: Tracks | None = None
         self.command_id = 0
         self.command: MissionCommand | None = None
         self.command_sent_at = 0
         self.next_status_ns = 0
-        self.silent_partners: list[str] = []
+        self.logged_transitions = 0
         self.command_pub = self.publisher(self.topic("command"), MissionCommand)
         self.status_pub = self.publisher(self.topic("status"), UavStatus)
         self.subscribe(keys.WORLD, WorldModel, self.on_world)
         self.subscribe(self.topic("odometry"), Odometry, self.on_odometry)
+        self.subscribe(self.topic("detections"), Detections, self.on_detections)
         self.subscribe(self.topic("tracks"), Tracks, self.on_tracks)
         self.subscribe(keys.ALL_STATUS, UavStatus, self.on_partner_status)
-        self.partner_services: dict[str, set[str]] = {}
         self.on_liveliness(keys.ALL_ALIVE, self.on_alive)
 
     # ---------------------------------------------------------------- inputs
@@ -67,20 +73,23 @@ class JobManagerNode(Node):
 
     def on_odometry(self, msg: Odometry, key: str) -> None:
         self.position = np.asarray(msg.pose.position, dtype=np.float64)
+        self.velocity = np.asarray(msg.velocity, dtype=np.float64)
         self.position_stamp = msg.header.stamp
 
+    def on_detections(self, msg: Detections, key: str) -> None:
+        positions = to_numpy(msg.positions)
+        self.core.observe_detections(msg.header.stamp, positions.reshape(-1, 3) if positions.size else np.zeros((0, 3)))
+
     def on_tracks(self, msg: Tracks, key: str) -> None:
-        self.latest_tracks = msg
-        confirmed = [t.id for t in msg.tracks if t.confirmed]
-        for track_id in self.core.note_confirmed_tracks(confirmed):
-            track = next(t for t in msg.tracks if t.id == track_id)
-            state = to_numpy(track.state)
-            self.log.info("new confirmed track %d at (%.1f, %.1f, %.1f); %d confirmed now",
-                          track_id, state[0], state[1], state[2], len(confirmed))
+        confirmed = [t for t in msg.tracks if t.confirmed]
+        states = np.array([to_numpy(t.state)[:6] for t in confirmed]).reshape(-1, 6)
+        self.core.observe_tracks(msg.header.stamp, np.array([t.id for t in confirmed], dtype=np.int64),
+                                 states[:, :3], states[:, 3:6])
 
     def on_partner_status(self, msg: UavStatus, key: str) -> None:
         if msg.uav != self.uav:
-            self.core.partner_status(msg.uav, msg.header.stamp, msg.flying_normally)
+            self.core.partner_status(msg.uav, msg.header.stamp, flying_normally=msg.flying_normally,
+                                     airborne=msg.airborne, position=msg.position, state=msg.state, target=msg.target)
 
     def on_alive(self, key: str, alive: bool) -> None:
         parsed = keys.parse_alive(key)
@@ -89,15 +98,11 @@ class JobManagerNode(Node):
         scope, service = parsed
         if scope == self.uav:
             (self.alive_services.add if alive else self.alive_services.discard)(service)
-            return
-        # A partner's service appearing or vanishing: the first sign of a fallen partner
-        # (revenge mode acts on it in the full job manager).
-        services = self.partner_services.setdefault(scope, set())
-        if alive:
-            services.add(service)
-        elif service in services:
-            services.discard(service)
-            self.log.warning("partner %s lost %s (liveliness token gone)", scope, service)
+        elif service == self.service:
+            # a partner's job manager: its token vanishing is the quickest sign of a fallen partner
+            self.core.partner_token(scope, alive, self.clock.now_ns())
+            if not alive:
+                self.log.warning("partner %s lost its job manager (liveliness token gone)", scope)
 
     # ------------------------------------------------------------------ tick
     @property
@@ -107,22 +112,29 @@ class JobManagerNode(Node):
 
     def on_tick(self, now_ns: int) -> None:
         if self.position is not None:
-            previous = self.core.state
             decision = self.core.update(now_ns, self.position, self.core.is_airborne(self.position[2]),
-                                        self.services_ready, position_stamp_ns=self.position_stamp)
-            if self.core.state is not previous:
-                step = self.core.transitions[-1]
-                self.log.info("%s -> %s (%s)", step.source.value, step.target.value, step.reason)
+                                        self.services_ready, position_stamp_ns=self.position_stamp,
+                                        velocity=self.velocity)
+            self.report()
             if decision is not None:
                 self.send_command(now_ns, decision)
             elif self.command is not None and self.params.command_repeat > 0 and \
                     now_ns - self.command_sent_at >= int(self.params.command_repeat * NS):
                 self.resend_command(now_ns)  # a restarted planner gets it (same id: no re-plan)
-        self.check_partners(now_ns)
         if now_ns >= self.next_status_ns:
             self.publish_status(now_ns)
             period = int(NS / self.params.status_rate_hz)
             self.next_status_ns = (now_ns // period + 1) * period
+
+    def report(self) -> None:
+        """Log what the core did since the last tick."""
+        for step in self.core.transitions[self.logged_transitions:]:
+            self.log.info("%s -> %s (%s)", step.source.value, step.target.value, step.reason)
+        self.logged_transitions = len(self.core.transitions)
+        for note in self.core.notes:
+            self.log.info("%s", note)
+        self.core.notes.clear()
+
 
     # --------------------------------------------------------------- outputs
     def send_command(self, now_ns: int, decision: MissionDecision) -> None:
@@ -132,31 +144,21 @@ class JobManagerNode(Node):
             command_id=self.command_id,
             action=decision.action,
             target=decision.target,
+            target_velocity=decision.target_velocity,
             area=list(decision.area),
             height=decision.height,
             spacing=decision.spacing,
-            profile=PROFILES[decision.profile],
+            profile=self.profiles[decision.profile],
         )
         self.command_sent_at = now_ns
         self.command_pub.put(self.command)
-        self.log.info("command %d: %s", self.command_id, decision.action)
+        where = "" if decision.target is None else " (%.1f, %.1f, %.1f)" % decision.target
+        self.log.info("command %d: %s%s", self.command_id, decision.action, where)
 
     def resend_command(self, now_ns: int) -> None:
         self.command.header = Header(stamp=now_ns)
         self.command_sent_at = now_ns
         self.command_pub.put(self.command)
-
-    def check_partners(self, now_ns: int) -> None:
-        silent = self.core.partners_silent(now_ns)
-        if silent != self.silent_partners:
-            gone = sorted(set(silent) - set(self.silent_partners))
-            back = sorted(set(self.silent_partners) - set(silent))
-            if gone:
-                self.log.warning("partners silent for %.0f s: %s (revenge mode comes later)",
-                                 self.params.partner_timeout, ", ".join(gone))
-            if back:
-                self.log.info("partners heard again: %s", ", ".join(back))
-            self.silent_partners = silent
 
     def publish_status(self, now_ns: int) -> None:
         position = self.position if self.position is not None else np.zeros(3)
@@ -169,7 +171,8 @@ class JobManagerNode(Node):
             airborne=self.position is not None and self.core.is_airborne(position[2]),
             position=(float(position[0]), float(position[1]), float(position[2])),
             working_area=[] if area is None else [(float(x), float(y)) for x, y in area],
-            target=None,
+            target=self.core.target,
+            fallen_partners=[] if self.core.team is None else self.core.team.fallen,
         ))
 
 

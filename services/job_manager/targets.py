@@ -1,0 +1,150 @@
+"""Target bookkeeping of the job manager (seed 004 §3.5.2 and §4.2): the target filter that
+locks the chosen target, forbidden zones, attack tries, and the filter every detection goes
+through before the state machine sees it.
+
+Pure: numpy in, numpy out; every time is an int ns stamp passed in by the caller.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+
+from services.geometry import point_in_polygon
+
+NS = 1_000_000_000
+
+
+class TargetFilter:
+    """Seed 004 §4.2 "balloon filter": a linear KF with a static-object model in 3D, started
+    at the chosen target; each scan it takes the detection closest to its estimate within
+    `gate` (d_e) and ignores the rest. `streak_start` is when the current run of detections
+    without a gap longer than `max_gap` began: the target counts as confirmed for t_m once
+    now − streak_start ≥ t_m."""
+
+    def __init__(self, position: np.ndarray, stamp: int, *, gate: float, measurement_sigma: float,
+                 process_sigma: float, max_gap_ns: int) -> None:
+        kf = KalmanFilter(dim_x=3, dim_z=3)
+        kf.x = np.asarray(position, dtype=np.float64).reshape(3, 1).copy()
+        kf.F = np.eye(3)
+        kf.H = np.eye(3)
+        kf.P = np.eye(3) * measurement_sigma**2
+        kf.R = np.eye(3) * measurement_sigma**2
+        self._kf = kf
+        self._process_variance = process_sigma**2
+        self.gate = gate
+        self.max_gap_ns = max_gap_ns
+        self.started = stamp
+        self.last_seen = stamp
+        self.streak_start = stamp
+        self.updates = 1
+        self._last_predict = stamp
+
+    @property
+    def estimate(self) -> np.ndarray:
+        return self._kf.x.reshape(3).copy()
+
+    def update(self, positions: np.ndarray, stamp: int) -> bool:
+        """One scan's detections (N, 3); True when one of them was taken as the target."""
+        elapsed = max(stamp - self._last_predict, 0) / NS
+        self._kf.Q = np.eye(3) * self._process_variance * max(elapsed, 1e-3)  # a static target may still sway
+        self._kf.predict()
+        self._last_predict = stamp
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        if not len(positions):
+            return False
+        gaps = np.linalg.norm(positions - self.estimate, axis=1)
+        best = int(np.argmin(gaps))
+        if gaps[best] > self.gate:
+            return False
+        self._kf.update(positions[best].reshape(3, 1))
+        if stamp - self.last_seen > self.max_gap_ns:
+            self.streak_start = stamp
+        self.last_seen = stamp
+        self.updates += 1
+        return True
+
+    def unseen_for(self, now: int) -> float:
+        return (now - self.last_seen) / NS
+
+    def confirmed_for(self, now: int) -> float:
+        """Seconds the target has been seen without a gap (0 once the gap exceeds max_gap)."""
+        if now - self.last_seen > self.max_gap_ns:
+            return 0.0
+        return (now - self.streak_start) / NS
+
+
+@dataclass(frozen=True)
+class ForbiddenZone:
+    center: tuple[float, float, float]
+    created: int  # ns
+    expires: int  # ns
+    reason: str
+
+
+@dataclass
+class ForbiddenZones:
+    """Spheres of radius r_f that filter out every detection inside them for t_f (seed 004
+    §3.5.2). `tries` counts finished attacks per place: the n_f-th try at the same place (within
+    r_f) makes a forbidden zone too."""
+
+    radius: float
+    lifetime_ns: int
+    max_tries: int
+    zones: list[ForbiddenZone] = field(default_factory=list)
+    _tries: list[list] = field(default_factory=list)  # [center (3,), count]
+
+    def add(self, center: np.ndarray, now: int, reason: str) -> ForbiddenZone:
+        c = np.asarray(center, dtype=np.float64).reshape(3)
+        zone = ForbiddenZone((float(c[0]), float(c[1]), float(c[2])), now, now + self.lifetime_ns, reason)
+        self.zones.append(zone)
+        self._tries = [t for t in self._tries if np.linalg.norm(t[0] - c) > self.radius]
+        return zone
+
+    def expire(self, now: int) -> list[ForbiddenZone]:
+        gone = [z for z in self.zones if now >= z.expires]
+        self.zones = [z for z in self.zones if now < z.expires]
+        return gone
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: inside a live zone (call `expire` first)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if not self.zones or not len(points):
+            return np.zeros(len(points), dtype=bool)
+        centers = np.array([z.center for z in self.zones])
+        return (np.linalg.norm(points[:, None, :] - centers[None], axis=2) <= self.radius).any(axis=1)
+
+    def count_try(self, place: np.ndarray, now: int) -> ForbiddenZone | None:
+        """One more finished attack at `place`; the n_f-th one forbids the place."""
+        p = np.asarray(place, dtype=np.float64).reshape(3)
+        for entry in self._tries:
+            if np.linalg.norm(entry[0] - p) <= self.radius:
+                entry[1] += 1
+                if entry[1] >= self.max_tries:
+                    return self.add(p, now, f"{entry[1]} tries")
+                return None
+        self._tries.append([p, 1])
+        if self.max_tries <= 1:
+            return self.add(p, now, "1 try")
+        return None
+
+    def tries_at(self, place: np.ndarray) -> int:
+        p = np.asarray(place, dtype=np.float64).reshape(3)
+        return next((int(t[1]) for t in self._tries if np.linalg.norm(t[0] - p) <= self.radius), 0)
+
+
+def usable_detections(positions: np.ndarray, *, area: np.ndarray | None, zones: ForbiddenZones,
+                      claimed: np.ndarray, claim_radius: float, min_z: float) -> np.ndarray:
+    """(N,) bool: the detections the state machine may act on — inside this UAV's working
+    area, outside every forbidden zone, not a target a partner has claimed (`claimed` (K, 3)),
+    and above `min_z` (a captured drone lying on the ground is no target)."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    keep = positions[:, 2] >= min_z
+    if area is not None and len(area) >= 3 and len(positions):
+        keep &= np.atleast_1d(point_in_polygon(positions[:, :2], area))
+    keep &= ~zones.contains(positions)
+    claimed = np.asarray(claimed, dtype=np.float64).reshape(-1, 3)
+    if len(claimed) and len(positions):
+        keep &= (np.linalg.norm(positions[:, None, :] - claimed[None], axis=2) > claim_radius).all(axis=1)
+    return keep

@@ -1,0 +1,169 @@
+"""The team as one job manager sees it (seed 004 §3.5.4): which partners are still working,
+revenge mode, who may chase which target, and who yields when two UAVs come close.
+
+Rules (docs/architecture.md, "Mission"):
+- A partner has **fallen** when, after it was once seen flying normally, its status says it no
+  longer is (landed, emergency landing); or it has been silent for t_s (`partner_timeout`;
+  a partner never heard at all counts from this UAV's own take-off); or its job manager's
+  liveliness token disappeared.
+- **Revenge mode**: the arena is split into equal working areas among the *active* UAVs (this
+  one plus every partner that has not fallen), always in the world's team order, west to east.
+  With 2 UAVs a survivor gets the whole arena; with 3 the two survivors share it.
+- **Coming back**: a fallen partner is reinstated only after its status has said "flying
+  normally" continuously for `rejoin_time` while its job manager's token is alive; the split
+  is then recomputed (logged as such by the node). A link that was cut both ways therefore
+  ends with both sides back on the original split.
+- **One chaser per target**: a partner's claimed target (its status `target`) filters out my
+  detections within `claim_radius` of it — unless I claim the same target and am closer to it
+  (ties: the UAV earlier in the team order keeps it).
+- **Separation**: when an active, airborne partner is closer than `safety_distance`, the
+  lower-priority UAV yields: it holds its horizontal position and climbs to
+  `vertical_separation` above the partner, until the distance exceeds safety_distance +
+  `separation_hysteresis`. Priority: a UAV engaging a target (GOING_TO_TARGET, DESTROYING) over
+  one that is not, then the team order.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+NS = 1_000_000_000
+ENGAGED_STATES = ("GOING_TO_TARGET", "DESTROYING")
+
+
+@dataclass
+class Partner:
+    name: str
+    heard: int | None = None  # stamp of the last status
+    flying_normally: bool = False
+    was_flying: bool = False  # seen flying normally at least once
+    normal_since: int | None = None  # start of the current run of "flying normally" statuses
+    token_alive: bool | None = None  # job manager's liveliness; None: never seen either way
+    position: np.ndarray | None = None
+    airborne: bool = False
+    state: str = ""
+    target: np.ndarray | None = None
+    fallen_reason: str = ""  # "" while active
+
+
+@dataclass(frozen=True)
+class TeamChange:
+    partner: str
+    fallen: bool  # True: fell; False: came back
+    reason: str
+
+
+@dataclass
+class Team:
+    me: str
+    members: list[str]  # the world's team order
+    partner_timeout_ns: int
+    rejoin_time_ns: int
+    partners: dict[str, Partner] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.partners = {m: Partner(m) for m in self.members if m != self.me}
+
+    # ---------------------------------------------------------------- inputs
+    def status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool, position, state: str,
+               target) -> None:
+        p = self.partners.get(name)
+        if p is None:
+            return
+        p.heard = stamp if p.heard is None else max(p.heard, stamp)
+        if flying_normally and not p.flying_normally:
+            p.normal_since = stamp
+        p.flying_normally = flying_normally
+        p.was_flying |= flying_normally
+        p.position = np.asarray(position, dtype=np.float64).reshape(3)
+        p.airborne = airborne
+        p.state = state
+        p.target = None if target is None else np.asarray(target, dtype=np.float64).reshape(3)
+
+    def token(self, name: str, alive: bool, stamp: int) -> None:
+        p = self.partners.get(name)
+        if p is None:
+            return
+        p.token_alive = alive
+        if not alive:
+            p.normal_since = None
+        elif p.flying_normally:
+            p.normal_since = stamp
+
+    # ------------------------------------------------------------------ rules
+    def update(self, now: int, my_takeoff: int | None) -> list[TeamChange]:
+        """Apply the fall / come-back rules; returns what changed."""
+        changes = []
+        for p in self.partners.values():
+            if not p.fallen_reason:
+                reason = self._fall_reason(p, now, my_takeoff)
+                if reason:
+                    p.fallen_reason = reason
+                    changes.append(TeamChange(p.name, True, reason))
+            elif self._back(p, now):
+                changes.append(TeamChange(p.name, False, f"flying normally again for "
+                                                         f"{(now - p.normal_since) / NS:.1f} s"))
+                p.fallen_reason = ""
+        return changes
+
+    def _fall_reason(self, p: Partner, now: int, my_takeoff: int | None) -> str:
+        if p.was_flying and not p.flying_normally:
+            return f"reports not flying normally ({p.state or 'unknown state'})"
+        if p.token_alive is False and (p.was_flying or p.heard is not None):
+            return "job manager liveliness lost"
+        since = p.heard if p.heard is not None else my_takeoff
+        if since is not None and now - since > self.partner_timeout_ns:
+            what = "silent" if p.heard is not None else "never heard"
+            return f"{what} for {(now - since) / NS:.1f} s"
+        return ""
+
+    def _back(self, p: Partner, now: int) -> bool:
+        return (p.flying_normally and p.token_alive is not False and p.normal_since is not None
+                and p.heard is not None and now - p.heard <= self.partner_timeout_ns
+                and now - p.normal_since >= self.rejoin_time_ns)
+
+    @property
+    def active(self) -> list[str]:
+        return [m for m in self.members if m == self.me or not self.partners[m].fallen_reason]
+
+    @property
+    def fallen(self) -> list[str]:
+        return [m for m in self.members if m != self.me and self.partners[m].fallen_reason]
+
+    def claimed_targets(self, my_target: np.ndarray | None, my_position: np.ndarray,
+                        claim_radius: float) -> np.ndarray:
+        """(K, 3) targets active partners have claimed and I must leave to them."""
+        keep = []
+        for p in self.partners.values():
+            if p.fallen_reason or p.target is None:
+                continue
+            if my_target is not None and np.linalg.norm(p.target - my_target) <= claim_radius:
+                mine = np.linalg.norm(my_position - my_target)
+                theirs = np.linalg.norm(p.position - p.target) if p.position is not None else np.inf
+                if mine < theirs or (mine == theirs and self.members.index(self.me) < self.members.index(p.name)):
+                    continue  # I keep it; the partner yields by the same rule
+            keep.append(p.target)
+        return np.array(keep, dtype=np.float64).reshape(-1, 3)
+
+    def yield_to(self, my_position: np.ndarray, my_state: str, safety_distance: float,
+                 hysteresis: float, yielding_to: str | None) -> Partner | None:
+        """The partner this UAV must give way to now (None: no one)."""
+        order = self.members.index(self.me)
+        engaged = my_state in ENGAGED_STATES
+        best = None
+        for p in self.partners.values():
+            if p.fallen_reason or not p.airborne or p.position is None:
+                continue
+            limit = safety_distance + (hysteresis if p.name == yielding_to else 0.0)
+            if np.linalg.norm(p.position - my_position) >= limit:
+                continue
+            theirs = p.state in ENGAGED_STATES
+            if theirs != engaged:
+                outranked = theirs
+            else:
+                outranked = self.members.index(p.name) < order
+            if outranked and (best is None or np.linalg.norm(p.position - my_position)
+                              < np.linalg.norm(best.position - my_position)):
+                best = p
+        return best

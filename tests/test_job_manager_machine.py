@@ -1,0 +1,312 @@
+"""The job manager's state machine, transition by transition, on an injected clock
+(seed 004 ch. 3): every transition of §3.4, the state timers and forbidden zones of §3.5.1-2,
+the abort system of §3.5.3 and automatic start / mission timer of §3.6."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.job_manager.core import NS, JobManager, JobManagerParams, State
+
+ARENA = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 60.0], [0.0, 60.0]])
+HOME = np.array([20.0, 20.0, 5.0])  # in uav1's half (x < 50)
+BALLOON = np.array([30.0, 30.0, 4.0])
+
+
+def s(seconds: float) -> int:
+    return int(round(seconds * NS))
+
+
+class Rig:
+    """Drives one JobManager: each `tick` delivers a scan's detections (the LiDAR heartbeat)
+    and odometry stamped `t`, then runs the machine at `t`."""
+
+    def __init__(self, uav: str = "uav1", team=("uav1", "uav2"), duration: float = 300.0, **params) -> None:
+        self.jm = JobManager(JobManagerParams(**params), uav)
+        self.jm.set_world(ARENA, list(team), duration)
+        self.t = 0.0
+        self.position = HOME.copy()
+        self.velocity = np.zeros(3)
+        self.decisions = []
+
+    def tick(self, t: float, detections=(), position=None, velocity=None, scan: bool = True,
+             odometry: bool = True, ready: bool = True):
+        self.t = t
+        if position is not None:
+            self.position = np.asarray(position, dtype=float)
+        if velocity is not None:
+            self.velocity = np.asarray(velocity, dtype=float)
+        if scan:
+            self.jm.observe_detections(s(t), np.asarray(detections, dtype=float).reshape(-1, 3))
+        if odometry:
+            self.odometry_stamp = s(t)
+        decision = self.jm.update(s(t), self.position, self.jm.is_airborne(self.position[2]), ready,
+                                  position_stamp_ns=self.odometry_stamp, velocity=self.velocity)
+        if decision is not None:
+            self.decisions.append(decision)
+        return decision
+
+    def run(self, start: float, end: float, step: float = 0.1, **kw):
+        t = start
+        while t <= end + 1e-9:
+            self.tick(round(t, 6), **kw)
+            t += step
+        return self.jm.state
+
+    @property
+    def last(self):
+        return self.decisions[-1]
+
+    def airborne(self) -> "Rig":
+        """PREFLIGHT → TAKING_OFF → IDLE at t = 1."""
+        self.tick(0.0, position=HOME - [0, 0, 5])
+        assert self.jm.state is State.TAKING_OFF
+        self.tick(1.0, position=HOME)
+        assert self.jm.state is State.IDLE
+        return self
+
+    def engaged(self) -> "Rig":
+        """... IDLE → CHECKING_TARGET → GOING_TO_TARGET on BALLOON, at rest."""
+        self.airborne()
+        self.tick(1.1, detections=[BALLOON])
+        assert self.jm.state is State.CHECKING_TARGET
+        self.tick(1.2, detections=[BALLOON])
+        assert self.jm.state is State.GOING_TO_TARGET
+        return self
+
+    def destroying(self) -> "Rig":
+        """... GOING_TO_TARGET → DESTROYING once within D_k of the balloon."""
+        self.engaged()
+        self.tick(1.3, detections=[BALLOON], position=BALLOON + [4.0, 0, 0])
+        assert self.jm.state is State.DESTROYING
+        return self
+
+
+def states(rig: Rig) -> list[tuple[str, str]]:
+    return [(t.source.value, t.target.value) for t in rig.jm.transitions]
+
+
+# --------------------------------------------------------- automatic start (§3.6)
+def test_preflight_waits_for_services_then_takes_off():
+    rig = Rig()
+    ground = HOME - [0, 0, 5]
+    assert rig.tick(0.0, position=ground, ready=False).action == "idle"
+    assert rig.tick(1.0, position=ground, ready=False) is None and rig.jm.state is State.PREFLIGHT
+    decision = rig.tick(2.0, position=ground)
+    assert rig.jm.state is State.TAKING_OFF and decision.action == "takeoff" and decision.height == 5.0
+    assert not rig.jm.flying_normally
+    rig.tick(3.0, position=HOME - [0, 0, 1.0])
+    assert rig.jm.state is State.TAKING_OFF
+    rig.tick(4.0, position=HOME)
+    assert rig.jm.state is State.IDLE and rig.jm.flying_normally
+
+
+def test_mission_timer_lands_and_late_start_stays_down():
+    rig = Rig(duration=40.0).airborne()
+    rig.run(1.1, 24.9)
+    assert rig.jm.state is State.GOING_AROUND
+    decision = rig.tick(25.0, position=[22.0, 30.0, 5.0])  # 40 s − landing margin 15 s
+    assert rig.jm.state is State.LANDING and decision.action == "land" and decision.target == (22.0, 30.0, 0.0)
+    rig.tick(30.0, position=[22.0, 30.0, 0.05])
+    assert rig.jm.state is State.LANDED and not rig.jm.flying_normally
+    late = Rig(duration=20.0)
+    late.tick(0.0, position=HOME - [0, 0, 5], ready=False)
+    late.tick(0.5, position=HOME - [0, 0, 5], ready=False)
+    assert late.jm.state is State.PREFLIGHT
+    late.jm.update(s(20.0), HOME - [0, 0, 5], False, True, position_stamp_ns=s(20.0))
+    assert late.jm.state is State.LANDED
+
+
+# ------------------------------------------------------------- transitions (§3.4)
+TRANSITIONS = [
+    # (name, setup, action on the rig, expected state, expected decision action or None)
+    ("IDLE → GOING_AROUND: nothing in view", "airborne", lambda r: r.tick(1.1), State.GOING_AROUND, "scan"),
+    ("IDLE → CHECKING_TARGET: target in view", "airborne", lambda r: r.tick(1.1, detections=[BALLOON]),
+     State.CHECKING_TARGET, "stop"),
+    ("CHECKING_TARGET → GOING_TO_TARGET: at rest, closest target locked", "airborne",
+     lambda r: (r.tick(1.1, detections=[BALLOON]), r.tick(1.2, detections=[[80, 50, 4], BALLOON])),
+     State.GOING_TO_TARGET, "approach"),
+    ("CHECKING_TARGET → IDLE → GOING_AROUND: no target for t_m", "airborne",
+     lambda r: (r.tick(1.1, detections=[BALLOON]), r.run(1.2, 4.3)), State.GOING_AROUND, "scan"),
+    ("GOING_TO_TARGET → DESTROYING: within D_k", "engaged",
+     lambda r: r.tick(1.3, detections=[BALLOON], position=BALLOON + [5.0, 0, 1.0]), State.DESTROYING, None),
+    ("GOING_TO_TARGET stays outside D_k", "engaged",
+     lambda r: r.tick(1.3, detections=[BALLOON], position=BALLOON + [6.0, 0, 1.0]), State.GOING_TO_TARGET, None),
+    ("GOING_TO_TARGET → CHECKING_TARGET: target unseen for t_m", "engaged",
+     lambda r: r.run(1.3, 4.3), State.CHECKING_TARGET, "stop"),
+    ("DESTROYING → CHECKING_TARGET: target unseen for t_m before the attack", "destroying",
+     lambda r: r.run(1.4, 4.4), State.CHECKING_TARGET, "stop"),
+]
+
+
+@pytest.mark.parametrize("name,setup,act,state,action", TRANSITIONS, ids=[t[0] for t in TRANSITIONS])
+def test_transition(name, setup, act, state, action):
+    rig = getattr(Rig(), setup)()
+    count = len(rig.decisions)
+    act(rig)
+    assert rig.jm.state is state, states(rig)
+    if action is not None:
+        assert rig.last.action == action and len(rig.decisions) > count
+
+
+def test_going_around_stops_before_checking():
+    rig = Rig().airborne()
+    rig.tick(1.1)
+    assert rig.last.action == "scan" and rig.last.area and rig.last.spacing == 20.0
+    rig.tick(1.2, detections=[BALLOON], velocity=[5.0, 0, 0])  # seen while sweeping at 5 m/s
+    assert rig.jm.state is State.GOING_AROUND and rig.last.action == "stop"
+    rig.tick(1.3, detections=[BALLOON], velocity=[2.0, 0, 0])
+    assert rig.jm.state is State.GOING_AROUND
+    rig.tick(1.4, detections=[BALLOON], velocity=[0.2, 0, 0])
+    assert rig.jm.state is State.CHECKING_TARGET
+
+
+def test_false_alarm_while_sweeping_resumes_the_scan():
+    rig = Rig().airborne()
+    rig.tick(1.1)
+    rig.tick(1.2, detections=[BALLOON], velocity=[5.0, 0, 0])
+    assert rig.last.action == "stop"
+    rig.run(1.3, 4.1, velocity=[1.0, 0, 0])  # never stops below stop_speed, target gone
+    assert rig.jm.state is State.GOING_AROUND
+    rig.tick(4.3)
+    assert rig.last.action == "scan"
+
+
+def test_going_around_climbs_to_search_height_first():
+    rig = Rig().airborne()
+    rig.tick(1.1, position=HOME - [0, 0, 2.0])
+    assert rig.jm.state is State.GOING_AROUND and rig.last.action == "takeoff"
+    rig.tick(1.2, position=HOME)
+    assert rig.last.action == "scan"
+
+
+def test_attack_only_after_target_confirmed_for_t_m_then_flown_through():
+    rig = Rig().destroying()  # locked at t = 1.2, seen since 1.1
+    assert rig.last.action == "approach" and rig.last.profile == "sweeping"
+    rig.run(1.4, 4.1, detections=[BALLOON], position=BALLOON + [4.0, 0, 0])
+    assert rig.last.action == "approach", "attacked before the target was confirmed for t_m"
+    rig.tick(4.3, detections=[BALLOON])  # seen continuously for 3.1 s since the lock
+    attack = rig.last
+    assert attack.action == "attack" and attack.profile == "attack"
+    np.testing.assert_allclose(attack.target, BALLOON, atol=0.05)
+    rig.tick(5.0, position=BALLOON + [-3.0, 0, 0], velocity=[-3.0, 0, 0])  # through it, still fast
+    assert rig.jm.state is State.DESTROYING
+    rig.tick(5.5, position=BALLOON + [-5.0, 0, 0], velocity=[-0.3, 0, 0])
+    assert rig.jm.state is State.IDLE
+    assert rig.jm.zones.tries_at(BALLOON) == 1 and not rig.jm.zones.zones
+
+
+def test_a_gap_in_detections_restarts_the_confirmation():
+    rig = Rig().destroying()
+    rig.run(1.4, 2.5, detections=[BALLOON], position=BALLOON + [4.0, 0, 0])
+    rig.run(2.6, 3.8, detections=[], position=BALLOON + [4.0, 0, 0])  # 1.2 s gap > streak_gap
+    rig.run(3.9, 6.8, detections=[BALLOON])
+    assert rig.last.action == "approach"
+    rig.run(6.9, 7.0, detections=[BALLOON])
+    assert rig.last.action == "attack"
+
+
+def test_second_try_at_the_same_place_makes_a_forbidden_zone():
+    rig = Rig().destroying()
+    for attempt in (1, 2):
+        rig.run(rig.t + 0.1, rig.t + 3.2, detections=[BALLOON], position=BALLOON + [4.0, 0, 0])
+        assert rig.last.action == "attack"
+        rig.tick(rig.t + 0.5, detections=[BALLOON], position=BALLOON + [-5.0, 0, 0], velocity=[0, 0, 0])
+        assert rig.jm.state is State.IDLE
+        if attempt == 1:  # the balloon survived: checked and approached again
+            rig.tick(rig.t + 0.1, detections=[BALLOON])
+            rig.tick(rig.t + 0.1, detections=[BALLOON])
+            rig.tick(rig.t + 0.1, detections=[BALLOON], position=BALLOON + [4.0, 0, 0])
+            assert rig.jm.state is State.DESTROYING
+    assert [z.reason for z in rig.jm.zones.zones] == ["2 tries"]
+    rig.tick(rig.t + 0.1, detections=[BALLOON])
+    assert rig.jm.state is State.GOING_AROUND  # the balloon is filtered out now
+
+
+# --------------------------------------------- state timers and forbidden zones (§3.5.1-2)
+TIMERS = [
+    ("T_c", dict(checking_timeout=2.0, stop_speed=0.1), "CHECKING_TARGET", 2.0),
+    ("T_g", dict(going_timeout=5.0), "GOING_TO_TARGET", 5.0),
+    ("T_d", dict(destroying_timeout=4.0, target_time=10.0), "DESTROYING", 4.0),
+]
+
+
+@pytest.mark.parametrize("timer,params,state,limit", TIMERS, ids=[t[0] for t in TIMERS])
+def test_state_timer_forbids_the_target_and_returns_to_idle(timer, params, state, limit):
+    rig = Rig(**params).airborne()
+    rig.tick(1.1, detections=[BALLOON], velocity=[0.5, 0, 0])  # CHECKING, not yet at rest
+    if state != "CHECKING_TARGET":
+        rig.tick(1.2, detections=[BALLOON], velocity=[0, 0, 0])
+    if state == "DESTROYING":
+        rig.tick(1.3, detections=[BALLOON], position=BALLOON + [4.0, 0, 0])
+    assert rig.jm.state.value == state
+    entered = rig.jm.transitions[-1].stamp / NS
+    near = BALLOON + [4.0, 0, 0] if state == "DESTROYING" else HOME
+    rig.run(rig.t + 0.1, entered + limit - 0.05, detections=[BALLOON], position=near)
+    assert rig.jm.state.value == state and not rig.jm.zones.zones
+    rig.run(rig.t + 0.1, entered + limit + 0.1, detections=[BALLOON], position=near)
+    rig.tick(rig.t + 0.1, detections=[BALLOON], position=near)
+    assert f"state timer {limit:g} s" in [t.reason for t in rig.jm.transitions]
+    (zone,) = rig.jm.zones.zones
+    assert np.linalg.norm(np.array(zone.center) - BALLOON) < 0.3 and zone.reason.startswith(state)
+    assert rig.jm.state is State.GOING_AROUND  # the forbidden balloon is not in view any more
+
+
+def test_forbidden_zone_expires_after_t_f():
+    rig = Rig(going_timeout=2.0).engaged()
+    rig.run(1.3, 3.3, detections=[BALLOON])
+    (zone,) = rig.jm.zones.zones
+    created = zone.created / NS
+    rig.run(rig.t + 0.1, created + 14.9, detections=[BALLOON])
+    assert rig.jm.state is State.GOING_AROUND and rig.jm.zones.zones
+    rig.tick(created + 15.0, detections=[BALLOON])
+    assert not rig.jm.zones.zones and any("expired" in n for n in rig.jm.notes)
+    assert rig.jm.state is State.CHECKING_TARGET  # the balloon counts again
+
+
+def test_detections_outside_the_working_area_or_on_the_ground_are_ignored():
+    rig = Rig().airborne()
+    rig.tick(1.1, detections=[[80.0, 30.0, 4.0], [25.0, 25.0, 0.3]])  # uav2's half; a drone on the ground
+    assert rig.jm.state is State.GOING_AROUND
+
+
+# --------------------------------------------------------------- abort system (§3.5.3)
+@pytest.mark.parametrize("silent", ["scan", "odometry"])
+def test_silent_sensor_for_more_than_1_s_is_an_emergency_landing(silent):
+    rig = Rig().airborne()
+    rig.run(1.1, 5.0)
+    quiet = {silent: False}
+    rig.run(5.1, 6.0, **quiet)
+    assert rig.jm.state is State.GOING_AROUND
+    decision = rig.tick(6.1, **quiet)
+    assert rig.jm.state is State.EMERGENCY_LANDING and decision.action == "emergency_land"
+    assert ("LiDAR silent" if silent == "scan" else "odometry silent") in rig.jm.transitions[-1].reason
+    rig.tick(9.0, position=HOME - [0, 0, 5], **quiet)
+    assert rig.jm.state is State.LANDED
+
+
+def test_lidar_that_never_starts_aborts_one_second_after_take_off():
+    rig = Rig()
+    rig.tick(0.0, position=HOME - [0, 0, 5], scan=False)
+    rig.tick(0.9, position=HOME - [0, 0, 4], scan=False)
+    assert rig.jm.state is State.TAKING_OFF
+    rig.tick(1.1, position=HOME - [0, 0, 3], scan=False)
+    assert rig.jm.state is State.EMERGENCY_LANDING
+
+
+# ----------------------------------------------------------------- moving targets
+def test_moving_target_is_intercepted_static_preferred():
+    rig = Rig().airborne()
+    drone = np.array([25.0, 25.0, 6.0])
+    rig.jm.observe_tracks(s(1.1), np.array([7]), drone[None], np.array([[4.0, 0.0, 0.0]]))
+    rig.tick(1.1, detections=[drone, BALLOON])
+    rig.tick(1.2, detections=[drone, BALLOON])
+    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "approach"  # the static one first
+    rig2 = Rig().airborne()
+    rig2.jm.observe_tracks(s(1.1), np.array([7]), drone[None], np.array([[4.0, 0.0, 0.0]]))
+    rig2.tick(1.1, detections=[drone])
+    rig2.jm.observe_tracks(s(1.2), np.array([7]), (drone + [0.4, 0, 0])[None], np.array([[4.0, 0.0, 0.0]]))
+    rig2.tick(1.2, detections=[drone + [0.4, 0, 0]])
+    assert rig2.jm.state is State.GOING_TO_TARGET
+    assert rig2.last.action == "intercept" and rig2.last.profile == "attack"
+    assert rig2.last.target_velocity == (4.0, 0.0, 0.0)

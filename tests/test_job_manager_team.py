@@ -1,0 +1,139 @@
+"""Team rules of the job manager (seed 004 §3.5.4 and docs/architecture.md "Mission"):
+revenge mode for 2 and 3 UAVs, the explicit come-back rule, one chaser per target, separation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.geometry import polygon_area
+from services.job_manager.core import NS, JobManager, JobManagerParams, State
+from tests.test_job_manager_machine import ARENA, BALLOON, HOME, Rig, s
+
+
+def flying(rig: Rig, name: str, t: float, position=(70.0, 30.0, 5.0), state: str = "GOING_AROUND", target=None,
+           normally: bool = True) -> None:
+    rig.jm.partner_status(name, s(t), flying_normally=normally, airborne=True, position=position, state=state,
+                          target=target)
+
+
+def x_range(area: np.ndarray) -> tuple[float, float]:
+    return round(float(area[:, 0].min()), 3), round(float(area[:, 0].max()), 3)
+
+
+REVENGE = [
+    # (why the partner falls, what the rig sees, seconds after the partner was last fine)
+    ("reports not flying normally", lambda r, t: flying(r, "uav2", t, state="EMERGENCY_LANDING", normally=False), 0.1),
+    ("silent for t_s", lambda r, t: None, 15.0),
+    ("job manager token gone", lambda r, t: r.jm.partner_token("uav2", False, s(t)), 0.1),
+]
+
+
+@pytest.mark.parametrize("why,event,delay", REVENGE, ids=[r[0] for r in REVENGE])
+def test_revenge_mode_takes_over_the_whole_arena(why, event, delay):
+    rig = Rig().airborne()
+    rig.jm.partner_token("uav2", True, s(1.0))
+    flying(rig, "uav2", 1.0)
+    rig.tick(1.1)
+    assert x_range(rig.jm.working_area) == (0.0, 50.0) and rig.last.action == "scan"
+    for t in np.arange(1.2, 10.01, 0.1):
+        flying(rig, "uav2", round(t, 3))
+        rig.tick(round(t, 3))
+    event(rig, 10.0)
+    rig.run(10.1, 10.0 + delay - 0.1)
+    assert x_range(rig.jm.working_area) == (0.0, 50.0), "fell too early"
+    rig.run(10.0 + delay + 0.1, 10.0 + delay + 0.2)
+    assert x_range(rig.jm.working_area) == (0.0, 100.0)
+    assert rig.jm.team.fallen == ["uav2"]
+    assert rig.last.action == "scan" and x_range(np.array(rig.last.area)) == (0.0, 100.0)  # re-planned
+    assert any(n.startswith("partner uav2 fell") for n in rig.jm.notes)
+    rig.tick(rig.t + 0.1, detections=[[80.0, 30.0, 4.0]])  # the partner's half counts now
+    assert rig.jm.state is State.CHECKING_TARGET
+
+
+def test_partner_heard_again_gets_its_area_back_only_after_rejoin_time():
+    rig = Rig().airborne()
+    rig.jm.partner_token("uav2", True, s(1.0))
+    flying(rig, "uav2", 1.0)
+    rig.tick(1.1)
+    rig.jm.partner_token("uav2", False, s(2.0))
+    rig.tick(2.0)
+    assert x_range(rig.jm.working_area) == (0.0, 100.0)
+    rig.jm.partner_token("uav2", True, s(3.0))
+    for t in np.arange(3.0, 5.95, 0.2):
+        flying(rig, "uav2", t)
+        rig.tick(round(t, 3))
+    assert x_range(rig.jm.working_area) == (0.0, 100.0), "back before rejoin_time"
+    flying(rig, "uav2", 6.1)
+    rig.tick(6.1)
+    assert x_range(rig.jm.working_area) == (0.0, 50.0) and rig.jm.team.fallen == []
+    assert any(n.startswith("partner uav2 is back") for n in rig.jm.notes)
+
+
+def test_a_partner_never_heard_falls_t_s_after_take_off():
+    rig = Rig().airborne()  # took off at t = 0
+    rig.run(1.1, 14.9)
+    assert rig.jm.team.fallen == []
+    rig.run(15.0, 15.2)
+    assert rig.jm.team.fallen == ["uav2"] and "never heard" in rig.jm.team.partners["uav2"].fallen_reason
+
+
+@pytest.mark.parametrize("fallen,expected", [("uav1", {"uav2": (0.0, 50.0), "uav3": (50.0, 100.0)}),
+                                             ("uav2", {"uav1": (0.0, 50.0), "uav3": (50.0, 100.0)}),
+                                             ("uav3", {"uav1": (0.0, 50.0), "uav2": (50.0, 100.0)})])
+def test_three_uavs_survivors_share_the_fallen_area(fallen, expected):
+    for me, area in expected.items():
+        jm = JobManager(JobManagerParams(), me)
+        jm.set_world(ARENA, ["uav1", "uav2", "uav3"], 300.0)
+        before = x_range(jm.working_area)
+        assert before[1] - before[0] == pytest.approx(100.0 / 3, abs=1e-3)
+        jm.partner_status(fallen, s(1.0), flying_normally=True, position=(50.0, 30.0, 5.0), state="GOING_AROUND")
+        jm.partner_status(fallen, s(2.0), flying_normally=False, position=(50.0, 30.0, 1.0), state="LANDING")
+        jm.update(s(2.0), HOME, True, True)
+        assert x_range(jm.working_area) == area
+        assert polygon_area(jm.working_area) == pytest.approx(3000.0, rel=1e-3)
+
+
+def test_a_target_claimed_by_a_partner_is_left_to_it_unless_i_am_closer():
+    rig = Rig().airborne()
+    near_border = np.array([49.0, 30.0, 4.0])  # in uav1's half
+    flying(rig, "uav2", 1.0, position=(52.0, 30.0, 5.0), state="GOING_TO_TARGET", target=near_border + [0.2, 0, 0])
+    rig.tick(1.1, detections=[near_border])
+    assert rig.jm.state is State.GOING_AROUND, "chased a target the partner had claimed"
+    # both claim it: the one closer keeps it
+    rig2 = Rig().airborne()
+    rig2.tick(1.1, detections=[near_border], position=[46.0, 30.0, 5.0])
+    rig2.tick(1.2, detections=[near_border])
+    assert rig2.jm.state is State.GOING_TO_TARGET
+    flying(rig2, "uav2", 1.2, position=(60.0, 30.0, 5.0), state="GOING_TO_TARGET", target=near_border)
+    assert len(rig2.jm.candidates(s(1.3), np.array([46.0, 30.0, 5.0]))) == 1  # uav1 is closer: keeps it
+    flying(rig2, "uav2", 1.3, position=(48.0, 30.0, 5.0), state="GOING_TO_TARGET", target=near_border)
+    assert len(rig2.jm.candidates(s(1.3), np.array([46.0, 30.0, 5.0]))) == 0  # uav2 closer: uav1 yields it
+
+
+def test_the_lower_priority_uav_yields_by_climbing_above_the_partner():
+    rig = Rig(uav="uav2").airborne()  # uav2 ranks below uav1
+    rig.tick(1.1)
+    flying(rig, "uav1", 1.2, position=HOME + [3.0, 0, 0])
+    rig.tick(1.2)
+    hold = rig.last
+    assert hold.action == "goto" and hold.target == (HOME[0], HOME[1], HOME[2] + 3.0)
+    flying(rig, "uav1", 1.3, position=HOME + [6.0, 0, 0])  # 6 m: beyond 5 m but inside the hysteresis
+    rig.tick(1.3)
+    assert rig.last == hold
+    flying(rig, "uav1", 1.4, position=HOME + [7.5, 0, 0])
+    rig.tick(1.4)
+    assert rig.last.action == "scan"  # separation restored: back to the mission
+    # the higher-priority UAV does not yield
+    top = Rig(uav="uav1").airborne()
+    top.tick(1.1)
+    flying(top, "uav2", 1.2, position=HOME + [3.0, 0, 0])
+    top.tick(1.2)
+    assert top.last.action == "scan"
+
+
+def test_an_engaged_uav_has_priority_over_a_sweeping_one():
+    rig = Rig(uav="uav1").airborne()
+    rig.tick(1.1)
+    flying(rig, "uav2", 1.2, position=HOME + [3.0, 0, 0], state="DESTROYING")
+    rig.tick(1.2)
+    assert rig.last.action == "goto"  # uav1 outranks by order, but uav2 is attacking
