@@ -98,11 +98,12 @@ class JobManagerNode(Node):
         scope, service = parsed
         if scope == self.uav:
             (self.alive_services.add if alive else self.alive_services.discard)(service)
-        elif service == self.service:
-            # a partner's job manager: its token vanishing is the quickest sign of a fallen partner
-            self.core.partner_token(scope, alive, self.clock.now_ns())
+        else:
+            if service == self.service:
+                # a partner's job manager: its token vanishing is the quickest sign of a fallen partner
+                self.core.partner_token(scope, alive, self.clock.now_ns())
             if not alive:
-                self.log.warning("partner %s lost its job manager (liveliness token gone)", scope)
+                self.log.warning("partner %s lost %s (liveliness token gone)", scope, service)
 
     # ------------------------------------------------------------------ tick
     @property

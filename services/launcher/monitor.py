@@ -13,10 +13,12 @@ from typing import BinaryIO, Iterator
 import msgspec
 
 from schemas import keys
+from schemas.arrays import to_numpy
 from schemas.messages import Detections, GroundTruth, SimClock, SimEvent, Tracks, UavStatus
 from services.runtime.clock import seconds
 
 _LENGTH = struct.Struct("<I")
+DETECTED_WITHIN = 1.5  # m between a detection and a target's true position for "first detected"
 
 
 def write_record(stream: BinaryIO, payload: bytes) -> None:
@@ -49,6 +51,8 @@ class UavSummary:
     detections: int = 0
     confirmed_tracks: set[int] = field(default_factory=set)
     last_position: tuple[float, float, float] | None = None
+    states: list[tuple[float, str]] = field(default_factory=list)  # (mission time, job manager state) changes
+    team_view: tuple | None = None  # (working area x-range, fallen partners) last reported
 
 
 class RunMonitor:
@@ -64,9 +68,13 @@ class RunMonitor:
         self.over = False  # ... and the simulator saw every service acknowledge it
         self.uavs: dict[str, UavSummary] = {}
         self.targets: dict[str, tuple[str, bool]] = {}
+        self._target_positions: dict[str, tuple[float, float, float]] = {}
+        self.first_detected: dict[str, tuple[float, str]] = {}  # target → (mission time, UAV)
+        self.min_separation: tuple[float, float, str] | None = None  # (m, mission time, "uavA-uavB")
         self.destroyed: list[tuple[float, str, str]] = []
         self.events: list[SimEvent] = []
         self.restarts: list[str] = []
+        self.team_changes: list[dict] = []  # a UAV's working area or fallen partners changed (revenge mode)
         self.faults: list[str] = []
         self.decode = {
             keys.CLOCK: msgspec.msgpack.Decoder(SimClock),
@@ -93,8 +101,7 @@ class RunMonitor:
                 return
             uav, topic = key.split("/")[1:3]
             if topic == "status":
-                status = self._status.decode(payload)
-                self._uav(uav).state = status.state
+                self._on_status(uav, self._status.decode(payload))
             elif topic == "tracks":
                 for track in self._tracks.decode(payload).tracks:
                     if track.confirmed:
@@ -102,11 +109,25 @@ class RunMonitor:
             elif topic == "detections":
                 det = self._detections.decode(payload)
                 self._uav(uav).detections += det.positions.shape[0] if det.positions.shape else 0
+                self._note_first_detections(uav, det)
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
             pass  # not ours to police: the services count their own decode errors
 
     def _uav(self, name: str) -> UavSummary:
         return self.uavs.setdefault(name, UavSummary())
+
+    def _on_status(self, uav: str, status: UavStatus) -> None:
+        u, t = self._uav(uav), seconds(status.header.stamp)
+        u.state = status.state
+        if not u.states or u.states[-1][1] != status.state:
+            u.states.append((t, status.state))
+        xs = [x for x, _ in status.working_area]
+        view = ((round(min(xs), 1), round(max(xs), 1)) if xs else None, tuple(status.fallen_partners))
+        if view != u.team_view:
+            if u.team_view is not None:
+                self.team_changes.append({"t": round(t, 2), "uav": uav, "x": list(view[0]) if view[0] else None,
+                                          "fallen": list(view[1])})
+            u.team_view = view
 
     def _on_clock(self, tick: SimClock) -> None:
         self.step = max(self.step, tick.step)
@@ -133,6 +154,28 @@ class RunMonitor:
                 u.landed = t
         for target in truth.targets:
             self.targets[target.id] = (target.kind, target.destroyed)
+            if not target.destroyed:
+                self._target_positions[target.id] = target.position
+            else:
+                self._target_positions.pop(target.id, None)
+        flying = [v for v in truth.uavs if v.airborne and v.alive]
+        for i, a in enumerate(flying):
+            for b in flying[i + 1:]:
+                gap = math.dist(a.position, b.position)
+                if self.min_separation is None or gap < self.min_separation[0]:
+                    self.min_separation = (gap, t, f"{a.name}-{b.name}")
+
+    def _note_first_detections(self, uav: str, det: Detections) -> None:
+        """When each target was first detected by anyone: a detection within DETECTED_WITHIN of its
+        latest true position (an evaluation figure; no service ever sees it)."""
+        if not det.positions.shape or not det.positions.shape[0]:
+            return
+        positions = to_numpy(det.positions).reshape(-1, 3)
+        t = seconds(det.header.stamp)
+        for tid, where in self._target_positions.items():
+            if tid not in self.first_detected:
+                if any(math.dist(where, p) <= DETECTED_WITHIN for p in positions.tolist()):
+                    self.first_detected[tid] = (t, uav)
 
     def _on_events(self, event: SimEvent) -> None:
         self.events.append(event)
@@ -158,13 +201,23 @@ class RunMonitor:
             "mission_time": round(self.mission_time, 3),
             "real_time_factor": round(self.rtf, 2),
             "targets": len(self.targets),
-            "destroyed": [{"t": round(t, 2), "target": tid, "by": uav} for t, tid, uav in self.destroyed],
+            "destroyed": [{"t": round(t, 2), "target": tid, "kind": self.targets.get(tid, ("?", True))[0], "by": uav,
+                           "first_detected": None if tid not in self.first_detected
+                           else round(self.first_detected[tid][0], 2)}
+                          for t, tid, uav in self.destroyed],
+            "target_kinds": {tid: kind for tid, (kind, _) in sorted(self.targets.items())},
+            "first_detected": {tid: {"t": round(t, 2), "by": uav} for tid, (t, uav) in sorted(self.first_detected.items())},
+            "min_separation": None if self.min_separation is None else {
+                "m": round(self.min_separation[0], 2), "t": round(self.min_separation[1], 2),
+                "pair": self.min_separation[2]},
             "restarts": list(self.restarts),
+            "team_changes": list(self.team_changes),
             "faults": list(self.faults),
             "uavs": {
                 name: {"distance_m": round(u.distance, 1), "max_height_m": round(u.max_height, 2),
                        "takeoff_s": u.takeoff, "landed_s": u.landed, "final_state": u.state,
-                       "detections": u.detections, "confirmed_tracks": len(u.confirmed_tracks)}
+                       "detections": u.detections, "confirmed_tracks": len(u.confirmed_tracks),
+                       "states": [[round(t, 2), state] for t, state in u.states]}
                 for name, u in sorted(self.uavs.items())
             },
             "events": [f"{seconds(e.header.stamp):.2f} {e.kind} {e.subject} {e.detail}".rstrip() for e in self.events],

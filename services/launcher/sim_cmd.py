@@ -250,6 +250,32 @@ def _interrupt(signum, frame) -> None:
     raise KeyboardInterrupt
 
 
+def _since_detection(d: dict) -> str:
+    if d.get("first_detected") is None:
+        return ""
+    return f" (first detected t={d['first_detected']:.1f} s, {d['t'] - d['first_detected']:.1f} s later)"
+
+
+def _completion_lines(s: dict) -> list[str]:
+    """When every target of a kind was done, and how close two flying UAVs came."""
+    lines = []
+    kinds = s.get("target_kinds", {})
+    for kind in sorted(set(kinds.values())):
+        wanted = {tid for tid, k in kinds.items() if k == kind}
+        done = [d["t"] for d in s["destroyed"] if d["target"] in wanted]
+        if len(done) == len(wanted):
+            lines.append(f"all {len(wanted)} {kind}s {'destroyed' if kind == 'balloon' else 'captured'} "
+                         f"at t={max(done):.1f} s")
+    for change in s.get("team_changes", []):
+        area = "no area" if change["x"] is None else f"working area x {change['x'][0]:g}..{change['x'][1]:g}"
+        fallen = f" (fallen: {', '.join(change['fallen'])})" if change["fallen"] else ""
+        lines.append(f"t={change['t']:.1f} s {change['uav']}: {area}{fallen}")
+    sep = s.get("min_separation")
+    if sep is not None:
+        lines.append(f"closest approach of two flying UAVs: {sep['m']:.1f} m ({sep['pair']}, t={sep['t']:.1f} s)")
+    return lines
+
+
 def print_summary(s: dict, uav_count: int, duration: float) -> None:
     lines = [
         "",
@@ -258,8 +284,9 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         f"outcome: {s['outcome']}; mission time {s['mission_time']:.1f}/{duration:g} s in {s['wall_time']:.1f} s "
         f"wall (real-time factor {s['mission_time'] / max(s['wall_time'], 1e-9):.2f}x)",
         f"targets destroyed or captured: {len(s['destroyed'])}/{s['targets']}"
-        + "".join(f"\n  t={d['t']:.1f} s {d['target']} by {d['by']}" for d in s["destroyed"]),
+        + "".join(f"\n  t={d['t']:.1f} s {d['target']} by {d['by']}" + _since_detection(d) for d in s["destroyed"]),
     ]
+    lines += _completion_lines(s)
     for name, u in s["uavs"].items():
         took = f"took off t={u['takeoff_s']:.1f} s" if u["takeoff_s"] is not None else "never took off"
         landed = f", landed t={u['landed_s']:.1f} s" if u["landed_s"] is not None else ""
