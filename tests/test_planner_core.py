@@ -4,19 +4,32 @@ import pytest
 from schemas.messages import ConstraintProfile
 from services.planner.core import (
     DT,
+    approach,
+    approach_goal,
+    attack,
+    deadband,
+    fly,
     hover,
+    inner_rectangle,
+    intercept,
     land,
     lawnmower,
     lawnmower_waypoints,
     path_duration,
+    plan_intercept,
     sample_path,
     scan_rectangle,
+    stop,
     takeoff,
     wrap_angle,
 )
+from services.planner.intercept import sample_intercept
 
 SWEEP = ConstraintProfile(name="sweeping", max_speed=5.0, max_acceleration=1.5)
+ATTACK = ConstraintProfile(name="attack", max_speed=8.3, max_acceleration=3.0)
 AREA = np.array([[0.0, 0.0], [40.0, 0.0], [40.0, 56.0], [0.0, 56.0]])  # long side along y
+ARENA = np.array([[0, 0], [100, 0], [100, 60], [60, 60], [60, 45], [40, 45], [40, 60], [0, 60]], float)
+HALF_ARENA = np.array([[0, 0], [50, 0], [50, 45], [40, 45], [40, 60], [0, 60]], float)
 
 
 def speeds(positions, dt=DT):
@@ -28,13 +41,29 @@ def accelerations(positions, dt=DT):
 
 
 def check_profile(positions, headings, profile, dt=DT):
-    assert speeds(positions, dt).max() <= profile.max_speed * 1.01
+    assert positions.shape == (len(headings), 3)
+    assert speeds(positions, dt).max(initial=0) <= profile.max_speed * 1.01
     vertical = np.abs(np.diff(positions[:, 2])) / dt
     assert vertical.max(initial=0) <= profile.max_vertical_speed * 1.01
-    assert accelerations(positions, dt).max(initial=0) <= profile.max_acceleration * 1.05
+    assert accelerations(positions, dt).max(initial=0) <= profile.max_acceleration * 1.01
     heading_rate = np.abs(wrap_angle(np.diff(headings))) / dt
     assert heading_rate.max(initial=0) <= profile.max_heading_rate * 1.01
 
+
+def distance_to_polyline(point, positions):
+    a, b = positions[:-1], positions[1:]
+    ab = b - a
+    t = np.clip(((point - a) * ab).sum(1) / np.maximum((ab * ab).sum(1), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(a + t[:, None] * ab - point, axis=1).min()
+
+
+def assert_ends_at_rest(positions, end, profile, dt=DT):
+    np.testing.assert_allclose(positions[-1], end, atol=1e-9)
+    # The last step of a stop at a_max is at most a·dt² / 2 long.
+    assert np.linalg.norm(positions[-1] - positions[-2]) <= 0.5 * profile.max_acceleration * dt**2 + 1e-9
+
+
+# --- time parameterisation -------------------------------------------------------------
 
 def test_single_segment_analytic_duration():
     # 50 m at 5 m/s with 1.5 m/s²: 2·(5/1.5) s ramps covering 5²/1.5 m, the rest at 5 m/s.
@@ -66,9 +95,9 @@ def test_takeoff_and_land():
     # Vertical speed limit 2 m/s: 5 m takes 2·(2/1.5) + (5 − 4/1.5)/2 s.
     assert (len(positions) - 1) * DT == pytest.approx(np.ceil((8 / 3 + (5 - 8 / 3) / 2) / DT) * DT)
     check_profile(positions, headings, SWEEP)
-    down, _ = land(positions[-1], 0.0, SWEEP)
+    down, down_headings = land(positions[-1], 0.0, SWEEP)
     np.testing.assert_allclose(down[-1], [3.0, 4.0, 0.0])
-    check_profile(down, np.zeros(len(down)), SWEEP)
+    check_profile(down, down_headings, SWEEP)
 
 
 def test_hover_is_one_sample():
@@ -76,53 +105,268 @@ def test_hover_is_one_sample():
     assert positions.shape == (1, 3) and headings.shape == (1,)
 
 
-def test_lawnmower_lines_and_corners():
-    start = np.array([3.0, 50.0, 5.0])  # near the (x_low, y_high) corner, inside the rectangle
+def test_sample_path_mixed_climb_and_turns():
+    waypoints = np.array([[0, 0, 0], [0, 0, 5], [10, 0, 5], [10, 10, 8], [0, 0, 2]], float)
+    positions, headings = sample_path(waypoints, ATTACK, DT, start_heading=2.0)
+    check_profile(positions, headings, ATTACK)
+    np.testing.assert_allclose(positions[-1], waypoints[-1])
+
+
+@pytest.mark.parametrize("turn_deg, stops", [(30, False), (90, False), (119, False), (150, True), (180, True)])
+def test_fly_rounds_corners_and_stops_at_sharp_ones(turn_deg, stops):
+    turn = np.radians(turn_deg)
+    waypoints = np.array([[0, 0, 5], [30, 0, 5], [30 + 30 * np.cos(turn), 30 * np.sin(turn), 5]])
+    dt = 0.02
+    positions, headings = fly(waypoints, SWEEP, dt, start_heading=0.0)
+    check_profile(positions, headings, SWEEP, dt)
+    assert_ends_at_rest(positions, waypoints[-1], SWEEP, dt)
+    step = speeds(positions, dt)
+    away = np.minimum(np.linalg.norm(positions[:-1] - waypoints[0], axis=1),
+                      np.linalg.norm(positions[:-1] - waypoints[-1], axis=1)) > 10.0
+    middle = step[away]
+    if stops:
+        assert middle.min() < SWEEP.max_acceleration * dt  # brakes to (sampled) rest at the vertex
+        assert distance_to_polyline(waypoints[1], positions) < 1e-3
+    else:
+        assert middle.min() > 1.0  # never stops, so the corner is an arc at speed
+        assert distance_to_polyline(waypoints[1], positions) > 0.01
+
+
+def test_fly_corner_and_segment_caps_and_start_velocity():
+    waypoints = np.array([[0, 0, 5], [20, 0, 5], [20, 20, 5], [40, 20, 5]], float)
+    positions, headings = fly(waypoints, SWEEP, corner_speeds=[np.inf, 1.0, np.inf, np.inf],
+                              segment_speeds=[np.inf, np.inf, 2.0], start_velocity=[3.0, 4.0, 0.0])
+    check_profile(positions, headings, SWEEP)
+    step = speeds(positions)
+    assert step[0] == pytest.approx(3.0, abs=SWEEP.max_acceleration * DT)  # keeps its speed along the path
+    near_first = np.linalg.norm(positions[:-1] - waypoints[1], axis=1) < 0.6
+    assert near_first.any() and step[near_first].max() <= 1.0 * 1.01
+    on_last = (np.abs(positions[:-1, 1] - 20.0) < 1e-9) & (positions[:-1, 0] > 25.0)
+    assert step[on_last].max() <= 2.0 * 1.01
+
+
+def test_fly_climbing_corner_keeps_vertical_speed():
+    # Both legs are steep; the arc between them passes through vertical.
+    waypoints = np.array([[0, 0, 0], [5, 0, 8.66], [0, 0, 17.32]])
+    positions, headings = fly(waypoints, SWEEP, heading=0.0, stop_angle=np.pi)
+    check_profile(positions, headings, SWEEP)
+    assert speeds(positions)[5:-5].min() > 0.1
+
+
+def test_heading_slews_while_moving_and_settles_at_the_end():
+    waypoints = np.array([[0, 0, 5], [3, 0, 5]])
+    positions, headings = fly(waypoints, SWEEP, heading=np.pi / 2, start_heading=-np.pi / 2)
+    check_profile(positions, headings, SWEEP)
+    flight = path_duration(waypoints, SWEEP)
+    assert (len(positions) - 1) * DT >= np.pi / SWEEP.max_heading_rate - 1e-9  # waited only at the end
+    assert np.linalg.norm(positions[int(np.ceil(flight / DT))] - waypoints[-1]) < 1e-9
+    assert headings[-1] == pytest.approx(np.pi / 2)
+
+
+# --- approach and attack -------------------------------------------------------------------
+
+@pytest.mark.parametrize("reference, expected", [
+    ([0.3, 1.0, 5.0], [0.0, 1.0, 5.0]),  # line-of-sight part below D_f: removed, lateral part kept
+    ([-0.4, 0.0, 5.2], [0.0, 0.0, 5.2]),
+    ([2.0, 1.0, 5.0], [2.0, 1.0, 5.0]),  # above D_f: left alone
+    ([-0.6, 0.5, 5.0], [-0.6, 0.5, 5.0]),
+])
+def test_deadband(reference, expected):
+    uav, target = np.array([0.0, 0.0, 5.0]), np.array([10.0, 0.0, 5.0])
+    np.testing.assert_allclose(deadband(np.array(reference), uav, target, 0.5), expected, atol=1e-12)
+
+
+APPROACHES = [  # position, target, start velocity, start heading
+    ([-20.0, 5.0, 8.0], [10.0, 5.0, 3.0], None, None),  # far and high: level, then descend
+    ([0.0, 0.0, 5.0], [5.0, 5.0, 2.0], None, 2.5),  # inside D_p: one descending leg
+    ([-15.0, 0.0, 6.0], [10.0, 0.0, 2.0], [3.0, 0.0, 0.0], np.pi),  # moving towards it, facing away
+    ([30.0, -30.0, 4.0], [0.0, 0.0, 6.0], [0.0, 2.0, 0.0], None),  # sideways velocity, climbing
+    ([12.0, 0.0, 5.0], [0.0, 0.0, 5.0], None, 0.0),  # just outside D_p
+]
+
+
+@pytest.mark.parametrize("position, target, velocity, heading", APPROACHES)
+def test_approach(position, target, velocity, heading):
+    position, target = np.array(position), np.array(target)
+    positions, headings = approach(position, target, profile=SWEEP, start_velocity=velocity, start_heading=heading)
+    check_profile(positions, headings, SWEEP)
+    goal = approach_goal(position, target)
+    assert_ends_at_rest(positions, goal, SWEEP)
+    assert np.hypot(*(goal - target)[:2]) == pytest.approx(4.0)
+    assert goal[2] == pytest.approx(target[2])
+    facing = np.arctan2(*(target - position)[1::-1])
+    assert wrap_angle(headings[-1] - facing) == pytest.approx(0.0, abs=1e-9)
+    if heading is not None:
+        assert wrap_angle(headings[0] - heading) == pytest.approx(0.0, abs=1e-12)
+    horizontal = np.hypot(*(positions - target)[:, :2].T)
+    start_distance = horizontal[0]
+    if start_distance > 11.0:
+        # Level while farther than D_p, bar the rounded junction (at most half the shorter leg).
+        margin = 0.5 * min(start_distance - 11.0, 11.0 - 4.0)
+        assert np.all(np.abs(positions[horizontal > 11.0 + margin, 2] - position[2]) < 1e-9)
+    if velocity is not None:
+        along = max(0.0, np.dot(velocity, positions[-1] - position) / np.linalg.norm(positions[-1] - position))
+        assert speeds(positions)[0] == pytest.approx(along, abs=SWEEP.max_acceleration * DT)
+
+
+@pytest.mark.parametrize("position, velocity", [
+    ([6.0, 1.0, 2.0], None),  # from the approach's waiting point
+    ([-10.0, -10.0, 6.0], None),  # far and above
+    ([3.0, -3.0, 2.5], [1.0, -1.0, 0.0]),  # close, drifting away
+])
+def test_attack_passes_through_the_hit_point(position, velocity):
+    target = np.array([2.0, 1.0, 2.0])
+    position = np.array(position)
+    positions, headings = attack(position, target, profile=ATTACK, start_velocity=velocity, dt=DT)
+    check_profile(positions, headings, ATTACK)
+    assert distance_to_polyline(target + [0, 0, 0.3], positions) < 0.05
+    direction = (target - position)[:2] / np.linalg.norm((target - position)[:2])
+    end = np.concatenate([target[:2] + 5.0 * direction, [target[2] + 0.15]])
+    assert_ends_at_rest(positions, end, ATTACK)
+    assert wrap_angle(headings[-1] - np.arctan2(direction[1], direction[0])) == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("velocity", [[3.0, 0.0, 0.0], [2.0, 2.0, 1.0], [0.0, 0.0, -1.5], [-4.0, 1.0, 0.0]])
+def test_stop_brakes_within_the_braking_distance(velocity):
+    position, velocity = np.array([1.0, 2.0, 5.0]), np.array(velocity)
+    positions, headings = stop(position, velocity, SWEEP, heading=0.3)
+    check_profile(positions, headings, SWEEP)
+    speed = np.linalg.norm(velocity)
+    travel = positions[-1] - position
+    assert np.linalg.norm(travel) <= speed**2 / (2 * SWEEP.max_acceleration) + 1e-6
+    np.testing.assert_allclose(np.cross(travel, velocity), 0.0, atol=1e-9)
+    assert speeds(positions)[0] == pytest.approx(speed, abs=SWEEP.max_acceleration * DT)
+    assert np.linalg.norm(positions[-1] - positions[-2]) <= 0.5 * SWEEP.max_acceleration * DT**2 + 1e-9
+    np.testing.assert_allclose(headings, 0.3)
+
+
+# --- scan ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("area, low, high", [
+    (AREA, [0, 0], [40, 56]),
+    (ARENA, [0, 0], [100, 45]),
+    (ARENA[::-1], [0, 0], [100, 45]),  # clockwise
+    (HALF_ARENA, [0, 0], [40, 60]),
+])
+def test_inner_rectangle_of_rectilinear_polygons(area, low, high):
+    np.testing.assert_allclose(inner_rectangle(area), [low, high])
+
+
+@pytest.mark.parametrize("area, best", [
+    (np.array([[0, 0], [10, 0], [0, 10]], float), 25.0),
+    (np.array([[0, 0], [8, -8], [16, 0], [8, 8]], float), 64.0),  # a square turned 45°: an 8 × 8 square
+])
+def test_inner_rectangle_of_slanted_polygons_is_inside_and_near_best(area, best):
+    from services.geometry import point_in_polygon
+
+    low, high = inner_rectangle(area)
+    corners = np.array([[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]]])
+    shrunk = corners + 1e-6 * np.sign(0.5 * (low + high) - corners)
+    assert point_in_polygon(shrunk, area).all()
+    assert np.prod(high - low) >= 0.9 * best
+
+
+def test_lawnmower_waypoints_layout():
+    start = np.array([3.0, 50.0, 5.0])
     corners = lawnmower_waypoints(AREA, 5.0, 10.0, 2.0, start)
-    low, high = scan_rectangle(AREA, 2.0)
-    np.testing.assert_allclose([low, high], [[2.0, 2.0], [38.0, 54.0]])
-    # Lines run along y (the long side); their x positions are `spacing` apart, centred.
-    line_x = corners[0::2, 0]
+    np.testing.assert_allclose(scan_rectangle(AREA, 2.0), [[2.0, 2.0], [38.0, 54.0]])
+    line_x = corners[0::2, 0]  # lines along y (the long side), `spacing` apart, centred
     np.testing.assert_allclose(corners[1::2, 0], line_x)
-    np.testing.assert_allclose(np.diff(line_x), 10.0)
     np.testing.assert_allclose(line_x, [5.0, 15.0, 25.0, 35.0])
     np.testing.assert_allclose(corners[0, :2], [5.0, 54.0])  # nearest corner to the start
     np.testing.assert_allclose(corners[:4, 1], [54.0, 2.0, 2.0, 54.0])  # boustrophedon
-
-    positions, headings = lawnmower(AREA, 5.0, 10.0, 2.0, SWEEP, start, DT, start_heading=0.0)
-    check_profile(positions, headings, SWEEP)
-    eps = 1e-9
-    assert np.all(positions[:, :2] >= low - eps) and np.all(positions[:, :2] <= high + eps)
-    np.testing.assert_allclose(positions[:, 2], 5.0)
-    step = speeds(positions)
-    for corner in corners:
-        at = np.linalg.norm(positions - corner, axis=1)
-        i = int(np.argmin(at))
-        assert at[i] < 1e-6  # the trajectory stops exactly on each corner
-        around = step[max(i - 1, 0): i + 1]
-        assert around.max() <= SWEEP.max_acceleration * DT + 1e-9
-    np.testing.assert_allclose(positions[-1], corners[-1])
-    # Heading follows the travel direction on the long lines (±y).
-    moving = step > 1.0
-    travel = np.diff(positions, axis=0)[moving]
-    expected = np.arctan2(travel[:, 1], travel[:, 0])
-    np.testing.assert_allclose(wrap_angle(headings[1:][moving] - expected), 0.0, atol=1e-9)
-
-
-def test_lawnmower_transfer_from_outside_and_wide_area():
     wide = np.array([[0.0, 0.0], [60.0, 0.0], [60.0, 30.0], [0.0, 30.0]])
-    start = np.array([70.0, -5.0, 5.0])
-    corners = lawnmower_waypoints(wide, 5.0, 10.0, 2.0, start)
-    np.testing.assert_allclose(corners[0, :2], [58.0, 5.0])  # lines along x now, starting near start
+    corners = lawnmower_waypoints(wide, 5.0, 10.0, 2.0, np.array([70.0, -5.0, 5.0]))
+    np.testing.assert_allclose(corners[0, :2], [58.0, 5.0])  # lines along x, starting near the start
     np.testing.assert_allclose(np.diff(corners[0::2, 1]), 10.0)
-    positions, headings = lawnmower(wide, 5.0, 10.0, 2.0, SWEEP, start)
-    np.testing.assert_allclose(positions[0], start)
+
+
+SCANS = [  # area, start, spacing
+    (AREA, [3.0, 50.0, 5.0], 10.0),  # start inside: flows straight into the sweep
+    (ARENA, [-5.0, -5.0, 0.0], 10.0),  # outside and on the ground
+    (ARENA, [50.0, 20.0, 5.0], 8.0),
+    (HALF_ARENA, [45.0, 5.0, 3.0], 6.0),
+]
+
+
+@pytest.mark.parametrize("area, start, spacing", SCANS)
+def test_lawnmower_sweep(area, start, spacing):
+    start, height, factor = np.array(start), 5.0, 2.0
+    positions, headings = lawnmower(area, height, spacing, profile=SWEEP, start=start, start_heading=0.0,
+                                    corner_factor=factor)
     check_profile(positions, headings, SWEEP)
+    np.testing.assert_allclose(positions[0], start)
+    corners = lawnmower_waypoints(area, height, spacing, 2.0, start)
+    low, high = scan_rectangle(area, 2.0)
+    assert_ends_at_rest(positions, corners[-1], SWEEP)
+    sweep = positions[int(np.argmin(np.linalg.norm(positions - corners[0], axis=1))) + 1:]
+    assert np.all(sweep[:, :2] >= low - 1e-9) and np.all(sweep[:, :2] <= high + 1e-9)
+    np.testing.assert_allclose(sweep[:, 2], height)
+
+    across = 0 if corners[0, 0] == corners[1, 0] else 1
+    lines = corners[0::2, across]
+    assert np.all(np.abs(np.diff(lines)) == pytest.approx(spacing))
+    assert lines.min() - low[across] <= spacing / 2 + 1e-9 and high[across] - lines.max() <= spacing / 2 + 1e-9
+    # Coverage: every point of the rectangle within spacing/2 of a long leg.
+    grid = np.stack(np.meshgrid(np.linspace(low[0], high[0], 41), np.linspace(low[1], high[1], 41)), -1).reshape(-1, 2)
+    assert np.abs(grid[:, across, None] - lines[None, :]).min(axis=1).max() <= spacing / 2 + 1e-9
+
+    on_line = np.abs(sweep[:, across, None] - lines[None, :]).min(axis=1) < 1e-9
+    step = speeds(sweep)
+    both_on = on_line[:-1] & on_line[1:]
+    both_off = ~on_line[:-1] & ~on_line[1:]
+    assert step[both_on].max() == pytest.approx(SWEEP.max_speed, rel=0.01)  # long legs at full speed
+    assert step[both_off].max() <= SWEEP.max_speed / factor * 1.01  # corners and cross legs slowed
+    # The sweep itself never stops, and faces its travel on the long legs.
+    assert step[5:-5].min() > 0.5
+    fast = both_on & (step > 0.9 * SWEEP.max_speed)
+    assert fast.sum() > 10
+    travel = np.diff(sweep, axis=0)[fast]
+    np.testing.assert_allclose(wrap_angle(headings[-len(sweep):][1:][fast] - np.arctan2(travel[:, 1], travel[:, 0])),
+                               0.0, atol=1e-6)
 
 
-def test_sample_path_mixed_climb_and_turns():
-    waypoints = np.array([[0, 0, 0], [0, 0, 5], [10, 0, 5], [10, 10, 8], [0, 0, 2]], float)
-    profile = ConstraintProfile(name="attack", max_speed=8.3, max_acceleration=3.0)
-    positions, headings = sample_path(waypoints, profile, DT, start_heading=2.0)
-    check_profile(positions, headings, profile)
-    np.testing.assert_allclose(positions[-1], waypoints[-1])
+def test_lawnmower_keeps_the_positional_signature_node_uses():
+    a = lawnmower(AREA, 5.0, 10.0, 2.0, SWEEP, np.array([3.0, 50.0, 5.0]), DT, 0.0)
+    b = lawnmower(AREA, 5.0, 10.0, offset=2.0, profile=SWEEP, start=np.array([3.0, 50.0, 5.0]), start_heading=0.0)
+    np.testing.assert_array_equal(a[0], b[0])
+
+
+# --- interception ----------------------------------------------------------------------------
+
+INTERCEPTS = [  # position, target position, target velocity, start velocity
+    ([0.0, 0.0, 5.0], [30.0, 0.0, 5.0], [-2.0, 1.0, 0.0], None),  # crossing towards us
+    ([0.0, 0.0, 5.0], [10.0, 0.0, 6.0], [3.0, 0.0, 0.0], [1.0, 0.0, 0.0]),  # receding, slower than us
+    ([5.0, 5.0, 4.0], [-20.0, 10.0, 8.0], [1.0, -1.0, -0.3], None),  # descending
+    ([0.0, 0.0, 5.0], [8.0, 3.0, 5.0], [0.0, 0.0, 0.0], None),  # still
+]
+
+
+@pytest.mark.parametrize("position, target, velocity, start_velocity", INTERCEPTS)
+def test_intercept_merges_with_the_target(position, target, velocity, start_velocity):
+    position, target, velocity = np.array(position), np.array(target), np.array(velocity)
+    plan = plan_intercept(position, target, velocity, profile=SWEEP, start_velocity=start_velocity)
+    assert plan is not None
+    np.testing.assert_allclose(plan.merge_point, target + plan.passing * velocity)
+    assert plan.arrival <= plan.merge_start - 1.0 + 1e-9  # at W with the lead margin, before the target
+    assert plan.merge_start - 1.0 - plan.arrival < 0.05  # and no later than needed (smallest τ)
+    positions, headings = sample_intercept(plan, SWEEP, DT)
+    expected = intercept(position, target, velocity, profile=SWEEP, start_velocity=start_velocity)
+    np.testing.assert_array_equal(positions, expected[0])
+    check_profile(positions, headings, SWEEP)
+    t = np.arange(len(positions)) * DT
+    following = (t >= plan.merge_end) & (t <= plan.follow_end)
+    assert following.sum() >= 30
+    predicted = target + t[following, None] * velocity
+    np.testing.assert_allclose(positions[following], predicted, atol=0.03)
+    i = np.flatnonzero(following)[0]
+    np.testing.assert_allclose((positions[i + 1] - positions[i]) / DT, velocity, atol=1e-6)
+    assert_ends_at_rest(positions, positions[-1], SWEEP)
+    if np.linalg.norm(velocity[:2]) > 0:
+        assert wrap_angle(headings[i] - np.arctan2(velocity[1], velocity[0])) == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("velocity", [[6.0, 0.0, 0.0], [0.0, 0.0, 2.5], [4.99, 0.0, 0.0]])
+def test_intercept_gives_up_on_targets_it_cannot_catch(velocity):
+    # Faster than max_speed (or max_vertical_speed); or receding so nearly as fast that 30 s is not enough.
+    assert intercept(np.zeros(3), np.array([20.0, 0.0, 0.0]), np.array(velocity), profile=SWEEP) is None

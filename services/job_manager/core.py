@@ -271,7 +271,7 @@ class JobManager:
         for zone in self.zones.expire(now_ns):
             self.notes.append(f"forbidden zone at ({zone.center[0]:.1f}, {zone.center[1]:.1f}, "
                               f"{zone.center[2]:.1f}) expired")
-        if self.team is not None:
+        if self.team is not None and self.state in MISSION_STATES:  # revenge only matters while on the mission
             changes = self.team.update(now_ns, self.takeoff_at)
             for change in changes:
                 self.notes.append(f"partner {change.partner} {'fell' if change.fallen else 'is back'}: {change.reason}")

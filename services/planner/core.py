@@ -1,110 +1,65 @@
-"""Trajectory generation (seed 004, ch. 5) — FIRST VERSION.
+"""Trajectory generation (seed 004 ch. 5): approach with deadband, attack with overshoot and
+height offsets, lawnmower scan, braking stop and interception of moving targets.
 
-Every trajectory is a polyline flown segment by segment, each with a trapezoidal (or,
-when too short to reach cruise speed, triangular) speed profile that starts and ends at
-rest, sampled every `dt` seconds as positions (N, 3) and headings (N,). Where the heading
-changes at a corner the vehicle waits there and yaws at `max_heading_rate`, so every
-sample respects the whole constraint profile: speed, vertical speed, acceleration and
-heading rate.
+Every trajectory is a Path: positions (N, 3) and headings (N,), sample i at i·dt, respecting
+the whole ConstraintProfile (speed, vertical speed, acceleration, heading rate) including at
+corners, which are rounded (or stopped at when sharper than 120°). The time parameterisation
+lives in timing.py, the scan in scan.py, interception in intercept.py; this module is the
+planner's single entry point and re-exports them.
 
-Later issues deepen it: the lawnmower over the arena's inner rectangle clipped to the
-polygon (§5.3, Alg. 2–3, pointInArena) with a corner slow-down factor instead of full
-stops, approach with deadband and attack with overshoot and height offsets (§5.1–5.2),
-interception of moving targets, and starting from the vehicle's current velocity.
+Later work deepens it: obstacle-aware paths (the voxel map), smoother jerk-limited profiles,
+re-planning interception on every track update.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from schemas.messages import ConstraintProfile
+from services.planner.intercept import InterceptPlan, intercept, plan_intercept
+from services.planner.scan import inner_rectangle, lawnmower, lawnmower_waypoints, scan_rectangle
+from services.planner.timing import (
+    DT,
+    STOP_ANGLE,
+    Path,
+    evaluate,
+    fly,
+    path_duration,
+    plan_timing,
+    sample_path,
+    speed_caps,
+    steer,
+    wrap_angle,
+)
 
-DT = 0.1
-_EPS = 1e-9
+__all__ = [
+    "DT", "STOP_ANGLE", "Path", "InterceptPlan", "approach", "approach_goal", "attack", "deadband", "evaluate",
+    "fly", "goto", "hover", "inner_rectangle", "intercept", "land", "lawnmower", "lawnmower_waypoints",
+    "path_duration", "plan_intercept", "plan_timing", "sample_path", "scan_rectangle", "speed_caps", "steer",
+    "stop", "takeoff", "wrap_angle",
+]
 
-Path = tuple[np.ndarray, np.ndarray]  # positions (N, 3), headings (N,)
-
-
-def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
-
-
-def _segments(waypoints: np.ndarray, profile: ConstraintProfile, start_heading: float | None) -> dict:
-    """Per-segment timing of a waypoint list (zero-length segments dropped)."""
-    wp = np.asarray(waypoints, dtype=np.float64).reshape(-1, 3)
-    if len(wp) == 0:
-        raise ValueError("a path needs at least one waypoint")
-    steps = np.linalg.norm(np.diff(wp, axis=0), axis=1)
-    wp = wp[np.concatenate([[True], steps > _EPS])]
-    d = np.diff(wp, axis=0)
-    length = np.linalg.norm(d, axis=1)
-    unit = d / np.where(length > 0, length, 1.0)[:, None]
-    # Speed along the segment is capped by the total and by the vertical limit.
-    vertical = np.abs(unit[:, 2])
-    v_limit = np.minimum(profile.max_speed,
-                         np.where(vertical > _EPS, profile.max_vertical_speed / np.maximum(vertical, _EPS), np.inf))
-    acc = profile.max_acceleration
-    t_acc = np.minimum(v_limit / acc, np.sqrt(length / acc))
-    v_peak = acc * t_acc
-    t_cruise = (length - acc * t_acc**2) / np.where(v_peak > 0, v_peak, 1.0)
-    t_move = 2.0 * t_acc + np.maximum(t_cruise, 0.0)
-
-    # Heading along the horizontal direction of travel; vertical segments keep the previous one.
-    horizontal = np.linalg.norm(unit[:, :2], axis=1) > 1e-6
-    travel = np.arctan2(unit[:, 1], unit[:, 0])
-    last_valid = np.maximum.accumulate(np.where(horizontal, np.arange(len(d)), -1)) if len(d) else np.zeros(0, int)
-    initial = start_heading if start_heading is not None else (travel[horizontal][0] if horizontal.any() else 0.0)
-    heading = np.where(last_valid >= 0, travel[np.maximum(last_valid, 0)], initial)
-    previous = np.concatenate([[initial], heading[:-1]])
-    turn = wrap_angle(heading - previous)
-    rate = profile.max_heading_rate
-    t_turn = np.abs(turn) / rate if rate > 0 else np.zeros_like(turn)
-    t_segment = t_turn + t_move
-    return dict(wp=wp, length=length, unit=unit, acc=acc, t_acc=t_acc, v_peak=v_peak, t_move=t_move,
-                heading=heading, previous=previous, turn=turn, t_turn=t_turn,
-                start=np.concatenate([[0.0], np.cumsum(t_segment)[:-1]]), total=float(t_segment.sum()),
-                initial=float(initial))
+# Seed 004 Table 3.1
+WAIT_DISTANCE = 4.0  # d_b
+DESCEND_DISTANCE = 11.0  # D_p
+DEADBAND = 0.5  # D_f
+OVERSHOOT = 5.0  # d_o
+HIT_OFFSET = 0.3  # o_h
+END_OFFSET = 0.15  # o_o
+HIT_DEVIATION = 0.02  # m the rounded junction at the hit point may pass from it
 
 
-def path_duration(waypoints: np.ndarray, profile: ConstraintProfile, start_heading: float | None = None) -> float:
-    """Exact flight time of sample_path's continuous profile (before rounding to dt)."""
-    return _segments(waypoints, profile, start_heading)["total"]
-
-
-def sample_path(
-    waypoints: np.ndarray, profile: ConstraintProfile, dt: float = DT, start_heading: float | None = None
-) -> Path:
-    """Fly the polyline through `waypoints` (M, 3), stopping at every waypoint; sample i is
-    the state at i·dt, the last sample is the final waypoint."""
-    seg = _segments(waypoints, profile, start_heading)
-    wp = seg["wp"]
-    if len(wp) == 1:
-        return wp.copy(), np.array([wrap_angle(seg["initial"])], dtype=np.float64)
-    total = seg["total"]
-    count = int(np.ceil(total / dt - 1e-9)) + 1
-    t = np.minimum(np.arange(count) * dt, total)
-    j = np.clip(np.searchsorted(seg["start"], t, side="right") - 1, 0, len(wp) - 2)
-    tau = t - seg["start"][j]
-    t_turn, t_acc, t_move = seg["t_turn"][j], seg["t_acc"][j], seg["t_move"][j]
-    v_peak, length, acc = seg["v_peak"][j], seg["length"][j], seg["acc"]
-    tm = np.clip(tau - t_turn, 0.0, t_move)
-    t_end = t_move - tm
-    s = np.where(tm < t_acc, 0.5 * acc * tm**2,
-                 np.where(t_end < t_acc, length - 0.5 * acc * t_end**2, 0.5 * acc * t_acc**2 + v_peak * (tm - t_acc)))
-    positions = wp[j] + seg["unit"][j] * s[:, None]
-    turning = tau < t_turn
-    fraction = np.where(turning, tau / np.where(t_turn > 0, t_turn, 1.0), 1.0)
-    headings = wrap_angle(seg["previous"][j] + seg["turn"][j] * fraction)
-    return positions, np.asarray(headings, dtype=np.float64)
+def _vec3(value) -> np.ndarray:
+    return np.asarray(value, dtype=np.float64).reshape(3)
 
 
 def hover(position: np.ndarray, heading: float = 0.0) -> Path:
-    return np.asarray(position, dtype=np.float64).reshape(1, 3).copy(), np.array([wrap_angle(heading)], dtype=np.float64)
+    return _vec3(position).reshape(1, 3).copy(), np.array([wrap_angle(heading)], dtype=np.float64)
 
 
 def takeoff(start: np.ndarray, height: float, profile: ConstraintProfile, dt: float = DT,
             heading: float = 0.0) -> Path:
     """Vertical climb to world z = height."""
-    start = np.asarray(start, dtype=np.float64).reshape(3)
+    start = _vec3(start)
     return sample_path(np.stack([start, [start[0], start[1], height]]), profile, dt, heading)
 
 
@@ -116,57 +71,95 @@ def land(start: np.ndarray, ground_z: float, profile: ConstraintProfile, dt: flo
 
 def goto(start: np.ndarray, target: np.ndarray, profile: ConstraintProfile, dt: float = DT,
          heading: float | None = None) -> Path:
-    """Straight line to `target` (first version of approach/attack)."""
-    return sample_path(np.stack([np.asarray(start, float).reshape(3), np.asarray(target, float).reshape(3)]),
-                       profile, dt, heading)
+    """Straight line to `target`, heading along travel (slewed from `heading`)."""
+    return fly(np.stack([_vec3(start), _vec3(target)]), profile, dt, start_heading=heading)
 
 
-def scan_rectangle(area: np.ndarray, offset: float) -> tuple[np.ndarray, np.ndarray]:
-    """(low, high) corners of the area's bounding box shrunk by `offset` (collapsed to
-    its middle where the box is narrower than 2·offset)."""
-    area = np.asarray(area, dtype=np.float64).reshape(-1, 2)
-    low, high = area.min(axis=0) + offset, area.max(axis=0) - offset
-    middle = 0.5 * (low + high)
-    narrow = high < low
-    return np.where(narrow, middle, low), np.where(narrow, middle, high)
+def deadband(reference: np.ndarray, uav_position: np.ndarray, target: np.ndarray, band: float) -> np.ndarray:
+    """Eq. 5.3-5.6: a new reference less than `band` from the UAV along the line of sight
+    loses that component (noise in the target's range would otherwise make the vehicle and
+    its reference chase each other); its lateral part is kept."""
+    reference, uav, target = _vec3(reference), _vec3(uav_position), _vec3(target)
+    line = uav - target
+    distance = np.linalg.norm(line)
+    if distance < 1e-9:
+        return reference.copy()
+    t = line / distance
+    offset = reference - uav
+    along = np.dot(t, offset)
+    if abs(along) < band:
+        return offset - along * t + uav
+    return reference.copy()
 
 
-def lawnmower_waypoints(area: np.ndarray, height: float, spacing: float, offset: float,
-                        start: np.ndarray) -> np.ndarray:
-    """Boustrophedon corners (2·lines, 3) over the offset rectangle: lines along its long
-    side, `spacing` apart and centred across the short side, from the corner nearest `start`."""
-    if spacing <= 0:
-        raise ValueError(f"spacing must be positive, got {spacing}")
-    low, high = scan_rectangle(area, offset)
-    size = high - low
-    along = 0 if size[0] >= size[1] else 1
-    across = 1 - along
-    lines = int(np.floor(size[across] / spacing + 1e-9)) + 1
-    first = low[across] + 0.5 * (size[across] - (lines - 1) * spacing)
-    across_at = first + spacing * np.arange(lines)
-    start = np.asarray(start, dtype=np.float64).reshape(3)
-    if abs(start[across] - across_at[-1]) < abs(start[across] - across_at[0]):
-        across_at = across_at[::-1]
-    begin, end = low[along], high[along]
-    if abs(start[along] - end) < abs(start[along] - begin):
-        begin, end = end, begin
-    forward = np.arange(lines) % 2 == 0
-    corners = np.empty((2 * lines, 3))
-    corners[0::2, along] = np.where(forward, begin, end)
-    corners[1::2, along] = np.where(forward, end, begin)
-    corners[:, across] = np.repeat(across_at, 2)
-    corners[:, 2] = height
-    return corners
+def _horizontal_direction(position: np.ndarray, target: np.ndarray, fallback_heading: float | None) -> np.ndarray:
+    """Unit (3,) horizontal direction from position to target; the fallback heading (or +x)
+    when the vehicle is right above or below it."""
+    d = np.array([target[0] - position[0], target[1] - position[1], 0.0])
+    n = np.linalg.norm(d)
+    if n > 1e-9:
+        return d / n
+    angle = 0.0 if fallback_heading is None else float(fallback_heading)
+    return np.array([np.cos(angle), np.sin(angle), 0.0])
 
 
-def lawnmower(area: np.ndarray, height: float, spacing: float, offset: float = 2.0,
-              profile: ConstraintProfile | None = None, start: np.ndarray | None = None,
-              dt: float = DT, start_heading: float | None = None) -> Path:
-    """Transfer from `start` to the nearest corner at scan height, then sweep the lines."""
-    profile = profile if profile is not None else ConstraintProfile()
-    area = np.asarray(area, dtype=np.float64).reshape(-1, 2)
-    if start is None:
-        start = np.array([area[0, 0], area[0, 1], height])
-    start = np.asarray(start, dtype=np.float64).reshape(3)
-    corners = lawnmower_waypoints(area, height, spacing, offset, start)
-    return sample_path(np.vstack([start, corners]), profile, dt, start_heading)
+def approach_goal(position: np.ndarray, target: np.ndarray, wait_distance: float = WAIT_DISTANCE,
+                  deadband_band: float = DEADBAND, heading: float | None = None) -> np.ndarray:
+    """Alg. 1 lines 2-6: `wait_distance` short of the target on the horizontal line from the
+    UAV, at the target's height, then the deadband."""
+    position, target = _vec3(position), _vec3(target)
+    goal = target - wait_distance * _horizontal_direction(position, target, heading)
+    return deadband(goal, position, target, deadband_band)
+
+
+def approach(position: np.ndarray, target: np.ndarray, *, wait_distance: float = WAIT_DISTANCE,
+             descend_distance: float = DESCEND_DISTANCE, deadband_band: float = DEADBAND,
+             profile: ConstraintProfile, dt: float = DT, start_velocity=None,
+             start_heading: float | None = None) -> Path:
+    """Alg. 1: straight to the approach goal facing the target (eq. 5.2), at the current height
+    while farther than `descend_distance` (horizontally) from the target, then descending to
+    its height. The junction is rounded, so the descent begins up to one tangent length
+    (at most half the shorter adjacent leg) before D_p. Ends at rest at the goal."""
+    position, target = _vec3(position), _vec3(target)
+    direction = _horizontal_direction(position, target, start_heading)
+    goal = approach_goal(position, target, wait_distance, deadband_band, start_heading)
+    facing = float(np.arctan2(direction[1], direction[0]))
+    distance = np.hypot(*(target - position)[:2])
+    waypoints = [position]
+    if distance > descend_distance and descend_distance > wait_distance:
+        level = target - descend_distance * direction
+        waypoints.append(np.array([level[0], level[1], position[2]]))
+    waypoints.append(goal)
+    return fly(np.stack(waypoints), profile, dt, start_velocity=start_velocity, start_heading=start_heading,
+               heading=facing)
+
+
+def attack(position: np.ndarray, target: np.ndarray, *, overshoot: float = OVERSHOOT, hit_offset: float = HIT_OFFSET,
+           end_offset: float = END_OFFSET, profile: ConstraintProfile, dt: float = DT, start_velocity=None,
+           start_heading: float | None = None) -> Path:
+    """§5.2: through the target raised by `hit_offset` (the pole is below the balloon), to
+    `overshoot` beyond it along the horizontal attack direction at target z + `end_offset`,
+    ending at rest, facing the target. The junction at the hit point is rounded at most
+    HIT_DEVIATION from it, so the vehicle really passes through."""
+    position, target = _vec3(position), _vec3(target)
+    direction = _horizontal_direction(position, target, start_heading)
+    hit = target + np.array([0.0, 0.0, hit_offset])
+    end = target + overshoot * direction + np.array([0.0, 0.0, end_offset])
+    facing = float(np.arctan2(direction[1], direction[0]))
+    return fly(np.stack([position, hit, end]), profile, dt, start_velocity=start_velocity,
+               start_heading=start_heading, heading=facing, corner_deviation=HIT_DEVIATION)
+
+
+def stop(position: np.ndarray, velocity: np.ndarray, profile: ConstraintProfile, dt: float = DT,
+         heading: float = 0.0) -> Path:
+    """Brake to rest along the current velocity at max_acceleration (the seed's stop before
+    checking a target). A speed above the profile's caps is clipped to them first."""
+    position, velocity = _vec3(position), _vec3(velocity)
+    speed = np.linalg.norm(velocity)
+    if speed < 1e-9:
+        return hover(position, heading)
+    unit = velocity / speed
+    speed = min(speed, float(speed_caps(unit, profile)))
+    brake = speed**2 / (2.0 * profile.max_acceleration)
+    return fly(np.stack([position, position + brake * unit]), profile, dt, start_velocity=velocity,
+               start_heading=heading, heading=heading)

@@ -1,12 +1,14 @@
-"""planner service: plans a trajectory for every new mission command (core.py) and
-publishes it as a TrajectoryReference.
+"""planner service: plans a trajectory for every new mission command (core.py, seed 004 ch. 5)
+and publishes it as a TrajectoryReference.
 
-FIRST VERSION (walking skeleton): plans from the latest odometry position when a command
-with a new id arrives, re-publishes the current trajectory every `republish_period` s of
-mission time with the same start (a restarted simulator or late subscriber picks it up),
-and, like the seed's state machine (seed 004 §3.4.2), starts the sweep again when a scan
-trajectory has been flown to its end. Interception and re-planning on target updates come
-later.
+A command with a new id is planned from the latest odometry (position, heading and velocity,
+so a re-plan in flight does not stop the vehicle): take-off/land/hover, stop (the brake before
+checking a target), scan (lawnmower over the working area's inner rectangle), approach (to the
+waiting point d_b with deadband), attack (through the target + o_h, d_o beyond), intercept (a
+merge onto a moving target's predicted path), goto. The current trajectory is re-published
+every `republish_period` s of mission time with the same start (a restarted simulator or late
+subscriber picks it up) and, like the seed's state machine (§3.4.2), a scan that has been
+flown to its end starts again.
 """
 from __future__ import annotations
 
@@ -23,8 +25,19 @@ from services.runtime.node import Node
 
 
 class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
+    """Seed 004 Table 3.1 symbols in brackets."""
+
     dt: float = core.DT  # s between trajectory samples
-    scan_offset: float = 2.0  # m kept from the working area's bounding box
+    scan_offset: float = 2.0  # m kept inside the working area's inner rectangle
+    corner_factor: float = 2.0  # [c_f] the scan's cross legs and corners fly at max_speed / c_f
+    wait_distance: float = 4.0  # [d_b] m from the target where an approach ends
+    descend_distance: float = 11.0  # [D_p] m from the target inside which the approach descends to it
+    deadband: float = 0.5  # [D_f] m: line-of-sight changes smaller than this are ignored
+    overshoot: float = 5.0  # [d_o] m beyond the target where an attack ends
+    hit_offset: float = 0.3  # [o_h] m above the target centre the attack passes through
+    end_offset: float = 0.15  # [o_o] m above the target height where the attack ends
+    merge_acceleration: float = 1.5  # m/s² along a moving target's path when merging onto it
+    follow_time: float = 4.0  # s flown alongside a moving target after the merge
     republish_period: float = 2.0  # s of mission time
     repeat_scan: bool = True  # sweep again once a scan trajectory has ended
 
@@ -41,6 +54,7 @@ class PlannerNode(Node):
 
     def setup(self) -> None:
         self.position: np.ndarray | None = None
+        self.velocity = np.zeros(3)
         self.heading = 0.0
         self.first_z: float | None = None  # where we started: the ground when no target says otherwise
         self.command: MissionCommand | None = None
@@ -59,6 +73,7 @@ class PlannerNode(Node):
     def on_odometry(self, msg: Odometry, key: str) -> None:
         self.position = np.asarray(msg.pose.position, dtype=np.float64)
         self.heading = yaw_of(msg.pose.orientation)
+        self.velocity = np.asarray(msg.velocity, dtype=np.float64)
         if self.first_z is None:
             self.first_z = float(self.position[2])
 
@@ -93,18 +108,39 @@ class PlannerNode(Node):
         self.publish(now_ns)
 
     def plan_path(self, command: MissionCommand) -> core.Path:
-        p, dt, profile = self.position, self.params.dt, command.profile
-        action = command.action
+        p, v, dt, profile, prm = self.position, self.velocity, self.params.dt, command.profile, self.params
+        action, target = command.action, command.target
+        moving = dict(start_velocity=v, start_heading=self.heading)
         if action == "takeoff":
             return core.takeoff(p, command.height, profile, dt, self.heading)
         if action in ("land", "emergency_land"):
-            ground = command.target[2] if command.target is not None else self.first_z
+            ground = target[2] if target is not None else self.first_z
             return core.land(p, ground, profile, dt, self.heading)
+        if action == "stop":
+            return core.stop(p, v, profile, dt, self.heading)
         if action == "scan" and len(command.area) >= 3:
-            return core.lawnmower(np.asarray(command.area), command.height, command.spacing,
-                                  self.params.scan_offset, profile, p, dt, self.heading)
-        if action in ("goto", "attack") and command.target is not None:
-            return core.goto(p, command.target, profile, dt, self.heading)
+            return core.lawnmower(np.asarray(command.area), command.height, command.spacing, offset=prm.scan_offset,
+                                  corner_factor=prm.corner_factor, profile=profile, start=p, dt=dt, **moving)
+        if target is not None:
+            target = np.asarray(target, dtype=np.float64)
+            if action == "approach":
+                return core.approach(p, target, wait_distance=prm.wait_distance, descend_distance=prm.descend_distance,
+                                     deadband_band=prm.deadband, profile=profile, dt=dt, **moving)
+            if action == "attack":
+                return core.attack(p, target, overshoot=prm.overshoot, hit_offset=prm.hit_offset,
+                                   end_offset=prm.end_offset, profile=profile, dt=dt, **moving)
+            if action == "intercept":
+                velocity = np.asarray(command.target_velocity or (0.0, 0.0, 0.0), dtype=np.float64)
+                path = core.intercept(p, target, velocity, profile=profile, dt=dt,
+                                      merge_acceleration=prm.merge_acceleration, follow_time=prm.follow_time, **moving)
+                if path is not None:
+                    return path
+                self.log.info("command %d: no merge onto the target is feasible; chasing its position",
+                              command.command_id)
+                return core.approach(p, target, wait_distance=0.0, descend_distance=prm.descend_distance,
+                                     deadband_band=0.0, profile=profile, dt=dt, **moving)
+            if action in ("goto", "hover"):
+                return core.goto(p, target, profile, dt, self.heading)
         if action not in ("idle", "hover"):
             self.log.warning("command %d: cannot plan %s with what it carries; hovering",
                              command.command_id, action)

@@ -1,0 +1,149 @@
+"""Scan trajectories (seed 004 §5.3, Alg. 2-3): a boustrophedon over the working area's
+inner rectangle, shrunk by an offset so GPS drift does not carry the vehicle into the net.
+
+Deviations from the seed, on purpose: the rectangle is the largest axis-aligned one inside
+the (possibly non-convex) polygon rather than a hand-drawn one, the lines run along its
+long side (fewer turns), and Alg. 3's corner slow-down (v/c_f) is applied to the short
+cross legs and to the rounded corners, which the time parameterisation keeps inside the
+rectangle (an arc stays within the corner it rounds).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from schemas.messages import ConstraintProfile
+from services.geometry import as_polygon, point_in_polygon
+from services.planner.timing import DT, Path, fly
+
+_EPS = 1e-9
+
+
+def _edges_cross_cells(polygon: np.ndarray, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    """(C,) whether any polygon edge passes through the open cell [low, high] (C, 2).
+    Slab clipping; an edge lying on a cell's border does not count."""
+    a = polygon[None, :, :]
+    d = (np.roll(polygon, -1, axis=0) - polygon)[None, :, :]
+    lo, hi = low[:, None, :], high[:, None, :]
+    moving = np.abs(d) > _EPS
+    safe = np.where(moving, d, 1.0)
+    t_a, t_b = (lo - a) / safe, (hi - a) / safe
+    parallel_inside = (a > lo) & (a < hi)
+    enter = np.where(moving, np.minimum(t_a, t_b), np.where(parallel_inside, -np.inf, np.inf))
+    leave = np.where(moving, np.maximum(t_a, t_b), np.where(parallel_inside, np.inf, -np.inf))
+    first = np.maximum(enter.max(axis=2), 0.0)
+    last = np.minimum(leave.min(axis=2), 1.0)
+    return np.any(last - first > _EPS, axis=1)
+
+
+def inner_rectangle(area: np.ndarray, resolution: int = 48) -> tuple[np.ndarray, np.ndarray]:
+    """(low (2,), high (2,)) of the largest-area axis-aligned rectangle inside the simple
+    polygon `area` (K, 2). Candidate sides are the vertex coordinates: exact for rectilinear
+    polygons. Otherwise `resolution` evenly spaced coordinates per axis are added and only
+    cells no edge passes through count, so the result lies inside and is within about one
+    grid step of the best."""
+    poly = as_polygon(area)
+    step = np.roll(poly, -1, axis=0) - poly
+    rectilinear = bool(np.all(np.min(np.abs(step), axis=1) <= _EPS))
+    axes = []
+    for k in range(2):
+        candidates = poly[:, k]
+        if not rectilinear:
+            candidates = np.concatenate([candidates, np.linspace(poly[:, k].min(), poly[:, k].max(), resolution + 1)])
+        axes.append(np.unique(candidates))
+    xs, ys = axes
+    gx, gy = np.meshgrid(0.5 * (xs[:-1] + xs[1:]), 0.5 * (ys[:-1] + ys[1:]))  # (ny, nx) cell centres
+    inside = point_in_polygon(np.column_stack([gx.ravel(), gy.ravel()]), poly)
+    if not rectilinear:
+        lx, ly = np.meshgrid(xs[:-1], ys[:-1])
+        hx, hy = np.meshgrid(xs[1:], ys[1:])
+        low = np.column_stack([lx.ravel(), ly.ravel()])
+        high = np.column_stack([hx.ravel(), hy.ravel()])
+        inside &= ~_edges_cross_cells(poly, low, high)
+    inside = inside.reshape(gx.shape)
+    widths, heights = np.diff(xs), np.diff(ys)
+    best, box = 0.0, None
+    columns = np.arange(len(widths))
+    for bottom in range(len(heights)):
+        # Columns free from `bottom` up to each top row, then the widest free run per row.
+        free = np.logical_and.accumulate(inside[bottom:], axis=0)
+        filled = np.cumsum(free * widths, axis=1)
+        run = filled - np.maximum.accumulate(np.where(free, 0.0, filled), axis=1)
+        area_of = run * np.cumsum(heights[bottom:])[:, None]
+        row, end = np.unravel_index(int(np.argmax(area_of)), area_of.shape)
+        if area_of[row, end] > best:
+            begin = np.max(np.where(~free[row, : end + 1], columns[: end + 1], -1)) + 1
+            best, box = area_of[row, end], (begin, end, bottom, bottom + row)
+    if box is None:  # degenerate polygon: collapse to its vertex mean
+        centre = poly.mean(axis=0)
+        return centre, centre.copy()
+    begin, end, bottom, top = box
+    return np.array([xs[begin], ys[bottom]]), np.array([xs[end + 1], ys[top + 1]])
+
+
+def scan_rectangle(area: np.ndarray, offset: float) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) of the area's inner rectangle shrunk by `offset` (collapsed to its middle
+    along an axis where it is narrower than 2·offset)."""
+    low, high = inner_rectangle(area)
+    low, high = low + offset, high - offset
+    middle = 0.5 * (low + high)
+    narrow = high < low
+    return np.where(narrow, middle, low), np.where(narrow, middle, high)
+
+
+def lawnmower_waypoints(area: np.ndarray, height: float, spacing: float, offset: float,
+                        start: np.ndarray) -> np.ndarray:
+    """Boustrophedon corners (2·lines, 3) over the scan rectangle: lines along its long side,
+    `spacing` apart, as few as keep every point within spacing/2 of one (centred across the
+    short side), from the corner nearest `start`."""
+    return _sweep_corners(*scan_rectangle(area, offset), height, spacing, start)
+
+
+def _sweep_corners(low: np.ndarray, high: np.ndarray, height: float, spacing: float, start: np.ndarray) -> np.ndarray:
+    if spacing <= 0:
+        raise ValueError(f"spacing must be positive, got {spacing}")
+    size = high - low
+    along = 0 if size[0] >= size[1] else 1
+    across = 1 - along
+    lines = max(int(np.ceil(size[across] / spacing - 1e-9)), 1)
+    first = low[across] + 0.5 * (size[across] - (lines - 1) * spacing)
+    across_at = first + spacing * np.arange(lines)
+    start = np.asarray(start, dtype=np.float64).reshape(3)
+    if abs(start[across] - across_at[-1]) < abs(start[across] - across_at[0]):
+        across_at = across_at[::-1]
+    begin, end = low[along], high[along]
+    if abs(start[along] - end) < abs(start[along] - begin):
+        begin, end = end, begin
+    forward = np.arange(lines) % 2 == 0
+    corners = np.empty((2 * lines, 3))
+    corners[0::2, along] = np.where(forward, begin, end)
+    corners[1::2, along] = np.where(forward, end, begin)
+    corners[:, across] = np.repeat(across_at, 2)
+    corners[:, 2] = height
+    return corners
+
+
+def lawnmower(area: np.ndarray, height: float, spacing: float, offset: float = 2.0,
+              profile: ConstraintProfile | None = None, start: np.ndarray | None = None, dt: float = DT,
+              start_heading: float | None = None, *, corner_factor: float = 2.0,
+              start_velocity: np.ndarray | None = None) -> Path:
+    """Transfer in a straight line from `start` to the scan rectangle's corner nearest to it,
+    at scan height, then sweep: long legs at max_speed, cross legs and every sweep corner at
+    max_speed/corner_factor (keywords after `start_heading` only; the positional order is the
+    one node.py already uses).
+    Coming from outside the rectangle the transfer stops at the first corner, so the rounded
+    corner cannot cut outside; from inside it flows straight into the sweep."""
+    profile = profile if profile is not None else ConstraintProfile()
+    area = as_polygon(area)
+    if start is None:
+        start = np.array([area[0, 0], area[0, 1], height])
+    start = np.asarray(start, dtype=np.float64).reshape(3)
+    low, high = scan_rectangle(area, offset)
+    corners = _sweep_corners(low, high, height, spacing, start)
+    slow = profile.max_speed / max(corner_factor, 1.0)
+    outside = bool(np.any(start[:2] < low - 1e-6) or np.any(start[:2] > high + 1e-6))
+    corner_speeds = np.full(len(corners) + 1, slow)
+    corner_speeds[1] = 0.0 if outside else slow
+    segment_speeds = np.full(len(corners), np.inf)
+    segment_speeds[2::2] = slow  # the cross legs between the long lines
+    return fly(np.vstack([start, corners]), profile, dt, corner_speeds=corner_speeds,
+               segment_speeds=segment_speeds, start_velocity=start_velocity, start_heading=start_heading)
