@@ -2,8 +2,6 @@
 and shows in the event log and the summary (one lockstep run with all of them)."""
 from __future__ import annotations
 
-import math
-import queue
 import subprocess
 import threading
 import time

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from services.geometry import polygon_area
-from services.job_manager.core import NS, JobManager, JobManagerParams, State
-from tests.test_job_manager_machine import ARENA, BALLOON, HOME, Rig, s
+from services.job_manager.core import State
+from tests.test_job_manager_machine import HOME, Rig, s
 
 
 def flying(rig: Rig, name: str, t: float, position=(70.0, 30.0, 5.0), state: str = "GOING_AROUND", target=None,
@@ -82,13 +82,14 @@ def test_a_partner_never_heard_falls_t_s_after_take_off():
                                              ("uav3", {"uav1": (0.0, 50.0), "uav2": (50.0, 100.0)})])
 def test_three_uavs_survivors_share_the_fallen_area(fallen, expected):
     for me, area in expected.items():
-        jm = JobManager(JobManagerParams(), me)
-        jm.set_world(ARENA, ["uav1", "uav2", "uav3"], 300.0)
+        rig = Rig(uav=me, team=("uav1", "uav2", "uav3")).airborne()
+        jm = rig.jm
         before = x_range(jm.working_area)
         assert before[1] - before[0] == pytest.approx(100.0 / 3, abs=1e-3)
         jm.partner_status(fallen, s(1.0), flying_normally=True, position=(50.0, 30.0, 5.0), state="GOING_AROUND")
-        jm.partner_status(fallen, s(2.0), flying_normally=False, position=(50.0, 30.0, 1.0), state="LANDING")
-        jm.update(s(2.0), HOME, True, True)
+        jm.partner_status(fallen, s(2.0), flying_normally=False, position=(50.0, 30.0, 1.0),
+                          state="EMERGENCY_LANDING")
+        rig.tick(2.0)
         assert x_range(jm.working_area) == area
         assert polygon_area(jm.working_area) == pytest.approx(3000.0, rel=1e-3)
 
