@@ -127,7 +127,10 @@ TRANSITIONS = [
      lambda r: (r.tick(1.1, detections=[BALLOON]), r.tick(1.2, detections=[[80, 50, 4], BALLOON])),
      State.GOING_TO_TARGET, "approach"),
     ("CHECKING_TARGET → IDLE → GOING_AROUND: no target for t_m", "airborne",
-     lambda r: (r.tick(1.1, detections=[BALLOON]), r.run(1.2, 4.3)), State.GOING_AROUND, "scan"),
+     lambda r: (r.tick(1.1, detections=[BALLOON], velocity=[1.0, 0, 0]), r.run(1.2, 4.3)), State.GOING_AROUND, "scan"),
+    ("CHECKING_TARGET → GOING_TO_TARGET: a target seen within t_m is locked once at rest", "airborne",
+     lambda r: (r.tick(1.1, detections=[BALLOON], velocity=[1.0, 0, 0]), r.run(1.2, 2.0),
+                r.tick(2.1, velocity=[0, 0, 0])), State.GOING_TO_TARGET, "approach"),
     ("GOING_TO_TARGET → DESTROYING: within D_k", "engaged",
      lambda r: r.tick(1.3, detections=[BALLOON], position=BALLOON + [5.0, 0, 1.0]), State.DESTROYING, None),
     ("GOING_TO_TARGET stays outside D_k", "engaged",
@@ -183,9 +186,9 @@ def test_going_around_climbs_to_search_height_first():
 def test_attack_only_after_target_confirmed_for_t_m_then_flown_through():
     rig = Rig().destroying()  # locked at t = 1.2, seen since 1.1
     assert rig.last.action == "approach" and rig.last.profile == "sweeping"
-    rig.run(1.4, 4.1, detections=[BALLOON], position=BALLOON + [4.0, 0, 0])
+    rig.run(1.4, 4.0, detections=[BALLOON], position=BALLOON + [4.0, 0, 0])
     assert rig.last.action == "approach", "attacked before the target was confirmed for t_m"
-    rig.tick(4.3, detections=[BALLOON])  # seen continuously for 3.1 s since the lock
+    rig.tick(4.2, detections=[BALLOON])  # seen without a gap for 3.1 s, since t = 1.1
     attack = rig.last
     assert attack.action == "attack" and attack.profile == "attack"
     np.testing.assert_allclose(attack.target, BALLOON, atol=0.05)

@@ -25,6 +25,7 @@ always passed in (int ns of mission time).
 from __future__ import annotations
 
 import enum
+from collections import deque
 from dataclasses import dataclass
 
 import msgspec
@@ -183,6 +184,7 @@ class JobManager:
         self._sent_at = 0
         self._now = 0
         self._detections_stamp = 0
+        self._recent: deque[tuple[int, np.ndarray]] = deque()  # the last t_m of scans' detections
 
     # ----------------------------------------------------------------- inputs
     def set_world(self, arena: np.ndarray, uavs: list[str], duration_s: float, ground_z: float = 0.0) -> bool:
@@ -215,6 +217,9 @@ class JobManager:
         self._scan_stamp = stamp if self._scan_stamp is None else max(self._scan_stamp, stamp)
         self._detections = positions
         self._detections_stamp = stamp
+        self._recent.append((stamp, positions))
+        while self._recent and stamp - self._recent[0][0] > int(self.params.target_time * NS):
+            self._recent.popleft()
         e = self.engagement
         if e is not None and not e.moving:
             e.filter.update(positions[positions[:, 2] >= self.ground_z + self.params.min_target_height], stamp)
@@ -309,14 +314,27 @@ class JobManager:
 
     def candidates(self, now: int, position: np.ndarray) -> np.ndarray:
         """(N, 3) detections in view that this UAV may act on (seed 004 §3.5.2 filter)."""
-        p = self.params
-        if self._scan_stamp is None or now - self._detections_stamp > int(p.detection_max_age * NS):
+        if self._scan_stamp is None or now - self._detections_stamp > int(self.params.detection_max_age * NS):
             return np.zeros((0, 3))
+        return self._usable(self._detections, now, position)
+
+    def recent_candidates(self, now: int, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Candidates of the scans of the last t_m, with their stamps: a target far away shows in
+        some scans only, and the stop manoeuvre may carry it out of range for a while."""
+        scans = [(stamp, self._usable(positions, now, position)) for stamp, positions in self._recent
+                 if now - stamp <= int(self.params.target_time * NS)]
+        if not scans:
+            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
+        return (np.concatenate([c for _, c in scans]),
+                np.concatenate([np.full(len(c), stamp, dtype=np.int64) for stamp, c in scans]))
+
+    def _usable(self, detections: np.ndarray, now: int, position: np.ndarray) -> np.ndarray:
+        p = self.params
         mine = None if self.engagement is None else self.engagement.position(now)
         claimed = self.team.claimed_targets(mine, position, p.claim_radius) if self.team else np.zeros((0, 3))
-        keep = usable_detections(self._detections, area=self.working_area, zones=self.zones, claimed=claimed,
+        keep = usable_detections(detections, area=self.working_area, zones=self.zones, claimed=claimed,
                                  claim_radius=p.claim_radius, min_z=self.ground_z + p.min_target_height)
-        return self._detections[keep]
+        return detections[keep]
 
     def _moving_track(self, detection: np.ndarray, now: int):
         """(id, position, velocity, stamp) of a fast confirmed track at this detection, else None."""
@@ -331,7 +349,7 @@ class JobManager:
             return int(ids[k]), positions[k].copy(), velocities[k].copy(), stamp
         return None
 
-    def _lock(self, candidates: np.ndarray, position: np.ndarray, now: int) -> None:
+    def _lock(self, candidates: np.ndarray, stamps: np.ndarray, position: np.ndarray, now: int) -> None:
         """Select b_c: the closest static candidate (a moving one only when none is static)."""
         order = np.argsort(np.linalg.norm(candidates - position, axis=1), kind="stable")
         moving = [self._moving_track(candidates[k], now) for k in order]
@@ -339,8 +357,9 @@ class JobManager:
         p = self.params
         if static:
             self.engagement = Engagement(filter=TargetFilter(
-                candidates[static[0]], self._detections_stamp, gate=p.detection_gate, measurement_sigma=p.filter_sigma,
-                process_sigma=p.filter_process_sigma, max_gap_ns=int(p.streak_gap * NS)))
+                candidates[static[0]], int(stamps[static[0]]), gate=p.detection_gate,
+                measurement_sigma=p.filter_sigma, process_sigma=p.filter_process_sigma,
+                max_gap_ns=int(p.streak_gap * NS)))
         else:
             track_id, tp, tv, ts = moving[0]
             self.engagement = Engagement(track_id=track_id, track_position=tp, track_velocity=tv, track_stamp=ts,
@@ -391,15 +410,15 @@ class JobManager:
             if self._stopping and np.linalg.norm(velocity) < p.stop_speed:
                 return State.CHECKING_TARGET, "stopped with a target in view"
         elif state is State.CHECKING_TARGET:
-            candidates = self.candidates(now, position)
+            candidates, stamps = self.recent_candidates(now, position)
             if len(candidates):
-                self._candidate_seen = now
-                self._checked = candidates[np.argmin(np.linalg.norm(candidates - position, axis=1))]
+                closest = int(np.argmin(np.linalg.norm(candidates - position, axis=1)))
+                self._checked = candidates[closest]
                 if np.linalg.norm(velocity) < p.stop_speed:
-                    self._lock(candidates, position, now)
+                    self._lock(candidates, stamps, position, now)
                     kind = "moving" if self.engagement.moving else "static"
                     return State.GOING_TO_TARGET, f"{kind} target at {self._fmt(self.engagement.position(now))}"
-            elif now - max(self.state_since, self._candidate_seen or 0) > int(p.target_time * NS):
+            elif now - self.state_since > int(p.target_time * NS):
                 return State.IDLE, f"no target for {p.target_time:g} s"
         elif state is State.GOING_TO_TARGET:
             e = self.engagement

@@ -108,8 +108,17 @@ def _sweep_corners(low: np.ndarray, high: np.ndarray, height: float, spacing: fl
     first = low[across] + 0.5 * (size[across] - (lines - 1) * spacing)
     across_at = first + spacing * np.arange(lines)
     start = np.asarray(start, dtype=np.float64).reshape(3)
-    if abs(start[across] - across_at[-1]) < abs(start[across] - across_at[0]):
+    # Alg. 3: from the vehicle's position to the furthest side. Lines behind the one nearest to
+    # the vehicle are left for the next sweep, which starts from the far side and comes back:
+    # a re-planned scan (after every target) therefore never restarts from an old corner.
+    if high[across] - start[across] < start[across] - low[across]:
         across_at = across_at[::-1]
+        ahead = across_at <= start[across] + 0.5 * spacing
+    else:
+        ahead = across_at >= start[across] - 0.5 * spacing
+    ahead[-1] = True
+    across_at = across_at[np.argmax(ahead):]
+    lines = len(across_at)
     begin, end = low[along], high[along]
     if abs(start[along] - end) < abs(start[along] - begin):
         begin, end = end, begin

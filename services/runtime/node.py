@@ -43,6 +43,14 @@ class NoParams(msgspec.Struct, forbid_unknown_fields=True):
     pass
 
 
+class _MissionTimeLog(logging.LoggerAdapter):
+    """Every log line of a node carries the mission time it was written at (the wall time is the
+    formatter's), so a run's log reads against its summary and ground truth."""
+
+    def process(self, msg, kwargs):
+        return f"[t={self.extra.clock.now_ns() / 1e9:.2f}] {msg}", kwargs
+
+
 class Node:
     service: ClassVar[str] = ""
     # Same-scope services whose output of tick k this service consumes in tick k (lockstep).
@@ -66,7 +74,7 @@ class Node:
         self.sender = f"{self.scope}/{self.service}"
         self.params = params if params is not None else self.params_type()
         self.options = options  # the parsed command line, for service-specific options
-        self.log = logging.getLogger(self.sender)
+        self.log = _MissionTimeLog(logging.getLogger(self.sender), self)
         self.counters = Counters()
         self.clock: MissionClock | WallClock = MissionClock() if clock == "sim" else WallClock()
         self._clock_kind = clock
