@@ -70,6 +70,7 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     filter_sigma: float = 0.15  # m, target filter measurement noise
     filter_process_sigma: float = 0.05  # m/√s, target filter process noise (a balloon sways)
     streak_gap: float = 1.0  # s without a detection that breaks "seen continuously"
+    reliable_range: float = 20.0  # m: a target farther than this shows in some scans only; unseen time counts inside
     claim_radius: float = 4.5  # m around a partner's target that is left to it
     safety_distance: float = 5.0  # m: closer than this to a partner, the lower-priority UAV yields
     vertical_separation: float = 3.0  # m above the partner a yielding UAV climbs to
@@ -123,29 +124,20 @@ class Transition:
 
 @dataclass
 class Engagement:
-    """The locked target b_c: a static one through the target filter, a moving one through its track."""
+    """The locked target b_c, followed by its target filter. A target found to move (its
+    filter's velocity, or a fast confirmed track at the lock) is intercepted, never attacked."""
 
-    filter: TargetFilter | None = None
-    track_id: int | None = None
-    track_position: np.ndarray | None = None  # at track_stamp
-    track_velocity: np.ndarray | None = None
-    track_stamp: int = 0
-    track_seen: int = 0
+    filter: TargetFilter
+    moving: bool = False
     attacking: bool = False
     attack_direction: np.ndarray | None = None  # horizontal unit vector
     attack_target: np.ndarray | None = None
 
-    @property
-    def moving(self) -> bool:
-        return self.track_id is not None
-
     def position(self, now: int) -> np.ndarray:
-        if self.moving:
-            return self.track_position + self.track_velocity * ((now - self.track_stamp) / NS)
-        return self.filter.estimate
+        return self.filter.predict(now) if self.moving else self.filter.estimate
 
     def last_seen(self) -> int:
-        return self.track_seen if self.moving else self.filter.last_seen
+        return self.filter.last_seen
 
 
 def _tuple(v) -> tuple[float, float, float]:
@@ -184,6 +176,9 @@ class JobManager:
         self._sent_at = 0
         self._now = 0
         self._detections_stamp = 0
+        self._previous_target: np.ndarray | None = None  # what was locked before CHECKING_TARGET
+        self._no_moving_until = 0  # a moving target that ran out a state timer: movers are skipped till then
+        self._unseen_from = 0  # when the locked target last came within reliable range
         self._recent: deque[tuple[int, np.ndarray]] = deque()  # the last t_m of scans' detections
 
     # ----------------------------------------------------------------- inputs
@@ -220,20 +215,15 @@ class JobManager:
         self._recent.append((stamp, positions))
         while self._recent and stamp - self._recent[0][0] > int(self.params.target_time * NS):
             self._recent.popleft()
-        e = self.engagement
-        if e is not None and not e.moving:
-            e.filter.update(positions[positions[:, 2] >= self.ground_z + self.params.min_target_height], stamp)
+        if self.engagement is not None:
+            self.engagement.filter.update(
+                positions[positions[:, 2] >= self.ground_z + self.params.min_target_height], stamp)
 
     def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
-        """Confirmed tracks: ids (K,), positions and velocities (K, 3)."""
+        """Confirmed tracks: ids (K,), positions and velocities (K, 3); they tell at the lock
+        whether a target moves (the target filter finds out by itself a little later)."""
         ids = np.asarray(ids, dtype=np.int64).reshape(-1)
         self._tracks = (stamp, ids, np.asarray(positions, float).reshape(-1, 3), np.asarray(velocities, float).reshape(-1, 3))
-        e = self.engagement
-        if e is not None and e.moving:
-            hit = np.flatnonzero(ids == e.track_id)
-            if len(hit):
-                e.track_position, e.track_velocity = self._tracks[2][hit[0]].copy(), self._tracks[3][hit[0]].copy()
-                e.track_stamp = e.track_seen = stamp
 
     def partner_status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool = True,
                        position=(0.0, 0.0, 0.0), state: str = "", target=None) -> None:
@@ -304,6 +294,9 @@ class JobManager:
             self.engagement = None
         if target is State.CHECKING_TARGET:
             self._checked = None
+            self._previous_target = None if self.engagement is None else self.engagement.position(now)
+        if target is State.GOING_TO_TARGET:
+            self._unseen_from = 0
         if target is State.GOING_AROUND:
             self._stopping = False
             self._climbed = False
@@ -336,35 +329,43 @@ class JobManager:
                                  claim_radius=p.claim_radius, min_z=self.ground_z + p.min_target_height)
         return detections[keep]
 
-    def _moving_track(self, detection: np.ndarray, now: int):
-        """(id, position, velocity, stamp) of a fast confirmed track at this detection, else None."""
+    def _moving_track(self, detection: np.ndarray, now: int, seen: int | None = None):
+        """(id, position, velocity, stamp) of a fast confirmed track at this detection (made at
+        `seen`, default: now; the tracks are carried back to then), else None."""
         if self._tracks is None:
             return None
         stamp, ids, positions, velocities = self._tracks
         if not len(ids) or now - stamp > int(self.params.detection_max_age * NS):
             return None
-        gaps = np.linalg.norm(positions - detection, axis=1)
+        back = (stamp - (now if seen is None else seen)) / NS
+        gaps = np.linalg.norm(positions - back * velocities - detection, axis=1)
         k = int(np.argmin(gaps))
         if gaps[k] <= self.params.track_gate and np.linalg.norm(velocities[k]) >= self.params.moving_speed:
             return int(ids[k]), positions[k].copy(), velocities[k].copy(), stamp
         return None
 
-    def _lock(self, candidates: np.ndarray, stamps: np.ndarray, position: np.ndarray, now: int) -> None:
-        """Select b_c: the closest static candidate (a moving one only when none is static)."""
-        order = np.argsort(np.linalg.norm(candidates - position, axis=1), kind="stable")
-        moving = [self._moving_track(candidates[k], now) for k in order]
+    def _lock(self, candidates: np.ndarray, stamps: np.ndarray, position: np.ndarray, now: int) -> bool:
+        """Select b_c: the closest static candidate (a moving one only when none is static); the
+        previous target, when it is among them, counts as closest (no flip-flopping between two)."""
+        distance = np.linalg.norm(candidates - position, axis=1)
+        if self._previous_target is not None:
+            again = np.linalg.norm(candidates - self._previous_target, axis=1) <= self.params.detection_gate
+            distance = np.where(again, 0.0, distance)
+        order = np.argsort(distance, kind="stable")
+        moving = [self._moving_track(candidates[k], now, int(stamps[k])) for k in order]
         static = [k for k, m in zip(order, moving) if m is None]
+        if not static and now < self._no_moving_until:
+            return False
         p = self.params
-        if static:
-            self.engagement = Engagement(filter=TargetFilter(
-                candidates[static[0]], int(stamps[static[0]]), gate=p.detection_gate,
-                measurement_sigma=p.filter_sigma, process_sigma=p.filter_process_sigma,
-                max_gap_ns=int(p.streak_gap * NS)))
-        else:
-            track_id, tp, tv, ts = moving[0]
-            self.engagement = Engagement(track_id=track_id, track_position=tp, track_velocity=tv, track_stamp=ts,
-                                         track_seen=ts)
+        pick = static[0] if static else order[0]
+        track = None if static else moving[0]
+        self.engagement = Engagement(
+            filter=TargetFilter(candidates[pick], int(stamps[pick]), gate=p.detection_gate,
+                                measurement_sigma=p.filter_sigma, process_sigma=p.filter_process_sigma,
+                                max_gap_ns=int(p.streak_gap * NS), velocity=None if track is None else track[2]),
+            moving=track is not None)
         self._sent_target = None
+        return True
 
     def _next_state(self, now: int, position: np.ndarray, velocity: np.ndarray, airborne: bool,
                     services_ready: bool, stamp: int) -> tuple[State, str]:
@@ -383,7 +384,10 @@ class JobManager:
         if state in _TIMED and now - self.state_since > int(getattr(p, _TIMED[state]) * NS):
             limit = getattr(p, _TIMED[state])
             b_c = self.engagement.position(now) if self.engagement is not None else self._checked
-            if b_c is not None:
+            if self.engagement is not None and self.engagement.moving:
+                self._no_moving_until = now + int(p.forbidden_lifetime * NS)  # a zone cannot hold a mover
+                self.notes.append(f"no moving targets for {p.forbidden_lifetime:g} s")
+            elif b_c is not None:
                 zone = self.zones.add(b_c, now, f"{state.value} took over {limit:g} s")
                 self.notes.append(f"forbidden zone at ({zone.center[0]:.1f}, {zone.center[1]:.1f}, "
                                   f"{zone.center[2]:.1f}): {zone.reason}")
@@ -411,19 +415,26 @@ class JobManager:
                 return State.CHECKING_TARGET, "stopped with a target in view"
         elif state is State.CHECKING_TARGET:
             candidates, stamps = self.recent_candidates(now, position)
+            newest = stamps == stamps.max(initial=0)
+            candidates, stamps = candidates[newest], stamps[newest]  # the latest scan that saw any
             if len(candidates):
                 closest = int(np.argmin(np.linalg.norm(candidates - position, axis=1)))
                 self._checked = candidates[closest]
-                if np.linalg.norm(velocity) < p.stop_speed:
-                    self._lock(candidates, stamps, position, now)
+                if np.linalg.norm(velocity) < p.stop_speed and self._lock(candidates, stamps, position, now):
                     kind = "moving" if self.engagement.moving else "static"
                     return State.GOING_TO_TARGET, f"{kind} target at {self._fmt(self.engagement.position(now))}"
             elif now - self.state_since > int(p.target_time * NS):
                 return State.IDLE, f"no target for {p.target_time:g} s"
         elif state is State.GOING_TO_TARGET:
             e = self.engagement
-            if now - e.last_seen() > int(p.target_time * NS):
+            if self._unseen(now, position):
                 return State.CHECKING_TARGET, f"target unseen for {p.target_time:g} s"
+            left = self._left_to_partner(now, position)
+            if left:
+                return State.IDLE, left
+            drop = self._notice_motion(now) or self._static_in_view(now, position)
+            if drop:
+                return State.IDLE, drop
             gap = e.position(now) - position
             filter_ready = e.moving or e.filter.updates >= 2
             if np.linalg.norm(gap[:2]) < p.filter_switch_distance and filter_ready:
@@ -442,10 +453,19 @@ class JobManager:
                 return State.IDLE, f"moving target gone for {p.target_time:g} s (captured or lost)"
             if e.position(now)[2] < self.ground_z + p.min_target_height:
                 return State.IDLE, "moving target down"
-            return self.state, ""
+            left = self._left_to_partner(now, position) or self._static_in_view(now, position)
+            return (State.IDLE, left) if left else (self.state, "")
         if not e.attacking:
-            if now - e.last_seen() > int(p.target_time * NS):
+            if self._unseen(now, position):
                 return State.CHECKING_TARGET, f"target unseen for {p.target_time:g} s"
+            left = self._left_to_partner(now, position)
+            if left:
+                return State.IDLE, left
+            drop = self._notice_motion(now)
+            if drop:
+                return State.IDLE, drop
+            if self.engagement.moving:
+                return self.state, ""
             if e.filter.confirmed_for(now) >= p.target_time:
                 target = e.filter.estimate
                 direction = target[:2] - position[:2]
@@ -461,6 +481,50 @@ class JobManager:
                 self.notes.append(f"forbidden zone at {self._fmt(zone.center)}: {zone.reason}")
             return State.IDLE, f"attack flown through ({self.zones.tries_at(e.attack_target)} tries here)"
         return self.state, ""
+
+    def _unseen(self, now: int, position: np.ndarray) -> bool:
+        """Lost: not seen for t_m since the lock, counted only while within reliable range
+        (the seed's camera saw a target or not; a LiDAR sees a far 0.6 m balloon in some scans)."""
+        e, p = self.engagement, self.params
+        if np.linalg.norm(e.position(now) - position) > p.reliable_range:
+            self._unseen_from = now
+            return False
+        since = max(e.last_seen(), self.state_since, self._unseen_from)
+        return now - since > int(p.target_time * NS)
+
+    def _left_to_partner(self, now: int, position: np.ndarray) -> str:
+        """Non-empty when a partner with priority claims my target (team.py: one chaser per target)."""
+        if self.team is None:
+            return ""
+        mine = self.engagement.position(now)
+        claimed = self.team.claimed_targets(mine, position, self.params.claim_radius)
+        if len(claimed) and (np.linalg.norm(claimed - mine, axis=1) <= self.params.claim_radius).any():
+            return "target left to a partner that claimed it and is closer"
+        return ""
+
+    def _static_in_view(self, now: int, position: np.ndarray) -> str:
+        """Static targets first: non-empty when intercepting while a static one is in view."""
+        e = self.engagement
+        if not e.moving:
+            return ""
+        for candidate in self.candidates(now, position):
+            if np.linalg.norm(candidate - e.position(now)) > self.params.detection_gate and \
+                    self._moving_track(candidate, now) is None:
+                return f"a static target in view at {self._fmt(candidate)}: static targets first"
+        return ""
+
+    def _notice_motion(self, now: int) -> str:
+        """A target locked as static that turns out to move is intercepted from now on (non-empty:
+        drop it instead)."""
+        e = self.engagement
+        if not e.moving and e.filter.speed() >= self.params.moving_speed:
+            if now < self._no_moving_until:
+                return "the target moves, and moving targets are skipped for now"
+            e.moving = True
+            self._sent_target = None
+            self.notes.append(f"target at {self._fmt(e.filter.last_position)} moves at {e.filter.speed():.1f} m/s: "
+                              f"intercepting")
+        return ""
 
     # -------------------------------------------------------------- decisions
     def _yielding(self, now: int, position: np.ndarray) -> MissionDecision | None:
@@ -515,14 +579,15 @@ class JobManager:
     def _engage(self, now: int) -> MissionDecision:
         p, e = self.params, self.engagement
         if e.moving:
-            target, velocity = e.position(now), e.track_velocity
+            target, velocity = e.position(now), e.filter.velocity
             predicted = None
             if self._sent_target is not None:
                 predicted = self._sent_target + self._sent_velocity * ((now - self._sent_at) / NS)
             if (predicted is None or np.linalg.norm(predicted - target) > p.intercept_replan_distance
                     or np.linalg.norm(self._sent_velocity - velocity) > p.intercept_replan_distance):
                 self._sent_target, self._sent_velocity, self._sent_at = target, velocity.copy(), now
-            return MissionDecision("intercept", height=float(target[2]), spacing=p.scan_spacing, profile="attack",
+            return MissionDecision("intercept", height=float(self._sent_target[2]), spacing=p.scan_spacing,
+                                   profile="attack",
                                    target=_tuple(self._sent_target), target_velocity=_tuple(self._sent_velocity))
         action, profile = ("attack", "attack") if e.attacking else ("approach", "sweeping")
         target = e.attack_target if e.attacking else e.filter.estimate

@@ -6,6 +6,7 @@ Pure: numpy in, numpy out; every time is an int ns stamp passed in by the caller
 """
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -18,13 +19,21 @@ NS = 1_000_000_000
 
 class TargetFilter:
     """Seed 004 §4.2 "balloon filter": a linear KF with a static-object model in 3D, started
-    at the chosen target; each scan it takes the detection closest to its estimate within
+    at the chosen target; each scan it takes the detection closest to its prediction within
     `gate` (d_e) and ignores the rest. `streak_start` is when the current run of detections
     without a gap longer than `max_gap` began: the target counts as confirmed for t_m once
-    now − streak_start ≥ t_m."""
+    now − streak_start ≥ t_m.
+
+    Beside the KF, a straight-line fit over the taken detections of the last `history_ns`
+    measures the target's velocity, so a target that moves (an intruder drone) is noticed,
+    gated where it will be and handed to interception; for a balloon it stays near zero."""
+
+    MIN_FIT_POINTS = 5
+    MIN_FIT_SPAN_NS = 500_000_000
 
     def __init__(self, position: np.ndarray, stamp: int, *, gate: float, measurement_sigma: float,
-                 process_sigma: float, max_gap_ns: int) -> None:
+                 process_sigma: float, max_gap_ns: int, history_ns: int = 2 * NS,
+                 velocity: np.ndarray | None = None, max_speed: float = 5.0) -> None:
         kf = KalmanFilter(dim_x=3, dim_z=3)
         kf.x = np.asarray(position, dtype=np.float64).reshape(3, 1).copy()
         kf.F = np.eye(3)
@@ -34,16 +43,30 @@ class TargetFilter:
         self._kf = kf
         self._process_variance = process_sigma**2
         self.gate = gate
+        self.max_speed = max_speed  # of any target: how far one may go unseen, before its velocity is known
         self.max_gap_ns = max_gap_ns
+        self.history_ns = history_ns
         self.started = stamp
         self.last_seen = stamp
         self.streak_start = stamp
         self.updates = 1
         self._last_predict = stamp
+        self._history: deque[tuple[int, np.ndarray]] = deque([(stamp, kf.x.reshape(3).copy())])
+        self._prior_velocity = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64).reshape(3)
+        self.velocity = self._prior_velocity.copy()
+        self._velocity_known = velocity is not None
 
     @property
     def estimate(self) -> np.ndarray:
         return self._kf.x.reshape(3).copy()
+
+    @property
+    def last_position(self) -> np.ndarray:
+        return self._history[-1][1].copy()
+
+    def predict(self, stamp: int) -> np.ndarray:
+        """Where the target is at `stamp`: its last detection carried along the fitted velocity."""
+        return self.last_position + self.velocity * ((stamp - self.last_seen) / NS)
 
     def update(self, positions: np.ndarray, stamp: int) -> bool:
         """One scan's detections (N, 3); True when one of them was taken as the target."""
@@ -54,16 +77,36 @@ class TargetFilter:
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         if not len(positions):
             return False
-        gaps = np.linalg.norm(positions - self.estimate, axis=1)
+        gaps = np.linalg.norm(positions - self.predict(stamp), axis=1)
         best = int(np.argmin(gaps))
-        if gaps[best] > self.gate:
+        # until its velocity is known, a target may have moved since it was last seen
+        unknown = 0.0 if self._velocity_known else self.max_speed * min((stamp - self.last_seen) / NS, 1.0)
+        grown = self.gate + unknown
+        if gaps[best] > grown:
             return False
         self._kf.update(positions[best].reshape(3, 1))
         if stamp - self.last_seen > self.max_gap_ns:
             self.streak_start = stamp
         self.last_seen = stamp
         self.updates += 1
+        self._history.append((stamp, positions[best].copy()))
+        while stamp - self._history[0][0] > self.history_ns:
+            self._history.popleft()
+        self._fit_velocity()
         return True
+
+    def _fit_velocity(self) -> None:
+        if len(self._history) < self.MIN_FIT_POINTS or \
+                self._history[-1][0] - self._history[0][0] < self.MIN_FIT_SPAN_NS:
+            return
+        t = np.array([h[0] for h in self._history], dtype=np.float64) / NS
+        xyz = np.array([h[1] for h in self._history])
+        t -= t.mean()
+        self.velocity = (t @ (xyz - xyz.mean(axis=0))) / (t @ t)
+        self._velocity_known = True
+
+    def speed(self) -> float:
+        return float(np.linalg.norm(self.velocity))
 
     def unseen_for(self, now: int) -> float:
         return (now - self.last_seen) / NS
