@@ -313,3 +313,73 @@ def test_moving_target_is_intercepted_static_preferred():
     assert rig2.jm.state is State.GOING_TO_TARGET
     assert rig2.last.action == "intercept" and rig2.last.profile == "attack"
     assert rig2.last.target_velocity == (4.0, 0.0, 0.0)
+
+
+def test_a_far_target_is_not_lost_while_out_of_reliable_range():
+    rig = Rig().engaged()  # locked at 1.2 from HOME, 14 m away
+    far = BALLOON + [25.0, 0.0, 1.0]
+    rig.run(1.3, 8.0, position=far)  # 25 m away: unseen does not count
+    assert rig.jm.state is State.GOING_TO_TARGET
+    rig.run(8.1, 11.0, position=BALLOON + [8.0, 0, 0])
+    assert rig.jm.state is State.GOING_TO_TARGET
+    rig.run(11.1, 11.3, position=BALLOON + [8.0, 0, 0])
+    assert rig.jm.state is State.CHECKING_TARGET  # 3 s within range without a detection
+
+
+def drone_at(t: float, start=(25.0, 25.0, 6.0), velocity=(3.0, 0.0, 0.0)) -> np.ndarray:
+    return np.asarray(start) + np.asarray(velocity) * t
+
+
+def test_target_filter_measures_velocity_and_follows_a_mover():
+    from services.job_manager.targets import TargetFilter
+    rng = np.random.default_rng(1)
+    mover = TargetFilter(drone_at(0.0), 0, gate=3.0, measurement_sigma=0.15, process_sigma=0.05, max_gap_ns=s(1.0))
+    still = TargetFilter(BALLOON, 0, gate=3.0, measurement_sigma=0.15, process_sigma=0.05, max_gap_ns=s(1.0))
+    for k in range(1, 21):
+        t = 0.1 * k
+        assert mover.update((drone_at(t) + rng.normal(0, 0.1, 3))[None], s(t))
+        assert still.update((BALLOON + rng.normal(0, 0.1, 3))[None], s(t))
+    np.testing.assert_allclose(mover.velocity, [3.0, 0.0, 0.0], atol=0.3)
+    np.testing.assert_allclose(mover.predict(s(2.5)), drone_at(2.5), atol=0.3)
+    assert still.speed() < 0.3
+    np.testing.assert_allclose(still.estimate, BALLOON, atol=0.1)
+
+
+def test_a_target_that_turns_out_to_move_is_intercepted():
+    rig = Rig().airborne()
+    rig.tick(1.1, detections=[drone_at(0.0)])
+    rig.tick(1.2, detections=[drone_at(0.1)])
+    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "approach"
+    for k in range(2, 12):
+        rig.tick(round(1.1 + 0.1 * k, 3), detections=[drone_at(0.1 * k)])
+    assert rig.last.action == "intercept" and rig.last.profile == "attack"
+    np.testing.assert_allclose(rig.last.target_velocity, [3.0, 0.0, 0.0], atol=0.2)
+    assert any("intercepting" in n for n in rig.jm.notes)
+
+
+def test_static_targets_come_first_even_while_intercepting():
+    rig = Rig().airborne()
+    for k in range(0, 12):
+        rig.tick(round(1.1 + 0.1 * k, 3), detections=[drone_at(0.1 * k)])
+    assert rig.last.action == "intercept"
+    rig.tick(2.3, detections=[drone_at(1.2), BALLOON])
+    assert rig.jm.state is State.IDLE and "static targets first" in rig.jm.transitions[-1].reason
+    rig.tick(2.4, detections=[drone_at(1.3), BALLOON])
+    rig.tick(2.5, detections=[drone_at(1.4), BALLOON])
+    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "approach"
+    np.testing.assert_allclose(rig.last.target, BALLOON, atol=0.2)
+
+
+def test_a_mover_that_runs_out_a_timer_is_skipped_for_t_f():
+    rig = Rig(going_timeout=3.0).airborne()
+    t = 1.1
+    while rig.jm.state is not State.IDLE or t < 2.0:
+        rig.tick(round(t, 3), detections=[drone_at(t - 1.1, velocity=(1.5, 0, 0))],
+                 position=drone_at(t - 1.1, velocity=(1.5, 0, 0)) + [0, 12.0, 0])  # never gets close
+        t += 0.1
+        assert t < 10
+    assert "state timer 3 s" in rig.jm.transitions[-1].reason and not rig.jm.zones.zones
+    for _ in range(30):  # the mover stays in view: checked, locked, found moving, dropped; never chased
+        rig.tick(round(t, 3), detections=[drone_at(t - 1.1, velocity=(1.5, 0, 0))])
+        t += 0.1
+        assert rig.last.action != "intercept"

@@ -7,7 +7,7 @@ import pytest
 
 from services.geometry import polygon_area
 from services.job_manager.core import State
-from tests.test_job_manager_machine import HOME, Rig, s
+from tests.test_job_manager_machine import BALLOON, HOME, Rig, s
 
 
 def flying(rig: Rig, name: str, t: float, position=(70.0, 30.0, 5.0), state: str = "GOING_AROUND", target=None,
@@ -138,3 +138,12 @@ def test_an_engaged_uav_has_priority_over_a_sweeping_one():
     flying(rig, "uav2", 1.2, position=HOME + [3.0, 0, 0], state="DESTROYING")
     rig.tick(1.2)
     assert rig.last.action == "goto"  # uav1 outranks by order, but uav2 is attacking
+
+
+def test_an_engaged_uav_drops_its_target_when_a_closer_partner_claims_it():
+    rig = Rig().engaged()  # uav1 on BALLOON, 14 m away
+    flying(rig, "uav2", 1.25, position=BALLOON + [3.0, 0, 1.0], state="GOING_TO_TARGET", target=BALLOON)
+    rig.tick(1.3, detections=[BALLOON])
+    assert rig.jm.state is State.IDLE and "partner" in rig.jm.transitions[-1].reason
+    rig.tick(1.4, detections=[BALLOON])
+    assert rig.jm.state is State.GOING_AROUND  # and leaves it alone

@@ -177,6 +177,7 @@ class JobManager:
         self._now = 0
         self._detections_stamp = 0
         self._previous_target: np.ndarray | None = None  # what was locked before CHECKING_TARGET
+        self._last_mover: TargetFilter | None = None  # the filter of the last target found to move
         self._no_moving_until = 0  # a moving target that ran out a state timer: movers are skipped till then
         self._unseen_from = 0  # when the locked target last came within reliable range
         self._recent: deque[tuple[int, np.ndarray]] = deque()  # the last t_m of scans' detections
@@ -290,6 +291,8 @@ class JobManager:
             self.takeoff_at = now
         if target in _DESCENDING:
             self._landing_target = (float(position[0]), float(position[1]), self.ground_z)
+        if self.engagement is not None and self.engagement.moving:
+            self._last_mover = self.engagement.filter
         if target in (State.IDLE, *_DESCENDING, State.LANDED):
             self.engagement = None
         if target is State.CHECKING_TARGET:
@@ -344,6 +347,16 @@ class JobManager:
             return int(ids[k]), positions[k].copy(), velocities[k].copy(), stamp
         return None
 
+    def _known_mover(self, detection: np.ndarray, seen: int):
+        """(None, position, velocity, stamp) when the detection is where the last target found to move
+        would be by now (the tracker may not have confirmed it), else None."""
+        mover = self._last_mover
+        if mover is None or seen - mover.last_seen > int(self.params.target_time * NS):
+            return None
+        if np.linalg.norm(mover.predict(seen) - detection) > self.params.detection_gate:
+            return None
+        return None, detection.copy(), mover.velocity.copy(), seen
+
     def _lock(self, candidates: np.ndarray, stamps: np.ndarray, position: np.ndarray, now: int) -> bool:
         """Select b_c: the closest static candidate (a moving one only when none is static); the
         previous target, when it is among them, counts as closest (no flip-flopping between two)."""
@@ -352,7 +365,8 @@ class JobManager:
             again = np.linalg.norm(candidates - self._previous_target, axis=1) <= self.params.detection_gate
             distance = np.where(again, 0.0, distance)
         order = np.argsort(distance, kind="stable")
-        moving = [self._moving_track(candidates[k], now, int(stamps[k])) for k in order]
+        moving = [self._moving_track(candidates[k], now, int(stamps[k])) or self._known_mover(candidates[k], int(stamps[k]))
+                  for k in order]
         static = [k for k, m in zip(order, moving) if m is None]
         if not static and now < self._no_moving_until:
             return False
