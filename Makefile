@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 60 --seed 1
+SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1 --detector oracle
 
 .PHONY: .venv sim test bench schemas clean
 
