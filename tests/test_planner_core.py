@@ -377,3 +377,38 @@ def test_intercept_merges_with_the_target(position, target, velocity, start_velo
 def test_intercept_gives_up_on_targets_it_cannot_catch(velocity):
     # Faster than max_speed (or max_vertical_speed); or receding so nearly as fast that 30 s is not enough.
     assert intercept(np.zeros(3), np.array([20.0, 0.0, 0.0]), np.array(velocity), profile=SWEEP) is None
+
+
+PURSUITS = [  # UAV position, UAV velocity, target position, target velocity
+    ([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [20.0, 10.0, 6.0], [4.0, 0.0, 0.0]),  # from rest, target crossing
+    ([0.0, 0.0, 5.0], [5.0, 0.0, 0.0], [10.0, -15.0, 7.0], [0.0, 4.0, 0.5]),  # moving across its path
+    ([30.0, 0.0, 8.0], [-3.0, 1.0, 0.0], [0.0, 0.0, 6.0], [-4.0, 0.0, 0.0]),  # target running away
+    ([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [3.0, 0.0, 5.0], [0.0, 2.0, 0.0]),  # close and slow (a circling drone)
+]
+
+
+@pytest.mark.parametrize("uav, velocity, target, target_velocity", PURSUITS)
+def test_pursuit_blends_onto_the_predicted_track_within_the_profile(uav, velocity, target, target_velocity):
+    from services.planner.core import blend_horizon, pursuit
+    profile = ConstraintProfile(name="attack", max_speed=8.3, max_acceleration=3.0)
+    uav, velocity, target, target_velocity = map(np.array, (uav, velocity, target, target_velocity))
+    positions, headings = pursuit(uav, target, target_velocity, profile=profile, start_velocity=velocity,
+                                  start_heading=0.0, follow_time=4.0)
+    check_profile(positions, headings, profile)
+    np.testing.assert_allclose(positions[0], uav)
+    np.testing.assert_allclose((positions[1] - positions[0]) / DT, velocity, atol=3.0 * DT + 1e-6)  # no jump
+    horizon = blend_horizon(uav, velocity, target, target_velocity, profile)
+    k = int(round(horizon / DT))
+    predicted = target + target_velocity * np.arange(len(positions))[:, None] * DT
+    # from the end of the blend for the follow time, the reference is the predicted target
+    follow = slice(k, k + int(4.0 / DT))
+    np.testing.assert_allclose(positions[follow], predicted[follow], atol=0.02)
+    np.testing.assert_allclose(np.diff(positions[follow], axis=0) / DT, target_velocity[None].repeat(
+        len(positions[follow]) - 1, axis=0), atol=0.02)
+    assert_ends_at_rest(positions, positions[-1], profile)
+
+
+def test_pursuit_refuses_a_target_faster_than_the_profile():
+    from services.planner.core import pursuit
+    profile = ConstraintProfile(name="attack", max_speed=8.3, max_acceleration=3.0)
+    assert pursuit(np.zeros(3), np.array([10.0, 0, 5]), np.array([9.0, 0, 0]), profile=profile) is None

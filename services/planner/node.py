@@ -5,7 +5,8 @@ A command with a new id is planned from the latest odometry (position, heading a
 so a re-plan in flight does not stop the vehicle): take-off/land/hover, stop (the brake before
 checking a target), scan (lawnmower over the working area's inner rectangle), approach (to the
 waiting point d_b with deadband), attack (through the target + o_h, d_o beyond), intercept (a
-merge onto a moving target's predicted path), goto. The current trajectory is re-published
+pursuit that blends onto a moving target's predicted track, or else a merge that waits on it),
+goto. The current trajectory is re-published
 every `republish_period` s of mission time with the same start (a restarted simulator or late
 subscriber picks it up) and, like the seed's state machine (§3.4.2), a scan that has been
 flown to its end starts again.
@@ -130,9 +131,14 @@ class PlannerNode(Node):
                 return core.attack(p, target, overshoot=prm.overshoot, hit_offset=prm.hit_offset,
                                    end_offset=prm.end_offset, profile=profile, dt=dt, **moving)
             if action == "intercept":
+                # pursuit re-plans smoothly from the current state on every new prediction; the
+                # merge (wait on the predicted path) is the fallback when no blend fits the profile
                 velocity = np.asarray(command.target_velocity or (0.0, 0.0, 0.0), dtype=np.float64)
-                path = core.intercept(p, target, velocity, profile=profile, dt=dt,
-                                      merge_acceleration=prm.merge_acceleration, follow_time=prm.follow_time, **moving)
+                path = core.pursuit(p, target, velocity, profile=profile, dt=dt, follow_time=prm.follow_time, **moving)
+                if path is None:
+                    path = core.intercept(p, target, velocity, profile=profile, dt=dt,
+                                          merge_acceleration=prm.merge_acceleration, follow_time=prm.follow_time,
+                                          **moving)
                 if path is not None:
                     return path
                 self.log.info("command %d: no merge onto the target is feasible; chasing its position",
