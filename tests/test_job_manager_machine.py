@@ -359,15 +359,21 @@ def test_a_target_that_turns_out_to_move_is_intercepted():
 
 def test_static_targets_come_first_even_while_intercepting():
     rig = Rig().airborne()
-    for k in range(0, 12):
+    far_balloon = np.array([40.0, 40.0, 4.0])  # not in view until t = 2.0
+    for k in range(0, 9):
         rig.tick(round(1.1 + 0.1 * k, 3), detections=[drone_at(0.1 * k)])
     assert rig.last.action == "intercept"
-    rig.tick(2.3, detections=[drone_at(1.2), BALLOON])
-    assert rig.jm.state is State.IDLE and "static targets first" in rig.jm.transitions[-1].reason
-    rig.tick(2.4, detections=[drone_at(1.3), BALLOON])
-    rig.tick(2.5, detections=[drone_at(1.4), BALLOON])
-    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "approach"
-    np.testing.assert_allclose(rig.last.target, BALLOON, atol=0.2)
+    t = 2.0
+    while rig.jm.state is not State.IDLE:  # the balloon in view: only once it has held still for 1 s
+        rig.tick(round(t, 3), detections=[drone_at(t - 1.1), far_balloon])
+        t += 0.1
+        assert t < 3.2
+    assert t > 2.95 and "static targets first" in rig.jm.transitions[-1].reason
+    for _ in range(2):
+        rig.tick(round(t, 3), detections=[drone_at(t - 1.1), far_balloon])
+        t += 0.1
+    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "approach"  # the drone was closer
+    np.testing.assert_allclose(rig.last.target, far_balloon, atol=0.2)
 
 
 def test_a_mover_that_runs_out_a_timer_is_skipped_for_t_f():

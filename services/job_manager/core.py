@@ -97,6 +97,8 @@ class State(enum.Enum):
 MISSION_STATES = (State.IDLE, State.GOING_AROUND, State.CHECKING_TARGET, State.GOING_TO_TARGET, State.DESTROYING)
 _WATCHED = (State.TAKING_OFF, *MISSION_STATES)  # the abort system and the mission timer act here
 _DESCENDING = (State.LANDING, State.EMERGENCY_LANDING)
+STILL_RADIUS = 0.5  # m
+STILL_TIME = 1.0  # s
 _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "going_timeout",
           State.DESTROYING: "destroying_timeout"}
 
@@ -523,9 +525,16 @@ class JobManager:
             return ""
         for candidate in self.candidates(now, position):
             if np.linalg.norm(candidate - e.position(now)) > self.params.detection_gate and \
-                    self._moving_track(candidate, now) is None:
+                    self._moving_track(candidate, now) is None and self._held_still(candidate, now):
                 return f"a static target in view at {self._fmt(candidate)}: static targets first"
         return ""
+
+    def _held_still(self, candidate: np.ndarray, now: int) -> bool:
+        """Seen at this very place (within STILL_RADIUS) over at least STILL_TIME of the recent
+        scans: a balloon, not a drone passing through (which is a metre away a second later)."""
+        stamps = [stamp for stamp, positions in self._recent if len(positions)
+                  and np.linalg.norm(positions - candidate, axis=1).min() <= STILL_RADIUS]
+        return bool(stamps) and now - min(stamps) >= int(STILL_TIME * NS)
 
     def _notice_motion(self, now: int) -> str:
         """A target locked as static that turns out to move is intercepted from now on (non-empty:
