@@ -66,7 +66,8 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     attack_done_speed: float = 1.0  # m/s: the overshoot is flown out
     moving_speed: float = 1.0  # m/s: a target whose track is faster is intercepted
     track_gate: float = 2.0  # m between a detection and a track for them to be the same object
-    intercept_replan_distance: float = 1.0  # m of prediction change before a new intercept goes out
+    intercept_replan_distance: float = 0.3  # m (or m/s) of prediction change before a new intercept goes out
+    velocity_window: float = 1.0  # s of detections the target filter fits a target's velocity to
     filter_sigma: float = 0.15  # m, target filter measurement noise
     filter_process_sigma: float = 0.05  # m/√s, target filter process noise (a balloon sways)
     streak_gap: float = 1.0  # s without a detection that breaks "seen continuously"
@@ -378,7 +379,8 @@ class JobManager:
         self.engagement = Engagement(
             filter=TargetFilter(candidates[pick], int(stamps[pick]), gate=p.detection_gate,
                                 measurement_sigma=p.filter_sigma, process_sigma=p.filter_process_sigma,
-                                max_gap_ns=int(p.streak_gap * NS), velocity=None if track is None else track[2]),
+                                max_gap_ns=int(p.streak_gap * NS), history_ns=int(p.velocity_window * NS),
+                                velocity=None if track is None else track[2]),
             moving=track is not None)
         self._sent_target = None
         return True

@@ -4,8 +4,8 @@ height offsets, lawnmower scan, braking stop and interception of moving targets.
 Every trajectory is a Path: positions (N, 3) and headings (N,), sample i at i·dt, respecting
 the whole ConstraintProfile (speed, vertical speed, acceleration, heading rate) including at
 corners, which are rounded (or stopped at when sharper than 120°). The time parameterisation
-lives in timing.py, the scan in scan.py, interception in pursuit.py (blend onto the predicted
-track, re-planned on every update) and intercept.py (merge: wait on the predicted path); this
+lives in timing.py, the scan in scan.py, interception in pursuit.py (close onto the predicted
+track as fast as the limits allow, re-planned on every update) and intercept.py (merge: wait on the predicted path); this
 module is the planner's single entry point and re-exports them.
 
 Later work deepens it: obstacle-aware paths (the voxel map), smoother jerk-limited profiles.
@@ -16,7 +16,7 @@ import numpy as np
 
 from schemas.messages import ConstraintProfile
 from services.planner.intercept import InterceptPlan, intercept, plan_intercept
-from services.planner.pursuit import blend_horizon, pursuit
+from services.planner.pursuit import pursuit
 from services.planner.scan import inner_rectangle, lawnmower, lawnmower_waypoints, scan_rectangle
 from services.planner.timing import (
     DT,
@@ -35,7 +35,7 @@ from services.planner.timing import (
 __all__ = [
     "DT", "STOP_ANGLE", "Path", "InterceptPlan", "approach", "approach_goal", "attack", "deadband", "evaluate",
     "fly", "goto", "hover", "inner_rectangle", "intercept", "land", "lawnmower", "lawnmower_waypoints",
-    "path_duration", "plan_intercept", "pursuit", "blend_horizon", "plan_timing", "sample_path", "scan_rectangle", "speed_caps", "steer",
+    "path_duration", "plan_intercept", "pursuit", "plan_timing", "sample_path", "scan_rectangle", "speed_caps", "steer",
     "stop", "takeoff", "wrap_angle",
 ]
 
