@@ -18,7 +18,7 @@ import math
 import msgspec
 import numpy as np
 
-from schemas.arrays import from_numpy
+from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Header, MissionCommand, Odometry, TrajectoryReference
 from services.planner import core
 from services.runtime.clock import NS
@@ -39,6 +39,7 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     end_offset: float = 0.15  # [o_o] m above the target height where the attack ends
     merge_acceleration: float = 1.5  # m/s² along a moving target's path when merging onto it
     follow_time: float = 4.0  # s flown alongside a moving target after the merge
+    rejoin_distance: float = 1.5  # m: a re-plan starts on the current trajectory while this close to it
     republish_period: float = 2.0  # s of mission time
     repeat_scan: bool = True  # sweep again once a scan trajectory has ended
 
@@ -91,7 +92,7 @@ class PlannerNode(Node):
             self.publish(now_ns)
 
     def plan(self, now_ns: int, command: MissionCommand) -> None:
-        positions, headings = self.plan_path(command)
+        positions, headings = self.plan_path(command, *self.start_state(now_ns))
         self.planned_id = command.command_id
         dt = self.params.dt
         self.trajectory = TrajectoryReference(
@@ -108,8 +109,26 @@ class PlannerNode(Node):
                       len(positions), (len(positions) - 1) * dt)
         self.publish(now_ns)
 
-    def plan_path(self, command: MissionCommand) -> core.Path:
-        p, v, dt, profile, prm = self.position, self.velocity, self.params.dt, command.profile, self.params
+    def start_state(self, now_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """Where a new plan starts: on the current trajectory at `now` while the vehicle follows it
+        (within `rejoin_distance`), else the odometry. Starting a re-plan from the measured state
+        would hand the controller a reference with no error to act on: re-planned every tick, a
+        braking manoeuvre would never brake."""
+        ref = self.trajectory
+        if ref is not None and self.params.rejoin_distance > 0:
+            positions = to_numpy(ref.positions).reshape(-1, 3)
+            u = (now_ns - ref.start) / NS / ref.dt
+            if 0.0 <= u < len(positions) - 1:
+                i = int(u)
+                here = positions[i] + (u - i) * (positions[i + 1] - positions[i])
+                if np.linalg.norm(here - self.position) <= self.params.rejoin_distance:
+                    return here, (positions[i + 1] - positions[i]) / ref.dt
+        return self.position, self.velocity
+
+    def plan_path(self, command: MissionCommand, p: np.ndarray | None = None, v: np.ndarray | None = None) -> core.Path:
+        p = self.position if p is None else p
+        v = self.velocity if v is None else v
+        dt, profile, prm = self.params.dt, command.profile, self.params
         action, target = command.action, command.target
         moving = dict(start_velocity=v, start_heading=self.heading)
         if action == "takeoff":
