@@ -2,8 +2,9 @@
 
 Each UAV's processes run in their own namespace, joined to the run's bridge by a veth
 pair; the simulator and launcher stay in the root namespace and listen on the bridge's
-address. Cutting a link sets the UAV's veth down: its Zenoh sessions lose their peers when
-the transport lease runs out, exactly as over a dead radio link. Needs root and iproute2.
+address. Cutting a link sets the UAV's veth down and destroys the TCP connections across it
+(see `cut`: a silently dead transport stalls its Zenoh peers until the lease runs out, which in
+lockstep stalls the whole run). Needs root and iproute2 (`ip`, `ss`).
 Everything is torn down at the end of the run, even after Ctrl-C.
 """
 from __future__ import annotations
@@ -28,6 +29,13 @@ def available() -> str | None:
 
 def _ip(*args: str, netns: str | None = None) -> None:
     argv = ["ip", *(("netns", "exec", netns, "ip") if netns else ()), *args]
+    result = subprocess.run(argv, capture_output=True, text=True)
+    if result.returncode != 0:
+        raise NetnsError(f"`{' '.join(argv)}` failed: {result.stderr.strip()}")
+
+
+def _kill_sockets(netns: str | None, selector: str) -> None:
+    argv = [*(("ip", "netns", "exec", netns) if netns else ()), "ss", "-K", "-t", *selector.split()]
     result = subprocess.run(argv, capture_output=True, text=True)
     if result.returncode != 0:
         raise NetnsError(f"`{' '.join(argv)}` failed: {result.stderr.strip()}")
@@ -79,7 +87,17 @@ class UavNetwork:
         return ["ip", "netns", "exec", self.namespace(uav), *argv]
 
     def cut(self, uav: str) -> None:
+        """The UAV's veth goes down, and every TCP connection across it is destroyed on both ends
+        (`ss -K`): a silently dead transport would otherwise live until its lease runs out, and
+        Zenoh peers block on its full queue meanwhile (a lockstep run then crawls). Partners
+        therefore lose the UAV at once; nothing can reconnect until the link is restored."""
         _ip("link", "set", self._host_veth(uav), "down")
+        address = self.address(uav)
+        _kill_sockets(None, f"dst {address}")
+        for other in self.uavs:
+            if other != uav:
+                _kill_sockets(self.namespace(other), f"dst {address}")
+        _kill_sockets(self.namespace(uav), f"dst {self.prefix}.0/24 and not dst {address}")
 
     def restore(self, uav: str) -> None:
         _ip("link", "set", self._host_veth(uav), "up")
