@@ -144,8 +144,7 @@ def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
     observer = Observer(session)
     frozen_seen = False
     try:
-        # wall time only: a cut link makes lockstep wait on the dead peer for a varying while
-        deadline = time.monotonic() + 500
+        deadline = time.monotonic() + 300  # the run takes about 30 s of wall time
         while launcher.poll() is None and time.monotonic() < deadline:
             # the frozen tracker is in state T while the freeze lasts
             for pid in processes_mentioning("tracker\0--uav\0uav2\0"):
