@@ -25,61 +25,15 @@ always passed in (int ns of mission time).
 from __future__ import annotations
 
 import enum
-from collections import deque
 from dataclasses import dataclass
 
-import msgspec
 import numpy as np
 
 from services.job_manager.areas import split_area
+from services.job_manager.params import JobManagerParams
+from services.job_manager.sightings import Sightings
 from services.job_manager.targets import NS, ForbiddenZones, TargetFilter, usable_detections
 from services.job_manager.team import Team
-
-
-class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
-    """Defaults from design §6 / seed 004 Table 3.1 (symbol in brackets)."""
-
-    search_height: float = 5.0  # [H] m, world z of the sweep
-    scan_spacing: float = 20.0  # m between lawnmower lines (the LiDAR sees well beyond ±10 m)
-    landing_margin: float = 15.0  # s before the mission's end at which to land
-    status_rate_hz: float = 5.0
-    sensor_timeout: float = 1.0  # s of silent LiDAR or odometry before an emergency landing
-    height_tolerance: float = 0.3  # m below search_height that counts as "at height"
-    airborne_height: float = 0.3  # m above the ground that counts as airborne
-    command_repeat: float = 2.0  # s between re-sends of the current command (0: only on change)
-    detection_gate: float = 3.0  # [d_e] m: a detection this close to the locked target is the target
-    filter_switch_distance: float = 5.5  # [D_k] m: GOING_TO_TARGET hands over to DESTROYING inside it
-    target_time: float = 3.0  # [t_m] s: unseen this long = lost; seen this long = confirmed for attack
-    checking_timeout: float = 30.0  # [T_c] s
-    going_timeout: float = 30.0  # [T_g] s
-    destroying_timeout: float = 20.0  # [T_d] s
-    forbidden_radius: float = 4.5  # [r_f] m
-    forbidden_lifetime: float = 15.0  # [t_f] s
-    forbidden_tries: int = 2  # [n_f] attacks at one place before it is forbidden
-    partner_timeout: float = 15.0  # [t_s] s without a partner's status: it has fallen (revenge mode)
-    rejoin_time: float = 3.0  # s a fallen partner must fly normally again before it gets an area back
-    stop_speed: float = 0.5  # m/s: the stop manoeuvre is over
-    detection_max_age: float = 0.35  # s: older detections are not "in view"
-    min_target_height: float = 1.0  # m above the ground: lower detections are no targets
-    replan_distance: float = 0.3  # m the locked target must move before a new approach/attack goes out
-    attack_pass_margin: float = 0.5  # m past the target (along the attack) that counts as through it
-    attack_done_speed: float = 1.0  # m/s: the overshoot is flown out
-    moving_speed: float = 1.0  # m/s: a target whose track is faster is intercepted
-    track_gate: float = 2.0  # m between a detection and a track for them to be the same object
-    intercept_replan_distance: float = 0.3  # m (or m/s) of prediction change before a new intercept goes out
-    velocity_window: float = 1.0  # s of detections the target filter fits a target's velocity to
-    filter_sigma: float = 0.15  # m, target filter measurement noise
-    filter_process_sigma: float = 0.05  # m/√s, target filter process noise (a balloon sways)
-    streak_gap: float = 1.0  # s without a detection that breaks "seen continuously"
-    reliable_range: float = 20.0  # m: a target farther than this shows in some scans only; unseen time counts inside
-    claim_radius: float = 4.5  # m around a partner's target that is left to it
-    safety_distance: float = 5.0  # m: closer than this to a partner, the lower-priority UAV yields
-    vertical_separation: float = 3.0  # m above the partner a yielding UAV climbs to
-    separation_hysteresis: float = 2.0  # m beyond safety_distance before a yield ends
-    sweeping_speed: float = 5.0  # m/s, constraint profile "sweeping" (scan, approach, climbs)
-    sweeping_acceleration: float = 1.5  # m/s²
-    attack_speed: float = 8.3  # m/s, constraint profile "attack" (attack, intercept)
-    attack_acceleration: float = 3.0  # m/s²
 
 
 class State(enum.Enum):
@@ -98,8 +52,6 @@ class State(enum.Enum):
 MISSION_STATES = (State.IDLE, State.GOING_AROUND, State.CHECKING_TARGET, State.GOING_TO_TARGET, State.DESTROYING)
 _WATCHED = (State.TAKING_OFF, *MISSION_STATES)  # the abort system and the mission timer act here
 _DESCENDING = (State.LANDING, State.EMERGENCY_LANDING)
-STILL_RADIUS = 0.5  # m
-STILL_TIME = 1.0  # s
 _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "going_timeout",
           State.DESTROYING: "destroying_timeout"}
 
@@ -166,11 +118,8 @@ class JobManager:
         self._world_key: tuple | None = None
         self._decision: MissionDecision | None = None
         self._landing_target: tuple[float, float, float] | None = None
-        self._scan_stamp: int | None = None  # stamp of the latest Detections (the LiDAR heartbeat)
-        self._detections = np.zeros((0, 3))
         self._candidate_seen: int | None = None
         self._checked: np.ndarray | None = None  # closest candidate while CHECKING_TARGET (b_c before the lock)
-        self._tracks: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # stamp, ids, pos, vel
         self._stopping = False
         self._climbed = False
         self._yield: tuple[str, tuple[float, float, float]] | None = None
@@ -178,12 +127,10 @@ class JobManager:
         self._sent_velocity: np.ndarray | None = None
         self._sent_at = 0
         self._now = 0
-        self._detections_stamp = 0
+        self.seen = Sightings(params)
         self._previous_target: np.ndarray | None = None  # what was locked before CHECKING_TARGET
-        self._last_mover: TargetFilter | None = None  # the filter of the last target found to move
         self._no_moving_until = 0  # a moving target that ran out a state timer: movers are skipped till then
         self._unseen_from = 0  # when the locked target last came within reliable range
-        self._recent: deque[tuple[int, np.ndarray]] = deque()  # the last t_m of scans' detections
 
     # ----------------------------------------------------------------- inputs
     def set_world(self, arena: np.ndarray, uavs: list[str], duration_s: float, ground_z: float = 0.0) -> bool:
@@ -211,14 +158,7 @@ class JobManager:
 
     def observe_detections(self, stamp: int, positions: np.ndarray) -> None:
         """One scan's detections (N, 3), world frame; also the LiDAR heartbeat of the abort system."""
-        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        positions = positions[np.isfinite(positions).all(axis=1)]
-        self._scan_stamp = stamp if self._scan_stamp is None else max(self._scan_stamp, stamp)
-        self._detections = positions
-        self._detections_stamp = stamp
-        self._recent.append((stamp, positions))
-        while self._recent and stamp - self._recent[0][0] > int(self.params.target_time * NS):
-            self._recent.popleft()
+        positions = self.seen.scan(stamp, positions)
         if self.engagement is not None:
             self.engagement.filter.update(
                 positions[positions[:, 2] >= self.ground_z + self.params.min_target_height], stamp)
@@ -226,8 +166,7 @@ class JobManager:
     def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
         """Confirmed tracks: ids (K,), positions and velocities (K, 3); they tell at the lock
         whether a target moves (the target filter finds out by itself a little later)."""
-        ids = np.asarray(ids, dtype=np.int64).reshape(-1)
-        self._tracks = (stamp, ids, np.asarray(positions, float).reshape(-1, 3), np.asarray(velocities, float).reshape(-1, 3))
+        self.seen.confirmed_tracks(stamp, ids, positions, velocities)
 
     def partner_status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool = True,
                        position=(0.0, 0.0, 0.0), state: str = "", target=None) -> None:
@@ -295,7 +234,7 @@ class JobManager:
         if target in _DESCENDING:
             self._landing_target = (float(position[0]), float(position[1]), self.ground_z)
         if self.engagement is not None and self.engagement.moving:
-            self._last_mover = self.engagement.filter
+            self.seen.last_mover = self.engagement.filter
         if target in (State.IDLE, *_DESCENDING, State.LANDED):
             self.engagement = None
         if target is State.CHECKING_TARGET:
@@ -313,14 +252,13 @@ class JobManager:
 
     def candidates(self, now: int, position: np.ndarray) -> np.ndarray:
         """(N, 3) detections in view that this UAV may act on (seed 004 §3.5.2 filter)."""
-        if self._scan_stamp is None or now - self._detections_stamp > int(self.params.detection_max_age * NS):
-            return np.zeros((0, 3))
-        return self._usable(self._detections, now, position)
+        latest = self.seen.in_view(now)
+        return np.zeros((0, 3)) if latest is None else self._usable(latest, now, position)
 
     def recent_candidates(self, now: int, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Candidates of the scans of the last t_m, with their stamps: a target far away shows in
         some scans only, and the stop manoeuvre may carry it out of range for a while."""
-        scans = [(stamp, self._usable(positions, now, position)) for stamp, positions in self._recent
+        scans = [(stamp, self._usable(positions, now, position)) for stamp, positions in self.seen.recent
                  if now - stamp <= int(self.params.target_time * NS)]
         if not scans:
             return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
@@ -335,31 +273,6 @@ class JobManager:
                                  claim_radius=p.claim_radius, min_z=self.ground_z + p.min_target_height)
         return detections[keep]
 
-    def _moving_track(self, detection: np.ndarray, now: int, seen: int | None = None):
-        """(id, position, velocity, stamp) of a fast confirmed track at this detection (made at
-        `seen`, default: now; the tracks are carried back to then), else None."""
-        if self._tracks is None:
-            return None
-        stamp, ids, positions, velocities = self._tracks
-        if not len(ids) or now - stamp > int(self.params.detection_max_age * NS):
-            return None
-        back = (stamp - (now if seen is None else seen)) / NS
-        gaps = np.linalg.norm(positions - back * velocities - detection, axis=1)
-        k = int(np.argmin(gaps))
-        if gaps[k] <= self.params.track_gate and np.linalg.norm(velocities[k]) >= self.params.moving_speed:
-            return int(ids[k]), positions[k].copy(), velocities[k].copy(), stamp
-        return None
-
-    def _known_mover(self, detection: np.ndarray, seen: int):
-        """(None, position, velocity, stamp) when the detection is where the last target found to move
-        would be by now (the tracker may not have confirmed it), else None."""
-        mover = self._last_mover
-        if mover is None or seen - mover.last_seen > int(self.params.target_time * NS):
-            return None
-        if np.linalg.norm(mover.predict(seen) - detection) > self.params.detection_gate:
-            return None
-        return None, detection.copy(), mover.velocity.copy(), seen
-
     def _lock(self, candidates: np.ndarray, stamps: np.ndarray, position: np.ndarray, now: int) -> bool:
         """Select b_c: the closest static candidate (a moving one only when none is static); the
         previous target, when it is among them, counts as closest (no flip-flopping between two)."""
@@ -368,8 +281,7 @@ class JobManager:
             again = np.linalg.norm(candidates - self._previous_target, axis=1) <= self.params.detection_gate
             distance = np.where(again, 0.0, distance)
         order = np.argsort(distance, kind="stable")
-        moving = [self._moving_track(candidates[k], now, int(stamps[k])) or self._known_mover(candidates[k], int(stamps[k]))
-                  for k in order]
+        moving = [self.seen.motion(candidates[k], now, int(stamps[k])) for k in order]
         static = [k for k, m in zip(order, moving) if m is None]
         if not static and now < self._no_moving_until:
             return False
@@ -394,7 +306,7 @@ class JobManager:
             if now - stamp > timeout:
                 return State.EMERGENCY_LANDING, f"odometry silent {(now - stamp) / NS:.1f} s"
         if state in _WATCHED:
-            heard = self._scan_stamp if self._scan_stamp is not None else self.takeoff_at
+            heard = self.seen.scan_stamp if self.seen.scan_stamp is not None else self.takeoff_at
             if heard is not None and now - max(heard, self.takeoff_at) > timeout:
                 return State.EMERGENCY_LANDING, f"LiDAR silent {(now - max(heard, self.takeoff_at)) / NS:.1f} s"
             if self._mission_over(now):
@@ -527,16 +439,9 @@ class JobManager:
             return ""
         for candidate in self.candidates(now, position):
             if np.linalg.norm(candidate - e.position(now)) > self.params.detection_gate and \
-                    self._moving_track(candidate, now) is None and self._held_still(candidate, now):
+                    self.seen.moving_track(candidate, now) is None and self.seen.held_still(candidate, now):
                 return f"a static target in view at {self._fmt(candidate)}: static targets first"
         return ""
-
-    def _held_still(self, candidate: np.ndarray, now: int) -> bool:
-        """Seen at this very place (within STILL_RADIUS) over at least STILL_TIME of the recent
-        scans: a balloon, not a drone passing through (which is a metre away a second later)."""
-        stamps = [stamp for stamp, positions in self._recent if len(positions)
-                  and np.linalg.norm(positions - candidate, axis=1).min() <= STILL_RADIUS]
-        return bool(stamps) and now - min(stamps) >= int(STILL_TIME * NS)
 
     def _notice_motion(self, now: int) -> str:
         """A target locked as static that turns out to move is intercepted from now on (non-empty:

@@ -22,7 +22,8 @@ from schemas.messages import (
     UavStatus,
     WorldModel,
 )
-from services.job_manager.core import NS, JobManager, JobManagerParams, MissionDecision
+from services.job_manager.core import NS, JobManager, MissionDecision
+from services.job_manager.params import JobManagerParams
 from services.runtime.node import Node
 
 # Pre-flight check (seed 004 §3.6): every service this UAV's mission depends on is alive,

@@ -1,0 +1,50 @@
+"""The job manager's parameters (design §6; seed 004 Table 3.1 symbols in brackets)."""
+from __future__ import annotations
+
+import msgspec
+
+
+class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
+    """Defaults from design §6 / seed 004 Table 3.1 (symbol in brackets)."""
+
+    search_height: float = 5.0  # [H] m, world z of the sweep
+    scan_spacing: float = 20.0  # m between lawnmower lines (the LiDAR sees well beyond ±10 m)
+    landing_margin: float = 15.0  # s before the mission's end at which to land
+    status_rate_hz: float = 5.0
+    sensor_timeout: float = 1.0  # s of silent LiDAR or odometry before an emergency landing
+    height_tolerance: float = 0.3  # m below search_height that counts as "at height"
+    airborne_height: float = 0.3  # m above the ground that counts as airborne
+    command_repeat: float = 2.0  # s between re-sends of the current command (0: only on change)
+    detection_gate: float = 3.0  # [d_e] m: a detection this close to the locked target is the target
+    filter_switch_distance: float = 5.5  # [D_k] m: GOING_TO_TARGET hands over to DESTROYING inside it
+    target_time: float = 3.0  # [t_m] s: unseen this long = lost; seen this long = confirmed for attack
+    checking_timeout: float = 30.0  # [T_c] s
+    going_timeout: float = 30.0  # [T_g] s
+    destroying_timeout: float = 20.0  # [T_d] s
+    forbidden_radius: float = 4.5  # [r_f] m
+    forbidden_lifetime: float = 15.0  # [t_f] s
+    forbidden_tries: int = 2  # [n_f] attacks at one place before it is forbidden
+    partner_timeout: float = 15.0  # [t_s] s without a partner's status: it has fallen (revenge mode)
+    rejoin_time: float = 3.0  # s a fallen partner must fly normally again before it gets an area back
+    stop_speed: float = 0.5  # m/s: the stop manoeuvre is over
+    detection_max_age: float = 0.35  # s: older detections are not "in view"
+    min_target_height: float = 1.0  # m above the ground: lower detections are no targets
+    replan_distance: float = 0.3  # m the locked target must move before a new approach/attack goes out
+    attack_pass_margin: float = 0.5  # m past the target (along the attack) that counts as through it
+    attack_done_speed: float = 1.0  # m/s: the overshoot is flown out
+    moving_speed: float = 1.0  # m/s: a target whose track is faster is intercepted
+    track_gate: float = 2.0  # m between a detection and a track for them to be the same object
+    intercept_replan_distance: float = 0.3  # m (or m/s) of prediction change before a new intercept goes out
+    velocity_window: float = 1.0  # s of detections the target filter fits a target's velocity to
+    filter_sigma: float = 0.15  # m, target filter measurement noise
+    filter_process_sigma: float = 0.05  # m/√s, target filter process noise (a balloon sways)
+    streak_gap: float = 1.0  # s without a detection that breaks "seen continuously"
+    reliable_range: float = 20.0  # m: a target farther than this shows in some scans only; unseen time counts inside
+    claim_radius: float = 4.5  # m around a partner's target that is left to it
+    safety_distance: float = 5.0  # m: closer than this to a partner, the lower-priority UAV yields
+    vertical_separation: float = 3.0  # m above the partner a yielding UAV climbs to
+    separation_hysteresis: float = 2.0  # m beyond safety_distance before a yield ends
+    sweeping_speed: float = 5.0  # m/s, constraint profile "sweeping" (scan, approach, climbs)
+    sweeping_acceleration: float = 1.5  # m/s²
+    attack_speed: float = 8.3  # m/s, constraint profile "attack" (attack, intercept)
+    attack_acceleration: float = 3.0  # m/s²
