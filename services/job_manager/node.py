@@ -8,6 +8,9 @@ decision is the core's; the node only converts messages and logs what the core n
 """
 from __future__ import annotations
 
+import importlib
+import threading
+
 import numpy as np
 
 from schemas import keys
@@ -38,6 +41,9 @@ class JobManagerNode(Node):
     params_type = JobManagerParams
 
     def setup(self) -> None:
+        # The target filter's library takes a second to import; load it beside start-up so a
+        # restarted job manager is back (liveliness) at once and the first lock does not wait.
+        threading.Thread(target=importlib.import_module, args=("filterpy.kalman",), daemon=True).start()
         self.core = JobManager(self.params, self.uav)
         p = self.params
         self.profiles = {
