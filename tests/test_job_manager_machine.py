@@ -378,14 +378,22 @@ def test_static_targets_come_first_even_while_intercepting():
 
 def test_a_mover_that_runs_out_a_timer_is_skipped_for_t_f():
     rig = Rig(going_timeout=3.0).airborne()
+    mover = lambda t: drone_at(t - 1.1, velocity=(1.5, 0, 0))  # noqa: E731
     t = 1.1
     while rig.jm.state is not State.IDLE or t < 2.0:
-        rig.tick(round(t, 3), detections=[drone_at(t - 1.1, velocity=(1.5, 0, 0))],
-                 position=drone_at(t - 1.1, velocity=(1.5, 0, 0)) + [0, 12.0, 0])  # never gets close
+        rig.tick(round(t, 3), detections=[mover(t)], position=mover(t) + [0, 12.0, 0])  # never gets close
         t += 0.1
         assert t < 10
+    timer = t - 0.1
     assert "state timer 3 s" in rig.jm.transitions[-1].reason and not rig.jm.zones.zones
-    for _ in range(30):  # the mover stays in view: checked, locked, found moving, dropped; never chased
-        rig.tick(round(t, 3), detections=[drone_at(t - 1.1, velocity=(1.5, 0, 0))])
+    count = len(rig.jm.transitions)
+    while t < timer + 14.9:  # the mover stays in view, but it is not chased: the sweep goes on
+        rig.tick(round(t, 3), detections=[mover(t)])
         t += 0.1
-        assert rig.last.action != "intercept"
+    engaged = [x for x in rig.jm.transitions[count:] if x.target is State.GOING_TO_TARGET]
+    assert not engaged, engaged
+    assert rig.jm.state is State.GOING_AROUND and rig.last.action == "scan"
+    while t < timer + 16.5:  # t_f later, movers count again
+        rig.tick(round(t, 3), detections=[mover(t)])
+        t += 0.1
+    assert rig.last.action in ("stop", "intercept") and rig.jm.state is not State.GOING_AROUND

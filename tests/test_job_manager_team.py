@@ -22,9 +22,9 @@ def x_range(area: np.ndarray) -> tuple[float, float]:
 
 REVENGE = [
     # (why the partner falls, what the rig sees, seconds after the partner was last fine)
-    ("reports not flying normally", lambda r, t: flying(r, "uav2", t, state="EMERGENCY_LANDING", normally=False), 0.1),
+    ("reports not flying normally", lambda r, t: flying(r, "uav2", t, state="EMERGENCY_LANDING", normally=False), 0.0),
     ("silent for t_s", lambda r, t: None, 15.0),
-    ("job manager token gone", lambda r, t: r.jm.partner_token("uav2", False, s(t)), 0.1),
+    ("job manager token gone", lambda r, t: r.jm.partner_token("uav2", False, s(t)), 0.0),
 ]
 
 
@@ -39,8 +39,9 @@ def test_revenge_mode_takes_over_the_whole_arena(why, event, delay):
         flying(rig, "uav2", round(t, 3))
         rig.tick(round(t, 3))
     event(rig, 10.0)
-    rig.run(10.1, 10.0 + delay - 0.1)
-    assert x_range(rig.jm.working_area) == (0.0, 50.0), "fell too early"
+    if delay > 0:  # silence: nothing changes until t_s has passed
+        rig.run(10.1, 10.0 + delay - 0.1)
+        assert x_range(rig.jm.working_area) == (0.0, 50.0), "fell too early"
     rig.run(10.0 + delay + 0.1, 10.0 + delay + 0.2)
     assert x_range(rig.jm.working_area) == (0.0, 100.0)
     assert rig.jm.team.fallen == ["uav2"]
@@ -50,21 +51,27 @@ def test_revenge_mode_takes_over_the_whole_arena(why, event, delay):
     assert rig.jm.state is State.CHECKING_TARGET
 
 
-def test_partner_heard_again_gets_its_area_back_only_after_rejoin_time():
+@pytest.mark.parametrize("fall", ["token gone", "silent for t_s"])
+def test_partner_heard_again_gets_its_area_back_only_after_rejoin_time(fall):
     rig = Rig().airborne()
     rig.jm.partner_token("uav2", True, s(1.0))
     flying(rig, "uav2", 1.0)
     rig.tick(1.1)
-    rig.jm.partner_token("uav2", False, s(2.0))
-    rig.tick(2.0)
+    if fall == "token gone":
+        rig.jm.partner_token("uav2", False, s(2.0))
+        rig.tick(2.0)
+        rig.jm.partner_token("uav2", True, s(3.0))
+        back_from = 3.0
+    else:
+        rig.run(1.2, 16.2)  # last heard at 1.0: fallen after 15 s of silence
+        back_from = 16.3
     assert x_range(rig.jm.working_area) == (0.0, 100.0)
-    rig.jm.partner_token("uav2", True, s(3.0))
-    for t in np.arange(3.0, 5.95, 0.2):
-        flying(rig, "uav2", t)
+    for t in np.arange(back_from, back_from + 2.95, 0.2):
+        flying(rig, "uav2", round(t, 3))
         rig.tick(round(t, 3))
     assert x_range(rig.jm.working_area) == (0.0, 100.0), "back before rejoin_time"
-    flying(rig, "uav2", 6.1)
-    rig.tick(6.1)
+    flying(rig, "uav2", back_from + 3.1)
+    rig.tick(back_from + 3.1)
     assert x_range(rig.jm.working_area) == (0.0, 50.0) and rig.jm.team.fallen == []
     assert any(n.startswith("partner uav2 is back") for n in rig.jm.notes)
 

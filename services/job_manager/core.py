@@ -159,9 +159,12 @@ class JobManager:
     def observe_detections(self, stamp: int, positions: np.ndarray) -> None:
         """One scan's detections (N, 3), world frame; also the LiDAR heartbeat of the abort system."""
         positions = self.seen.scan(stamp, positions)
+        above = positions[positions[:, 2] >= self.ground_z + self.params.min_target_height]
         if self.engagement is not None:
-            self.engagement.filter.update(
-                positions[positions[:, 2] >= self.ground_z + self.params.min_target_height], stamp)
+            self.engagement.filter.update(above, stamp)
+        mover = self.seen.last_mover
+        if mover is not None and (self.engagement is None or mover is not self.engagement.filter):
+            mover.update(above, stamp)  # keep knowing where the last mover is, engaged or not
 
     def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
         """Confirmed tracks: ids (K,), positions and velocities (K, 3); they tell at the lock
@@ -240,6 +243,7 @@ class JobManager:
         if target is State.CHECKING_TARGET:
             self._checked = None
             self._previous_target = None if self.engagement is None else self.engagement.position(now)
+            self.engagement = None  # a new lock follows; the old target only biases the choice
         if target is State.GOING_TO_TARGET:
             self._unseen_from = 0
         if target is State.GOING_AROUND:
@@ -253,20 +257,25 @@ class JobManager:
     def candidates(self, now: int, position: np.ndarray) -> np.ndarray:
         """(N, 3) detections in view that this UAV may act on (seed 004 §3.5.2 filter)."""
         latest = self.seen.in_view(now)
-        return np.zeros((0, 3)) if latest is None else self._usable(latest, now, position)
+        return np.zeros((0, 3)) if latest is None else self._usable(latest, now, position, self.seen.latest_stamp)
 
     def recent_candidates(self, now: int, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Candidates of the scans of the last t_m, with their stamps: a target far away shows in
         some scans only, and the stop manoeuvre may carry it out of range for a while."""
-        scans = [(stamp, self._usable(positions, now, position)) for stamp, positions in self.seen.recent
+        scans = [(stamp, self._usable(positions, now, position, stamp)) for stamp, positions in self.seen.recent
                  if now - stamp <= int(self.params.target_time * NS)]
         if not scans:
             return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
         return (np.concatenate([c for _, c in scans]),
                 np.concatenate([np.full(len(c), stamp, dtype=np.int64) for stamp, c in scans]))
 
-    def _usable(self, detections: np.ndarray, now: int, position: np.ndarray) -> np.ndarray:
+    def _usable(self, detections: np.ndarray, now: int, position: np.ndarray, stamp: int) -> np.ndarray:
+        """The detections of the scan at `stamp` the machine may act on; while movers are skipped
+        (a mover ran out a state timer), the ones that move are left out too."""
         p = self.params
+        if now < self._no_moving_until and len(detections):
+            still = np.array([self.seen.motion(d, now, stamp) is None for d in detections])
+            detections = detections[still]
         mine = None if self.engagement is None else self.engagement.position(now)
         claimed = self.team.claimed_targets(mine, position, p.claim_radius) if self.team else np.zeros((0, 3))
         keep = usable_detections(detections, area=self.working_area, zones=self.zones, claimed=claimed,
@@ -413,10 +422,11 @@ class JobManager:
         return self.state, ""
 
     def _unseen(self, now: int, position: np.ndarray) -> bool:
-        """Lost: not seen for t_m since the lock, counted only while within reliable range
-        (the seed's camera saw a target or not; a LiDAR sees a far 0.6 m balloon in some scans)."""
+        """Lost: not seen for t_m since the lock, counted for a static target only while within
+        reliable range (the seed's camera saw a target or not; a LiDAR sees a far 0.6 m balloon in
+        some scans); a mover's prediction must not run on unchecked."""
         e, p = self.engagement, self.params
-        if np.linalg.norm(e.position(now) - position) > p.reliable_range:
+        if not e.moving and np.linalg.norm(e.position(now) - position) > p.reliable_range:
             self._unseen_from = now
             return False
         since = max(e.last_seen(), self.state_since, self._unseen_from)
@@ -449,6 +459,7 @@ class JobManager:
         e = self.engagement
         if not e.moving and e.filter.speed() >= self.params.moving_speed:
             if now < self._no_moving_until:
+                self.seen.last_mover = e.filter  # so it is known for a mover from now on
                 return "the target moves, and moving targets are skipped for now"
             e.moving = True
             self._sent_target = None

@@ -72,7 +72,7 @@ class Team:
         if p is None:
             return
         p.heard = stamp if p.heard is None else max(p.heard, stamp)
-        if flying_normally and not p.flying_normally:
+        if flying_normally and (not p.flying_normally or p.normal_since is None):
             p.normal_since = stamp
         p.flying_normally = flying_normally
         p.was_flying |= flying_normally
@@ -100,6 +100,7 @@ class Team:
                 reason = self._fall_reason(p, now, my_takeoff)
                 if reason:
                     p.fallen_reason = reason
+                    p.normal_since = None  # coming back needs rejoin_time of fresh statuses
                     changes.append(TeamChange(p.name, True, reason))
             elif self._back(p, now):
                 changes.append(TeamChange(p.name, False, f"flying normally again for "

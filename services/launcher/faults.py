@@ -11,6 +11,7 @@ from typing import Callable
 
 from schemas import keys
 from schemas.messages import FaultCommand
+from services.launcher import netns
 from services.launcher.netns import UavNetwork
 from services.launcher.supervisor import Supervisor
 
@@ -56,7 +57,12 @@ class FaultExecutor:
             if self.network is None:
                 self.report("fault_failed", subject, "link_cut needs per-UAV network namespaces")
                 return
-            self.network.cut(command.uav)
+            try:
+                self.network.cut(command.uav)
+            except netns.NetnsError as exc:  # the veth may be down already: restore it at the end
+                self.active.append(ActiveFault(command, ends_at, targets))
+                self.report("fault_failed", subject, f"link_cut incomplete: {exc}")
+                return
             detail = f"veth down for {command.duration:g} s" if ends_at else "veth down for good"
         self.active.append(ActiveFault(command, ends_at, targets))
         self.report("fault_started", subject, f"{command.kind}: {detail}")

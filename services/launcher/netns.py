@@ -35,10 +35,18 @@ def _ip(*args: str, netns: str | None = None) -> None:
 
 
 def _kill_sockets(netns: str | None, selector: str) -> None:
-    argv = [*(("ip", "netns", "exec", netns) if netns else ()), "ss", "-K", "-t", *selector.split()]
+    """Destroy the TCP sockets `selector` picks (needs a kernel with SOCK_DESTROY; `ss` exits 0
+    without it, so what is left is checked)."""
+    prefix = ["ip", "netns", "exec", netns] if netns else []
+    argv = [*prefix, "ss", "-K", "-t", *selector.split()]
     result = subprocess.run(argv, capture_output=True, text=True)
     if result.returncode != 0:
         raise NetnsError(f"`{' '.join(argv)}` failed: {result.stderr.strip()}")
+    left = subprocess.run([*prefix, "ss", "-H", "-t", "state", "established", *selector.split()],
+                          capture_output=True, text=True).stdout.strip()
+    if left:
+        raise NetnsError(f"could not destroy the connections across the cut ({len(left.splitlines())} left; "
+                         "does the kernel support SOCK_DESTROY?)")
 
 
 class UavNetwork:
