@@ -48,6 +48,7 @@ ACK_TIMEOUT_S = 10.0
 
 class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     startup_timeout: float = 60.0  # s of wall time to wait for every service before starting anyway
+    startup_settle: float = 1.0  # s of wall time between the last service coming up and the first tick
     world_period: float = 1.0  # s of mission time between WorldModel re-publications
 
 
@@ -192,6 +193,12 @@ class SimulatorNode(Node):
             if time.monotonic() > deadline:
                 self.log.warning("starting without %s", ", ".join(sorted(expected - self._alive)))
                 return True
+            self.pump(0.05)
+        # A token says a service is up, not that its subscriptions have reached every publisher
+        # (declarations travel separately): a first message sent before then is lost, and in
+        # lockstep its subscriber waits for it in vain. Let the declarations settle.
+        settle = time.monotonic() + self.params.startup_settle
+        while time.monotonic() < settle and not self.stopping:
             self.pump(0.05)
         return True
 
