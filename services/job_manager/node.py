@@ -8,9 +8,6 @@ decision is the core's; the node only converts messages and logs what the core n
 """
 from __future__ import annotations
 
-import importlib
-import threading
-
 import numpy as np
 
 from schemas import keys
@@ -28,6 +25,7 @@ from schemas.messages import (
 from services.job_manager.core import NS, JobManager, MissionDecision
 from services.job_manager.params import JobManagerParams
 from services.runtime.node import Node
+from services.runtime.warmup import preload
 
 # Pre-flight check (seed 004 §3.6): every service this UAV's mission depends on is alive,
 # and one detector (the classifier, or the evaluation oracle that replaces it).
@@ -41,9 +39,7 @@ class JobManagerNode(Node):
     params_type = JobManagerParams
 
     def setup(self) -> None:
-        # The target filter's library takes a second to import; load it beside start-up so a
-        # restarted job manager is back (liveliness) at once and the first lock does not wait.
-        threading.Thread(target=importlib.import_module, args=("filterpy.kalman",), daemon=True).start()
+        preload("filterpy.kalman")  # the target filter's library: off the restart's critical path
         self.core = JobManager(self.params, self.uav)
         p = self.params
         self.profiles = {

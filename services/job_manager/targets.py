@@ -33,7 +33,7 @@ class TargetFilter:
     def __init__(self, position: np.ndarray, stamp: int, *, gate: float, measurement_sigma: float,
                  process_sigma: float, max_gap_ns: int, history_ns: int = 2 * NS,
                  velocity: np.ndarray | None = None, max_speed: float = 5.0) -> None:
-        from filterpy.kalman import KalmanFilter  # 1.2 s to import (scipy): not on a restart's critical path
+        from filterpy.kalman import KalmanFilter  # imported here: see services/runtime/warmup.py
 
         kf = KalmanFilter(dim_x=3, dim_z=3)
         kf.x = np.asarray(position, dtype=np.float64).reshape(3, 1).copy()

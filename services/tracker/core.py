@@ -18,9 +18,6 @@ from dataclasses import dataclass
 
 import msgspec
 import numpy as np
-from filterpy.kalman import KalmanFilter
-from filterpy.kalman import predict as kf_predict
-from scipy.optimize import linear_sum_assignment
 
 NS = 1_000_000_000
 H = np.hstack([np.eye(3), np.zeros((3, 6))])  # eq. 30: the measurement is the position
@@ -90,6 +87,8 @@ class TrackEstimate:
 class _Track:
     def __init__(self, track_id: int, params: TrackerParams, position: np.ndarray, stamp_ns: int) -> None:
         self.id = track_id
+        from filterpy.kalman import KalmanFilter  # imported here: see services/runtime/warmup.py
+
         self.kf = KalmanFilter(dim_x=9, dim_z=3)
         self.kf.H = H.copy()
         self.kf.x = np.concatenate([position, np.zeros(6)])
@@ -132,6 +131,8 @@ class TrackerCore:
             gates = np.array([uncertainty_radius(p, t.kf.P) for t in self._tracks])
             distances = np.linalg.norm(predicted[:, None, :] - positions[None, :, :], axis=2)
             outside = distances > gates[:, None]
+            from scipy.optimize import linear_sum_assignment
+
             rows, cols = linear_sum_assignment(np.where(outside, 1e9, distances))
             for row, col in zip(rows, cols):
                 if outside[row, col]:
@@ -162,6 +163,8 @@ class TrackerCore:
         out = []
         for track in self._tracks:
             dt = max(0.0, (now_ns - track.stamp_ns) / NS)
+            from filterpy.kalman import predict as kf_predict
+
             state, cov = kf_predict(track.kf.x, track.kf.P, F=transition(dt), Q=process_noise(p, dt))
             out.append(TrackEstimate(
                 id=track.id,

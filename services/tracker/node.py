@@ -12,6 +12,7 @@ from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, Track, Tracks
 from services.runtime.clock import to_ns
 from services.runtime.node import Node
+from services.runtime.warmup import preload
 from services.tracker.core import TrackerCore, TrackerParams
 
 
@@ -21,6 +22,7 @@ class TrackerNode(Node):
     params_type = TrackerParams
 
     def setup(self) -> None:
+        preload("filterpy.kalman", "scipy.optimize")  # the Kalman and assignment libraries, beside start-up
         self.core = TrackerCore(self.params)
         self.tracks_pub = self.publisher(self.topic("tracks"), Tracks)
         self.subscribe(self.topic("detections"), Detections, self.on_detections)
