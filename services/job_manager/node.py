@@ -139,7 +139,6 @@ class JobManagerNode(Node):
             self.log.info("%s", note)
         self.core.notes.clear()
 
-
     # --------------------------------------------------------------- outputs
     def send_command(self, now_ns: int, decision: MissionDecision) -> None:
         self.command_id += 1

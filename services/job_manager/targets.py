@@ -47,7 +47,6 @@ class TargetFilter:
         self.max_speed = max_speed  # of any target: how far one may go unseen, before its velocity is known
         self.max_gap_ns = max_gap_ns
         self.history_ns = history_ns
-        self.started = stamp
         self.last_seen = stamp
         self.streak_start = stamp
         self.updates = 1
@@ -108,9 +107,6 @@ class TargetFilter:
 
     def speed(self) -> float:
         return float(np.linalg.norm(self.velocity))
-
-    def unseen_for(self, now: int) -> float:
-        return (now - self.last_seen) / NS
 
     def confirmed_for(self, now: int) -> float:
         """Seconds the target has been seen without a gap (0 once the gap exceeds max_gap)."""

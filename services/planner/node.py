@@ -1,8 +1,10 @@
 """planner service: plans a trajectory for every new mission command (core.py, seed 004 ch. 5)
 and publishes it as a TrajectoryReference.
 
-A command with a new id is planned from the latest odometry (position, heading and velocity,
-so a re-plan in flight does not stop the vehicle): take-off/land/hover, stop (the brake before
+A command with a new id is planned from where the vehicle is meant to be: on the current
+trajectory while it follows it (`rejoin_distance`), else from the latest odometry (position,
+heading and velocity), so a re-plan in flight neither stops the vehicle nor hides its braking
+from the controller: take-off/land/hover, stop (the brake before
 checking a target), scan (lawnmower over the working area's inner rectangle), approach (to the
 waiting point d_b with deadband), attack (through the target + o_h, d_o beyond), intercept (a
 pursuit that blends onto a moving target's predicted track, or else a merge that waits on it),
@@ -39,6 +41,7 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     end_offset: float = 0.15  # [o_o] m above the target height where the attack ends
     merge_acceleration: float = 1.5  # m/s² along a moving target's path when merging onto it
     follow_time: float = 4.0  # s flown alongside a moving target after the merge
+    pursuit_horizon: float = 12.0  # s a pursuit flies the predicted track before braking (re-planned sooner)
     rejoin_distance: float = 1.5  # m: a re-plan starts on the current trajectory while this close to it
     republish_period: float = 2.0  # s of mission time
     repeat_scan: bool = True  # sweep again once a scan trajectory has ended
@@ -153,7 +156,7 @@ class PlannerNode(Node):
                 # pursuit re-plans smoothly from the current state on every new prediction; the
                 # merge (wait on the predicted path) is the fallback when no blend fits the profile
                 velocity = np.asarray(command.target_velocity or (0.0, 0.0, 0.0), dtype=np.float64)
-                path = core.pursuit(p, target, velocity, profile=profile, dt=dt, follow_time=prm.follow_time, **moving)
+                path = core.pursuit(p, target, velocity, profile=profile, dt=dt, horizon=prm.pursuit_horizon, **moving)
                 if path is None:
                     path = core.intercept(p, target, velocity, profile=profile, dt=dt,
                                           merge_acceleration=prm.merge_acceleration, follow_time=prm.follow_time,

@@ -35,19 +35,16 @@ def _limit_velocity(velocity: np.ndarray, profile: ConstraintProfile) -> np.ndar
 
 
 def pursuit(position, target_position, target_velocity, *, profile: ConstraintProfile, dt: float = DT,
-            start_velocity=None, start_heading: float | None = None, horizon: float = 8.0,
-            follow_time: float | None = None) -> Path | None:
+            start_velocity=None, start_heading: float | None = None, horizon: float = 12.0) -> Path | None:
     """Close on the predicted track and fly along it for `horizon` s, then brake to rest; heading
-    along the target's velocity. None when the target is faster than the profile allows.
-    (`follow_time`, if given, extends the horizon by that much.)"""
+    along the target's velocity. None when the target is faster than the profile allows."""
     accel = _MARGIN * profile.max_acceleration
     pt, vt = np.asarray(target_position, float).reshape(3), np.asarray(target_velocity, float).reshape(3)
     if np.linalg.norm(vt) >= _MARGIN * profile.max_speed or abs(vt[2]) >= _MARGIN * profile.max_vertical_speed:
         return None  # it could never be caught up with
     p = np.asarray(position, float).reshape(3).copy()
     v = np.zeros(3) if start_velocity is None else _limit_velocity(np.asarray(start_velocity, float).reshape(3), profile)
-    total = horizon + (follow_time or 0.0)
-    steps = int(np.ceil(total / dt))
+    steps = int(np.ceil(horizon / dt))
     positions = [p.copy()]
     braking = BRAKING * accel
     for k in range(steps):  # inherently sequential: a vehicle flown forward in time
