@@ -7,6 +7,7 @@ import argparse
 import msgspec
 
 from schemas import keys
+from services.launcher.common import CliError
 from services.launcher.registry import node_class
 
 
@@ -46,7 +47,6 @@ def add_parser(commands) -> None:
 
 
 def run_params(args: argparse.Namespace) -> int:
-    from services.launcher.cli import CliError
 
     unknown = [s for s in args.services if s not in keys.SERVICES]
     if unknown:

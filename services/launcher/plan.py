@@ -9,6 +9,7 @@ from schemas.keys import uav_services
 from services.launcher.netns import UavNetwork
 from services.runtime.zenoh_config import ZenohSettings
 
+
 @dataclass
 class RunPlan:
     hub_settings: ZenohSettings

@@ -8,14 +8,13 @@ import time
 
 import zenoh
 
+from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
 from services.recorder.mcap_io import CHUNK_SIZE, COMPRESSIONS
 from services.recorder.record import DEFAULT_KEYS, Recorder, summary_lines
 from services.runtime.zenoh_config import init_logging, open_session
 
 
 def add_parser(commands) -> None:
-    from services.launcher.cli import add_zenoh_options
-
     p = commands.add_parser(
         "record", help="record every message of a run to an MCAP file",
         description="Subscribe to falconry/** (or the given key expressions) and write every message to an "
@@ -41,7 +40,6 @@ def add_parser(commands) -> None:
 
 
 def check_key_exprs(exprs: list[str]) -> list[str]:
-    from services.launcher.cli import CliError
 
     for expr in exprs:
         try:
@@ -52,7 +50,6 @@ def check_key_exprs(exprs: list[str]) -> list[str]:
 
 
 def run_record(args: argparse.Namespace) -> int:
-    from services.launcher.cli import CliError, zenoh_settings
 
     if args.zenoh_profile == "embedded" and not (args.connect or args.listen or args.zenoh_config):
         raise CliError("give the run to record with --connect ENDPOINT (e.g. tcp/127.0.0.1:PORT)")

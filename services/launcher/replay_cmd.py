@@ -6,6 +6,7 @@ import signal
 import threading
 from pathlib import Path
 
+from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
 from services.launcher.record_cmd import check_key_exprs
 from services.recorder.replay import Replayer, ReplayError
 from services.recorder.selection import DEFAULT_REPLAY_KEYS
@@ -13,8 +14,6 @@ from services.runtime.zenoh_config import init_logging, open_session
 
 
 def add_parser(commands) -> None:
-    from services.launcher.cli import add_zenoh_options
-
     p = commands.add_parser(
         "replay", help="publish a recording (falconry record) back, e.g. to re-run perception on it",
         description="Publish the recorded messages of FILE again, unchanged, on their original keys. By "
@@ -49,7 +48,6 @@ def add_parser(commands) -> None:
 
 
 def run_replay(args: argparse.Namespace) -> int:
-    from services.launcher.cli import CliError, zenoh_settings
 
     if not Path(args.file).is_file():
         raise CliError(f"no such recording: {args.file}")

@@ -4,8 +4,10 @@ from __future__ import annotations
 import argparse
 
 from schemas import keys
+from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
 from services.launcher.params import ParamsError, params_for
 from services.launcher.registry import node_class
+from services.simulator.options import add_simulator_options
 
 
 def add_parser(commands) -> None:
@@ -23,15 +25,12 @@ def add_parser(commands) -> None:
     p.add_argument("--tick-hz", type=float, default=20.0, help="tick rate with --clock wall (default 20)")
     p.add_argument("--exit-with-parent", action="store_true",
                    help="stop when the launching process dies (the launcher sets this)")
-    from services.launcher.cli import add_zenoh_options
     add_zenoh_options(p, "Embedded default: none (this process only listens).")
-    from services.simulator.options import add_simulator_options
     add_simulator_options(p)
     p.set_defaults(handler=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from services.launcher.cli import CliError, zenoh_settings
 
     cls = node_class(args.service)
     if args.service not in keys.SIM_SERVICES:

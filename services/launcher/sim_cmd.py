@@ -19,13 +19,14 @@ import msgspec
 from schemas import keys
 from schemas.messages import FaultCommand, Header, SimEvent
 from services.launcher import netns
-from services.recorder.record import Recorder, summary_lines
+from services.launcher.common import CliError, add_zenoh_options
 from services.launcher.faults import FaultExecutor
 from services.launcher.monitor import RunMonitor
-from services.launcher.plan import plan_run
 from services.launcher.params import ParamsError, params_for, read_tables
+from services.launcher.plan import plan_run
 from services.launcher.registry import node_class
 from services.launcher.supervisor import Supervisor, describe_exit
+from services.recorder.record import Recorder, summary_lines
 from services.runtime import shm
 from services.runtime.zenoh_config import free_port, init_logging, open_session
 from services.simulator.options import add_simulator_options
@@ -35,8 +36,6 @@ WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, "falconry/*/status", "falconry/*
 
 
 def add_parser(commands) -> None:
-    from services.launcher.cli import add_zenoh_options
-
     p = commands.add_parser(
         "sim", help="run a simulated multi-UAV mission (simulator + every service of every UAV)",
         description="Start the simulator and every per-UAV service as separate processes on an embedded "
@@ -71,7 +70,6 @@ def add_parser(commands) -> None:
 
 
 def run_sim(args: argparse.Namespace) -> int:
-    from services.launcher.cli import CliError
 
     try:
         scenario = load_scenario(args.scenario)
@@ -226,7 +224,6 @@ class Outputs:
     """The run's output files, opened before anything starts so a bad path is a one-line error."""
 
     def __init__(self, args: argparse.Namespace) -> None:
-        from services.launcher.cli import CliError
 
         self.truth = self.log = None
         try:
