@@ -165,6 +165,15 @@ class TrajectoryReference(msgspec.Struct, kw_only=True):
     profile: ConstraintProfile = msgspec.field(default_factory=ConstraintProfile)
 
 
+class ForbiddenZoneStatus(msgspec.Struct, kw_only=True):
+    """A forbidden zone of a job manager (seed 004 §3.5.2): detections inside are ignored until `expires`."""
+
+    center: Vec3
+    radius: float  # m
+    expires: int  # mission time, ns
+    reason: str = ""
+
+
 class UavStatus(msgspec.Struct, kw_only=True):
     """Heartbeat each UAV's job manager sends to its partners."""
 
@@ -177,6 +186,7 @@ class UavStatus(msgspec.Struct, kw_only=True):
     working_area: list[Point2] = []
     target: Vec3 | None = None
     fallen_partners: list[str] = []  # partners this UAV's job manager counts as fallen (revenge mode)
+    forbidden_zones: list[ForbiddenZoneStatus] = []  # this UAV's live forbidden zones
 
 
 class SimClock(msgspec.Struct, kw_only=True):
@@ -296,6 +306,8 @@ class ServiceHealth(msgspec.Struct, kw_only=True):
     handler_errors: int = 0
     lockstep_timeouts: int = 0
     subscriptions: list[str] = []
+    cpu_time: float = 0.0  # s of CPU the whole process used so far (every thread)
+    memory: int = 0  # resident set size, bytes (0 where the platform does not say)
 
 
 ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (

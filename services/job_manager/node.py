@@ -15,6 +15,7 @@ from schemas.arrays import to_numpy
 from schemas.messages import (
     ConstraintProfile,
     Detections,
+    ForbiddenZoneStatus,
     Header,
     MissionCommand,
     Odometry,
@@ -176,6 +177,8 @@ class JobManagerNode(Node):
             working_area=[] if area is None else [(float(x), float(y)) for x, y in area],
             target=self.core.target,
             fallen_partners=[] if self.core.team is None else self.core.team.fallen,
+            forbidden_zones=[ForbiddenZoneStatus(center=z.center, radius=self.core.zones.radius, expires=z.expires,
+                                                 reason=z.reason) for z in self.core.zones.zones],
         ))
 
 

@@ -31,6 +31,7 @@ import zenoh
 from schemas import keys
 from schemas.messages import FaultCommand, Header, ServiceHealth, SimClock, StepAck
 from services.runtime.clock import MissionClock, WallClock
+from services.runtime.health import process_usage
 from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.typed import Counters, M, Subscription, TypedPublisher
 from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session
@@ -439,6 +440,7 @@ class Node:
     # ------------------------------------------------------------- health
     def health(self) -> ServiceHealth:
         c = self.counters
+        cpu_time, memory = process_usage()
         return ServiceHealth(
             header=Header(sender=self.sender, stamp=self.clock.now_ns()),
             uav=self.scope,
@@ -452,6 +454,8 @@ class Node:
             handler_errors=c.handler_errors,
             lockstep_timeouts=c.lockstep_timeouts,
             subscriptions=[sub.key_expr for sub in self._subs],
+            cpu_time=cpu_time,
+            memory=memory,
         )
 
     def _answer_health(self, query: zenoh.Query) -> None:
