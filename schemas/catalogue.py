@@ -5,6 +5,7 @@ checks the README is in step), so the code is the single source of truth.
 """
 from __future__ import annotations
 
+import re
 from typing import NamedTuple
 
 import msgspec
@@ -52,3 +53,20 @@ def markdown() -> str:
         type_name = f"`{e.type.__name__}`" if e.type else "liveliness token"
         rows.append(f"| `{e.key}` | {type_name} | {e.publisher} | {e.subscribers} | {e.rate} |")
     return "\n".join(rows) + "\n"
+
+
+def _pattern_regex(pattern: str) -> re.Pattern:
+    """falconry/<uav>/points → one key segment in place of each <placeholder>."""
+    parts = re.split(r"(<[^>/]+>)", pattern)
+    return re.compile("^" + "".join("[^/]+" if p.startswith("<") else re.escape(p) for p in parts) + "$")
+
+
+_CATALOGUE_REGEXES = [(_pattern_regex(e.key), e) for e in CATALOGUE]
+
+
+def catalogue_entry(key: str) -> Entry | None:
+    """The catalogue entry a concrete key belongs to (first match; run-wide keys come first)."""
+    for regex, entry in _CATALOGUE_REGEXES:
+        if regex.match(key):
+            return entry
+    return None

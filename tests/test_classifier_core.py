@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.classifier.core import BACKGROUND, FLYING, UNKNOWN, ClassifierCore, ClassifierParams, cluster_voxels
+from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
+from services.classifier.core import ClassifierCore, ClassifierParams, cluster_voxels
 from services.mapper.core import MapperParams
 
 SENSOR = (0.0, 0.0, 5.0)

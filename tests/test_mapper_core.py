@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.mapper.core import BACKGROUND, FLYING, UNKNOWN, MapperCore, MapperParams
+from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
+from services.mapper.core import MapperCore, MapperParams
 
 SMALL = MapperParams(origin=(0.0, 0.0, 0.0), shape=(40, 20, 20))  # 20 x 10 x 10 m
 

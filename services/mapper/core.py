@@ -19,7 +19,7 @@ from __future__ import annotations
 import msgspec
 import numpy as np
 
-BACKGROUND, FLYING, UNKNOWN = 0, 1, 2
+from schemas.voxels import BACKGROUND, FLYING
 
 
 class MapperParams(msgspec.Struct, forbid_unknown_fields=True):

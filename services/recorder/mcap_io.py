@@ -20,7 +20,6 @@ yields every message of its complete chunks and reports where the damaged tail s
 from __future__ import annotations
 
 import json
-import re
 import time
 from dataclasses import dataclass, field
 from typing import BinaryIO, Callable, Iterator
@@ -31,7 +30,7 @@ from mcap.records import Channel, Chunk, Footer, Message
 from mcap.stream_reader import StreamReader, breakup_chunk
 from mcap.writer import CompressionType, Writer
 
-from schemas.catalogue import CATALOGUE
+from schemas.catalogue import catalogue_entry
 from schemas.messages import Header
 from services.runtime.errors import UsageError
 
@@ -40,23 +39,6 @@ MESSAGE_ENCODING = "msgpack"
 SCHEMA_ENCODING = "jsonschema"
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 CHUNK_SIZE = 1 << 20
-
-
-def _pattern_regex(pattern: str) -> re.Pattern:
-    """falconry/<uav>/points → one key segment in place of each <placeholder>."""
-    parts = re.split(r"(<[^>/]+>)", pattern)
-    return re.compile("^" + "".join("[^/]+" if p.startswith("<") else re.escape(p) for p in parts) + "$")
-
-
-_CATALOGUE_REGEXES = [(_pattern_regex(e.key), e) for e in CATALOGUE]
-
-
-def catalogue_entry(key: str):
-    """The catalogue entry a concrete key belongs to (first match; run-wide keys come first)."""
-    for regex, entry in _CATALOGUE_REGEXES:
-        if regex.match(key):
-            return entry
-    return None
 
 
 class _Stamped(msgspec.Struct):
