@@ -19,6 +19,7 @@ from services.runtime.clock import seconds
 
 _LENGTH = struct.Struct("<I")
 DETECTED_WITHIN = 1.5  # m between a detection and a target's true position for "first detected"
+NEAREST_PERIOD = 0.25  # s of mission time between samples of each UAV's distance to its nearest partner
 
 
 def write_record(stream: BinaryIO, payload: bytes) -> None:
@@ -52,6 +53,8 @@ class UavSummary:
     confirmed_tracks: set[int] = field(default_factory=set)
     last_position: tuple[float, float, float] | None = None
     states: list[tuple[float, str]] = field(default_factory=list)  # (mission time, job manager state) changes
+    detection_counts: list[tuple[float, int]] = field(default_factory=list)  # (mission time, detections) per scan
+    nearest_partner: list[tuple[float, float]] = field(default_factory=list)  # (mission time, m), truth, 4 Hz
     team_view: tuple | None = None  # (working area x-range, fallen partners) last reported
 
 
@@ -108,7 +111,9 @@ class RunMonitor:
                         self._uav(uav).confirmed_tracks.add(track.id)
             elif topic == "detections":
                 det = self._detections.decode(payload)
-                self._uav(uav).detections += det.positions.shape[0] if det.positions.shape else 0
+                count = det.positions.shape[0] if det.positions.shape else 0
+                self._uav(uav).detections += count
+                self._uav(uav).detection_counts.append((seconds(det.header.stamp), count))
                 self._note_first_detections(uav, det)
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
             pass  # not ours to police: the services count their own decode errors
@@ -159,11 +164,17 @@ class RunMonitor:
             else:
                 self._target_positions.pop(target.id, None)
         flying = [v for v in truth.uavs if v.airborne and v.alive]
+        nearest = {v.name: math.inf for v in flying}
         for i, a in enumerate(flying):
             for b in flying[i + 1:]:
                 gap = math.dist(a.position, b.position)
+                nearest[a.name], nearest[b.name] = min(nearest[a.name], gap), min(nearest[b.name], gap)
                 if self.min_separation is None or gap < self.min_separation[0]:
                     self.min_separation = (gap, t, f"{a.name}-{b.name}")
+        for name, gap in nearest.items():
+            series = self._uav(name).nearest_partner
+            if gap < math.inf and (not series or t - series[-1][0] >= NEAREST_PERIOD):
+                series.append((t, gap))
 
     def _note_first_detections(self, uav: str, det: Detections) -> None:
         """When each target was first detected by anyone: a detection within DETECTED_WITHIN of its

@@ -15,6 +15,7 @@ class RunPlan:
     hub_settings: ZenohSettings
     hub_label: str
     children: dict[str, list[str]] = field(default_factory=dict)  # name -> argv
+    viewer: list[str] | None = None  # argv of `falconry view` drawing the run (--viz / --rrd)
 
 
 def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: float, port: int,
@@ -55,4 +56,9 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
             else:
                 argv = base + [service, "--uav", uav, *extra, *zenoh_args(loopback_hub, None)]
             plan.children[f"{uav}/{service}"] = argv
+    if args.viz or args.rrd:
+        # a plain subscriber in the root namespace, never a lockstep participant
+        plan.viewer = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "view",
+                       "--exit-with-parent", "--quiet", *zenoh_args(loopback_hub, None)] \
+            + (["--rrd", args.rrd] if args.rrd else []) + (["--viz", args.viz] if args.viz else [])
     return plan

@@ -19,7 +19,8 @@ def add_parser(commands) -> None:
         "record", help="record every message of a run to an MCAP file",
         description="Subscribe to falconry/** (or the given key expressions) and write every message to an "
                     "MCAP file: one channel per key, the raw msgpack payload as message data, the type's JSON "
-                    "Schema per channel, log_time = receive time, publish_time = header.stamp. Chunks are "
+                    "Schema per channel, log_time = receive time, publish_time = header.stamp; every --health seconds "
+                    "the services' health answers too. Chunks are "
                     "closed every --flush seconds, so a crash loses at most that much; Ctrl-C, SIGTERM or "
                     "--duration finish the file properly. Any MCAP reader opens it (`mcap info FILE`, Foxglove: "
                     "channels, schemas, timing; the payloads are msgpack); replay it with `falconry replay FILE`.",
@@ -33,6 +34,9 @@ def add_parser(commands) -> None:
                    help=f"close a chunk once it holds this much (default {CHUNK_SIZE})")
     p.add_argument("--flush", type=float, default=1.0, metavar="S",
                    help="close the chunk in progress at least every S seconds (default 1)")
+    p.add_argument("--health", type=float, default=1.0, metavar="S",
+                   help="ask every service for its health (CPU, memory, counters) every S seconds and record the "
+                        "answers on falconry/<scope>/health/<service> (default 1; 0 = never)")
     p.add_argument("--progress", type=float, default=5.0, metavar="S",
                    help="print a progress line every S seconds (default 5; 0 = never)")
     add_zenoh_options(p, "Give the run's hub, e.g. --connect tcp/127.0.0.1:PORT (or --listen and let the run connect).")
@@ -57,6 +61,8 @@ def run_record(args: argparse.Namespace) -> int:
         raise CliError("--duration must be positive")
     if args.flush <= 0 or args.chunk_size <= 0:
         raise CliError("--flush and --chunk-size must be positive")
+    if args.health < 0:
+        raise CliError("--health must be 0 (never) or positive")
     key_exprs = check_key_exprs(args.keys or list(DEFAULT_KEYS))
 
     stop = threading.Event()
@@ -67,7 +73,7 @@ def run_record(args: argparse.Namespace) -> int:
     try:
         try:
             recorder = Recorder(session, args.file, key_exprs, compression=args.compression,
-                                chunk_size=args.chunk_size, flush_s=args.flush)
+                                chunk_size=args.chunk_size, flush_s=args.flush, health_s=args.health)
         except OSError as exc:
             raise CliError(f"cannot write {args.file}: {exc.strerror or exc}") from None
         print(f"recording {' '.join(recorder.key_exprs)} to {args.file} (Ctrl-C to stop)", flush=True)

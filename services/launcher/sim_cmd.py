@@ -26,12 +26,14 @@ from services.launcher.params import ParamsError, params_for, read_tables
 from services.launcher.plan import plan_run
 from services.launcher.registry import node_class
 from services.launcher.supervisor import Supervisor, describe_exit
+from services.launcher.view_cmd import DRAIN_S, add_view_options, check_view_options
 from services.recorder.record import Recorder, summary_lines
 from services.runtime import shm
 from services.runtime.zenoh_config import free_port, init_logging, open_session
 from services.simulator.options import add_simulator_options
 from services.simulator.scenario import ScenarioError, load_scenario
 
+VIEWER = "sim/viewer"
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, "falconry/*/status", "falconry/*/tracks", "falconry/*/detections")
 
 
@@ -65,6 +67,8 @@ def add_parser(commands) -> None:
                      help="print a progress line every S seconds of mission time (default 10; 0 = never)")
     run.add_argument("--wall-timeout", type=float, default=0.0, metavar="S",
                      help="give up after S seconds of wall time (default: no limit)")
+    add_view_options(p.add_argument_group("see the run"),
+                     "watch the run live in rerun (a plain subscriber: the mission never waits for it)")
     add_zenoh_options(p, "Embedded default: the launcher listens on --port and services connect to it.")
     p.set_defaults(handler=run_sim)
 
@@ -78,6 +82,7 @@ def run_sim(args: argparse.Namespace) -> int:
             params_for(service, node_class(service).params_type, args.config)
     except (ScenarioError, ParamsError) as exc:
         raise CliError(str(exc)) from None
+    check_view_options(args)
     outputs = Outputs(args)
     for name, value in (("--duration", args.duration), ("--rtf", args.rtf), ("--tick", args.tick)):
         if value is not None and value <= 0:
@@ -143,6 +148,8 @@ def run_sim(args: argparse.Namespace) -> int:
     outcome = "finished"
     signal.signal(signal.SIGTERM, _interrupt)  # `kill`, `timeout` and compose stop us like Ctrl-C does
     try:
+        if plan.viewer:
+            supervisor.start(VIEWER, plan.viewer, restart=False)  # first, so it sees the run from the start
         for name, argv in plan.children.items():
             supervisor.start(name, argv)
         next_progress = args.progress
@@ -184,7 +191,7 @@ def run_sim(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         faults.end_all()
-        killed = supervisor.stop_all()
+        killed = supervisor.stop_all(last={VIEWER: DRAIN_S + 10.0})
         for sub in subscribers:
             sub.undeclare()
         events_pub.undeclare()
@@ -202,6 +209,14 @@ def run_sim(args: argparse.Namespace) -> int:
                    wall_time=round(time.time() - started_wall, 2), killed_at_shutdown=killed,
                    failed_services=[c.name for c in supervisor.children.values() if c.failed])
     print_summary(summary, len(uavs), duration)
+    if args.rrd:
+        print(rrd_line(args.rrd, summary["mission_time"]), flush=True)
+    if args.plot:
+        from services.launcher.plot import plot_timeline  # matplotlib loads only when asked for
+
+        plot_timeline(monitor, args.plot, f"Falconry run: {scenario.name}, {len(uavs)} UAVs, seed {seed}, "
+                                          f"detector {args.detector}", duration)
+        print(f"timeline plot: {args.plot}", flush=True)
     if args.summary_json:
         Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
     if args.digest_json:
@@ -209,6 +224,14 @@ def run_sim(args: argparse.Namespace) -> int:
     if outcome == "interrupted":
         return 130
     return 0 if outcome == "finished" and not summary["failed_services"] else 1
+
+
+def rrd_line(path: str, mission_s: float) -> str:
+    if not Path(path).is_file():
+        return f"rerun recording: {path} was not written (see the viewer's log lines above)"
+    size = Path(path).stat().st_size / 1e6
+    rate = f", {size / (mission_s / 60):.1f} MB per minute of mission" if mission_s > 0 else ""
+    return f"rerun recording: {path}, {size:.1f} MB{rate} (open it with `rerun {path}`)"
 
 
 def answer_resume(query, last_truth: bytes | None) -> None:

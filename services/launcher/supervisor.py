@@ -30,6 +30,7 @@ class Child:
     restarts: list[float] = field(default_factory=list)
     failed: bool = False
     held: bool = False  # killed by a fault and kept down until released
+    restart: bool = True  # False: an exit is final (e.g. a viewer that would overwrite its file)
     reader: threading.Thread | None = None
 
 
@@ -46,8 +47,8 @@ class Supervisor:
         self._log = log_file
         self.width = 10
 
-    def start(self, name: str, argv: list[str]) -> None:
-        child = self.children.setdefault(name, Child(name, argv))
+    def start(self, name: str, argv: list[str], restart: bool = True) -> None:
+        child = self.children.setdefault(name, Child(name, argv, restart=restart))
         self.width = max(self.width, len(name))
         self._spawn(child)
 
@@ -87,6 +88,11 @@ class Supervisor:
                 child.failed = True
                 self.say(f"{child.name} exited with a usage error (exit code 2); not restarting it")
                 continue
+            if not child.restart:
+                child.failed = code != 0
+                child.process = None
+                self.say(f"{child.name} exited ({describe_exit(code)}); the run goes on without it")
+                continue
             child.restarts = [t for t in child.restarts if now - t < RESTART_WINDOW_S]
             if len(child.restarts) >= MAX_RESTARTS:
                 child.failed = True
@@ -121,10 +127,23 @@ class Supervisor:
         child = self.children.get(name)
         return child.process.pid if child and child.process else None
 
-    def stop_all(self, grace: float = 2.0) -> list[str]:
-        """SIGTERM everyone, SIGKILL what is still there after `grace` s; returns the killed ones."""
+    def stop_all(self, grace: float = 2.0, last: dict[str, float] | None = None) -> list[str]:
+        """SIGTERM everyone, SIGKILL what is still there after `grace` s; returns the killed ones.
+        The children named in `last` are stopped after all others, each with its own grace (a
+        viewer that still has to write what it received)."""
         self._stopping = True
-        running = [c for c in self.children.values() if c.process and c.process.poll() is None]
+        last = {name: g for name, g in (last or {}).items() if name in self.children}
+        killed = self._stop([c for c in self.children.values() if c.name not in last], grace)
+        for name, late_grace in last.items():
+            killed += self._stop([self.children[name]], late_grace)
+        for child in self.children.values():
+            if child.reader:
+                child.reader.join(timeout=1.0)
+        self._log = None  # the caller owns the file
+        return killed
+
+    def _stop(self, children: list[Child], grace: float) -> list[str]:
+        running = [c for c in children if c.process and c.process.poll() is None]
         for child in running:
             _signal_group(child.process, signal.SIGTERM)
         deadline = time.monotonic() + grace
@@ -134,17 +153,13 @@ class Supervisor:
             except subprocess.TimeoutExpired:
                 pass
         killed = []
-        for child in self.children.values():
+        for child in children:
             if child.process and child.process.poll() is None:
                 killed.append(child.name)
                 _signal_group(child.process, signal.SIGKILL)
                 child.process.wait()
             elif child.process:
                 _signal_group(child.process, signal.SIGKILL)  # grandchildren of a child, if any
-        for child in self.children.values():
-            if child.reader:
-                child.reader.join(timeout=1.0)
-        self._log = None  # the caller owns the file
         return killed
 
 

@@ -3,6 +3,9 @@
 Zenoh callbacks only queue (key, payload, receive time); one writer thread encodes the file and
 closes a chunk at least every `flush_s` seconds, so a crash loses at most that much. The caller
 may also feed messages it receives itself (`handle`), e.g. the launcher from its hub session.
+Every `health_s` seconds the writer also asks every service for its health and records the
+answers on their own keys (falconry/<scope>/health/<service>), so a recording carries CPU and
+memory use for the viewer's plots.
 The recorder is no lockstep participant (no liveliness token, no acknowledgements): it never
 slows a run down except by the CPU it uses.
 """
@@ -16,6 +19,7 @@ from typing import Any, Iterable
 import zenoh
 
 from services.recorder.mcap_io import CHUNK_SIZE, McapRecordWriter, WriteStats
+from services.runtime.health import HealthPoller
 
 DEFAULT_KEYS = ("falconry/**",)
 
@@ -33,7 +37,8 @@ def without_overlaps(key_exprs: Iterable[str]) -> list[str]:
 
 class Recorder:
     def __init__(self, session: zenoh.Session | None, path: str, key_exprs: Iterable[str] = DEFAULT_KEYS,
-                 compression: str = "zstd", chunk_size: int = CHUNK_SIZE, flush_s: float = 1.0) -> None:
+                 compression: str = "zstd", chunk_size: int = CHUNK_SIZE, flush_s: float = 1.0,
+                 health_s: float = 1.0) -> None:
         self.key_exprs = tuple(without_overlaps(key_exprs))
         self.path = str(path)
         self._writer = McapRecordWriter(self.path, self.key_exprs, compression, chunk_size)
@@ -41,6 +46,9 @@ class Recorder:
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._received = 0
         self._error: BaseException | None = None
+        self._health = None
+        if session is not None and health_s > 0:
+            self._health = HealthPoller(session, self.handle, period=health_s)
         self._thread = threading.Thread(target=self._write_loop, name="recorder", daemon=True)
         self._thread.start()
         self._subscribers: list[Any] = []
@@ -78,6 +86,8 @@ class Recorder:
                     break
                 if item:
                     writer.write(*item)
+                if self._health is not None:
+                    self._health.poll()
                 if time.monotonic() >= next_flush:
                     writer.flush()
                     next_flush = time.monotonic() + self._flush_s

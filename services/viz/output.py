@@ -1,0 +1,149 @@
+"""The viewer's output: draw records into a rerun recording (file, live viewer or both).
+
+Timelines: "mission_time" (duration, the messages' header stamps) and "tick" (the mission clock's
+step); rerun's own wall-clock log time is switched off, so a recording converted later reads the
+same as the one drawn live. The blueprint opens on: the 3D arena with everything; one tab per UAV
+(its own 3D view, status document and event log); the job managers' states as a state timeline;
+every event; plots of detections per scan, track uncertainty, CPU per service, pipeline lag,
+distance to the nearest partner and the real-time factor.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from services.viz import draw
+from services.viz.settings import GRPC_PORT, WEB_PORT, check_viewer, viewer_executable
+
+APPLICATION_ID = "falconry"
+FILL_SOLID, FILL_WIRES = rr.components.FillMode.Solid, rr.components.FillMode.MajorWireframe
+
+
+def blueprint(uavs: list[str]) -> rrb.Blueprint:
+    everything = rrb.Spatial3DView(name="arena", origin="/", contents=["+ /**", "- /plots/**"])
+    per_uav = [
+        rrb.Vertical(
+            rrb.Spatial3DView(name=f"{uav} believes", origin="/",
+                              contents=["+ /world/**", "+ /truth/targets/**", f"+ /{uav}/**"]),
+            rrb.Horizontal(rrb.TextDocumentView(name=f"{uav} status", origin=f"/{uav}/status"),
+                           rrb.TextLogView(name=f"{uav} events", origin=f"/{uav}/events")),
+            row_shares=[3, 1], name=uav)
+        for uav in uavs
+    ]
+    timelines = rrb.Vertical(
+        rrb.StateTimelineView(name="job manager states", origin="/", contents=[f"+ /{u}/state" for u in uavs]),
+        rrb.TextLogView(name="events", origin="/events"),
+        row_shares=[1, 2])
+    plots = rrb.Vertical(
+        rrb.TimeSeriesView(name="detections per scan", origin="/plots/detections"),
+        rrb.TimeSeriesView(name="track uncertainty radius (m)", origin="/plots/track_uncertainty"),
+        rrb.TimeSeriesView(name="CPU per service (%)", origin="/plots/cpu"),
+        rrb.TimeSeriesView(name="lag after the scan (ms)", origin="/plots/lag_ms"),
+        rrb.TimeSeriesView(name="nearest partner (m, truth)", origin="/plots/nearest_partner"),
+        name="plots")
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(everything, timelines, row_shares=[3, 2]),
+            rrb.Tabs(*per_uav, plots, name="per UAV") if per_uav else plots,
+            column_shares=[3, 2]),
+        rrb.TimePanel(state="expanded"),
+        collapse_panels=False,
+    )
+
+
+def archetype(item: draw.Drawable):
+    """The rerun archetype that draws one record."""
+    match item:
+        case draw.Points():
+            return rr.Points3D(item.positions, colors=item.colors, radii=item.radius, labels=item.labels)
+        case draw.Lines():
+            return rr.LineStrips3D(item.strips, colors=item.color, radii=item.radius, labels=item.labels)
+        case draw.Ellipsoids():
+            return rr.Ellipsoids3D(centers=item.centers, half_sizes=item.half_sizes, quaternions=item.quaternions,
+                                   colors=item.color, labels=item.labels,
+                                   fill_mode=FILL_SOLID if item.solid else FILL_WIRES)
+        case draw.Boxes():
+            # one half size for all is repeated by rerun for every centre
+            return rr.Boxes3D(centers=item.centers, half_sizes=np.asarray(item.half_sizes).reshape(-1, 3),
+                              colors=item.colors, labels=item.labels, fill_mode=FILL_SOLID if item.solid else FILL_WIRES)
+        case draw.Cylinders():
+            return rr.Cylinders3D(centers=item.centers, lengths=item.lengths, radii=item.radii, colors=item.color,
+                                  labels=item.labels, fill_mode=FILL_SOLID)
+        case draw.Mesh():
+            return rr.Mesh3D(vertex_positions=item.vertices, triangle_indices=item.triangles, albedo_factor=item.color)
+        case draw.Pose():
+            return rr.Transform3D(translation=item.translation, quaternion=rr.Quaternion(xyzw=item.quaternion))
+        case draw.Axes():
+            return rr.TransformAxes3D(item.length)
+        case draw.Text():
+            return rr.TextLog(item.text, level=item.level)
+        case draw.Document():
+            return rr.TextDocument(item.markdown, media_type=rr.MediaType.MARKDOWN)
+        case draw.State():
+            return rr.StateChange(state=item.value)
+        case draw.StateStyle():
+            return rr.StateConfiguration(values=item.values, colors=item.colors)
+        case draw.Scalar():
+            return rr.Scalars(item.value)
+        case draw.SeriesStyle():
+            return rr.SeriesLines(colors=item.color, names=item.name)
+        case draw.ZUp():
+            return rr.ViewCoordinates.RIGHT_HAND_Z_UP
+    raise TypeError(f"nothing draws a {type(item).__name__}")
+
+
+class RerunOutput:
+    """One rerun recording of the fleet, written to `rrd` and/or streamed to a viewer:
+    `viewer` is "spawn" (a native viewer on this machine), "web" (a web viewer served on
+    http://127.0.0.1:9090) or the address of a running viewer (rerun+http://HOST:PORT/proxy)."""
+
+    def __init__(self, rrd: str | None = None, viewer: str | None = None, recording_name: str = "falconry") -> None:
+        if viewer is not None:
+            check_viewer(viewer)
+        # Chunks of up to a second: each chunk carries its own schema, so rerun's default 200 ms
+        # made half of a recording's bytes overhead; a second of latency is nothing to a viewer.
+        batching = rr.ChunkBatcherConfig(flush_tick=1.0, flush_num_bytes=4 << 20, flush_num_rows=10_000)
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"{recording_name}-{time.time_ns()}",
+                                      batcher_config=batching)
+        self.rec.set_log_time_enabled(False)
+        self.rec.send_recording_name(recording_name)
+        self.web_address: str | None = None
+        sinks = []
+        if rrd:
+            sinks.append(rr.FileSink(rrd))
+        if viewer == "spawn":
+            rr.spawn(port=GRPC_PORT, connect=False, hide_welcome_screen=True, executable_path=viewer_executable())
+            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{GRPC_PORT}/proxy"))
+        elif viewer == "web":
+            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=GRPC_PORT)
+            sinks.append(server)
+            rr.serve_web_viewer(web_port=WEB_PORT, open_browser=False, connect_to=server.uri)
+            self.web_address = f"http://127.0.0.1:{WEB_PORT}"
+        elif viewer:
+            sinks.append(rr.GrpcSink(viewer))
+        self.rec.set_sinks(*sinks)
+        self.logged = 0
+        self._uavs: list[str] = []
+        self.layout([])
+
+    def layout(self, uavs: list[str]) -> None:
+        """Send the layout for this team (again when a UAV appears)."""
+        if uavs != self._uavs or not self.logged:
+            self._uavs = list(uavs)
+            self.rec.send_blueprint(blueprint(self._uavs), make_active=True, make_default=True)
+
+    def write(self, logs: list[draw.Log]) -> None:
+        rec = self.rec
+        for log in logs:
+            if log.stamp is not None:
+                rec.set_time("mission_time", duration=np.timedelta64(log.stamp, "ns"))
+                rec.set_time("tick", sequence=log.tick)
+            rec.log(log.entity, archetype(log.item), static=log.stamp is None)
+            self.logged += 1
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()

@@ -1,0 +1,453 @@
+"""The viewer's core: the fleet's messages in, what to draw out (draw.Log records).
+
+Fed the same way live (from Zenoh) and from a recording (MCAP): `feed(key, payload, received)`
+with the payload exactly as it went over the wire. Everything is drawn at the mission time of the
+message's header (timeline "mission_time", and "tick" = the mission clock's step); wall-clock
+receive times only measure lags. Decisions to thin out (scans, tracks, truth) depend on mission
+time alone, so a recording converts to the same picture as the live run drew.
+
+Entities (`UAV_FAMILIES` under each UAV's name; the rest run-wide):
+- world/…: arena, ground, obstacles (static); truth/…: the evaluation layer — targets' true
+  positions and paths, the UAVs' true positions, destruction and capture markers;
+- <uav>/…: what that UAV believes — pose (odometry) and trail, scan coloured by the classifier's
+  labels (by height when only raw points exist), map (occupied / unknown voxels), detections and
+  tracks with covariance ellipsoids, predicted track paths, trajectory reference, working area,
+  forbidden zones, the job manager's state (timeline and document), events (faults, restarts,
+  commands, state changes);
+- plots/…: detections per scan, track uncertainty, CPU per service, pipeline lags, distance to the
+  nearest partner (truth), real-time factor; events: every event as a log line.
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
+
+from schemas import keys, voxels
+from schemas.arrays import to_numpy
+from schemas.catalogue import catalogue_entry
+from schemas.messages import (
+    Detections,
+    GroundTruth,
+    LabelSet,
+    MissionCommand,
+    Odometry,
+    PointCloud,
+    ServiceHealth,
+    SimClock,
+    SimEvent,
+    Tracks,
+    TrajectoryReference,
+    UavStatus,
+    VoxelMap,
+    WorldModel,
+)
+from services.viz import draw
+from services.viz.geometry import (
+    Color,
+    closed_polygon,
+    cone_mesh,
+    constant_acceleration_path,
+    covariance_ellipsoids,
+    height_colors,
+    merge_meshes,
+    rectangle_mesh,
+    thin_out,
+    wxyz_to_xyzw,
+)
+from services.viz.mapview import MapView
+from services.viz.settings import ViewParams
+from services.viz.style import LABEL_COLORS, STATE_COLORS, TRUTH_COLOR, uav_color
+
+NS = 1_000_000_000
+EPOCH_NS = 10**18  # stamps beyond this are wall-clock (onboard --clock wall), not mission time
+
+UAV_FAMILIES = (
+    "pose", "trail", "scan", "map/occupied", "map/unknown", "detections", "tracks/confirmed",
+    "tracks/tentative", "tracks/predicted", "trajectory", "working_area", "forbidden_zones", "state",
+    "status", "events",
+)
+WORLD_FAMILIES = ("world/arena", "world/ground", "world/obstacles", "truth/targets", "truth/target_paths",
+                  "truth/uavs", "events")
+
+EVENT_LEVELS = {"fault_injected": "WARN", "fault_started": "WARN", "fault_failed": "ERROR",
+                "service_restarted": "WARN", "fault_ended": "INFO"}
+
+
+@dataclass
+class _Uav:
+    color: Color
+    trail: deque = field(default_factory=deque)  # (stamp, (3,) position)
+    scans_received: dict[int, int] = field(default_factory=dict)  # scan stamp -> wall ns it arrived
+    has_labels: bool = False
+    state: str = ""
+    status_view: tuple = ()
+    command_id: int = -1
+    map: MapView | None = None
+    due: dict[str, int] = field(default_factory=dict)  # what -> next mission ns it may be drawn
+
+
+@dataclass
+class _Cpu:
+    pid: int
+    cpu_time: float
+    uptime: float
+
+
+class SceneBuilder:
+    def __init__(self, params: ViewParams | None = None) -> None:
+        self.params = params or ViewParams()
+        self.tick_ns = NS // 20
+        self.uavs: dict[str, _Uav] = {}
+        self.layout_changed = False  # a new UAV appeared: the output should lay out the views again
+        self.decode_errors = 0
+        self.messages = 0
+        self.mission_ns = 0  # the latest mission time seen
+        self.duration = 0.0  # s, from the world model (0: unknown)
+        self._epoch_origin: int | None = None
+        self._world_key = b""
+        self._target_paths: dict[str, deque] = {}
+        self._target_last: dict[str, tuple[float, float, float]] = {}
+        self._destroyed: list[tuple[np.ndarray, str]] = []
+        self._cpu: dict[str, _Cpu] = {}
+        self._due: dict[str, int] = {}
+        self._decoders: dict[type, msgspec.msgpack.Decoder] = {}
+        self._handlers = {
+            keys.CLOCK: self._on_clock, keys.WORLD: self._on_world, keys.TRUTH: self._on_truth,
+            keys.EVENTS: self._on_event,
+            "falconry/<uav>/odometry": self._on_odometry, "falconry/<uav>/points": self._on_points,
+            "falconry/<uav>/labels": self._on_labels, "falconry/<uav>/detections": self._on_detections,
+            "falconry/<uav>/map": self._on_map, "falconry/<uav>/tracks": self._on_tracks,
+            "falconry/<uav>/command": self._on_command, "falconry/<uav>/trajectory": self._on_trajectory,
+            "falconry/<uav>/status": self._on_status, "falconry/<scope>/health/<service>": self._on_health,
+        }
+
+    # ------------------------------------------------------------------ input
+    def feed(self, key: str, payload: bytes, received: int = 0) -> list[draw.Log]:
+        """What to draw for one message; undecodable payloads are counted and skipped."""
+        entry = catalogue_entry(key)
+        handler = self._handlers.get(entry.key) if entry is not None else None
+        if handler is None:
+            return []
+        decoder = self._decoders.get(entry.type)
+        if decoder is None:
+            decoder = self._decoders[entry.type] = msgspec.msgpack.Decoder(entry.type)
+        try:
+            msg = decoder.decode(payload)
+        except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
+            self.decode_errors += 1
+            return []
+        self.messages += 1
+        self._out: list[draw.Log] = []
+        self._received = received
+        self._stamp = self._mission(msg.header.stamp)
+        self.mission_ns = max(self.mission_ns, self._stamp)
+        try:
+            handler(key.split("/")[1], msg)
+        except (ValueError, IndexError, TypeError):
+            self.decode_errors += 1  # well-formed msgpack, impossible content (wrong shapes, …)
+        return self._out
+
+    def _mission(self, stamp: int) -> int:
+        """Mission ns of a stamp; wall-clock stamps count from the first one seen."""
+        if stamp < EPOCH_NS:
+            return max(stamp, 0)
+        if self._epoch_origin is None:
+            self._epoch_origin = stamp
+        return max(stamp - self._epoch_origin, 0)
+
+    # ---------------------------------------------------------------- helpers
+    def _log(self, entity: str, item, static: bool = False, stamp: int | None = None) -> None:
+        at = None if static else (self._stamp if stamp is None else stamp)
+        tick = 0 if at is None else int(round(at / self.tick_ns))
+        self._out.append(draw.Log(entity, item, at, tick, self._received))
+
+    def _due_now(self, table: dict[str, int], what: str, period: float) -> bool:
+        """True at most once per `period` s of mission time for `what` (the first time at once)."""
+        due = table.get(what)
+        if due is not None and self._stamp < due:
+            return False
+        table[what] = self._stamp + int(period * NS)
+        return True
+
+    def _uav(self, name: str) -> _Uav:
+        uav = self.uavs.get(name)
+        if uav is None:
+            uav = self.uavs[name] = _Uav(color=uav_color(len(self.uavs)))
+            self.layout_changed = True
+            states = list(STATE_COLORS)
+            self._log(f"{name}/state", draw.StateStyle(states, [STATE_COLORS[s] for s in states]), static=True)
+            self._log(f"{name}/pose/body", draw.Axes(1.0), static=True)
+            self._log(f"plots/detections/{name}", draw.SeriesStyle(name, uav.color), static=True)
+            self._log(f"plots/nearest_partner/{name}", draw.SeriesStyle(name, uav.color), static=True)
+        return uav
+
+    # ---------------------------------------------------------------- run-wide
+    def _on_clock(self, scope: str, tick: SimClock) -> None:
+        if tick.dt > 0:
+            self.tick_ns = int(round(tick.dt * NS))
+        if self._due_now(self._due, "rtf", 1.0):
+            self._log("plots/real_time_factor", draw.Scalar(tick.real_time_factor))
+
+    def _on_world(self, scope: str, world: WorldModel) -> None:
+        self.duration = world.duration
+        for name in world.uavs:
+            self._uav(name)
+        shape = msgspec.msgpack.encode([world.arena, world.obstacles])
+        if shape == self._world_key:
+            return
+        self._world_key = shape
+        ground = next((o.center[2] for o in world.obstacles if o.kind == "plane"), 0.0)
+        self._log("world", draw.ZUp(), static=True)
+        self._log("world/arena", draw.Lines([closed_polygon(world.arena, ground + 0.05)], (255, 255, 255, 255), 0.08,
+                                            [world.scenario]), static=True)
+        arena = np.asarray(world.arena, dtype=np.float64).reshape(-1, 2)
+        low, high = arena.min(axis=0) - 10.0, arena.max(axis=0) + 10.0
+        vertices, triangles = rectangle_mesh(tuple(low), tuple(high), ground)
+        self._log("world/ground", draw.Mesh(vertices, triangles, (90, 110, 80, 255)), static=True)
+        self._draw_obstacles(world)
+
+    def _draw_obstacles(self, world: WorldModel) -> None:
+        by_kind: dict[str, list] = {}
+        for o in world.obstacles:
+            by_kind.setdefault(o.kind, []).append(o)
+        grey: Color = (170, 160, 150, 255)
+        if boxes := by_kind.get("box"):
+            self._log("world/obstacles/boxes", draw.Boxes(
+                np.array([o.center for o in boxes]), np.array([o.size for o in boxes]) / 2, grey,
+                [o.name for o in boxes]), static=True)
+        if cylinders := by_kind.get("cylinder"):
+            self._log("world/obstacles/cylinders", draw.Cylinders(
+                np.array([o.center for o in cylinders]) + np.array([[0, 0, o.height / 2] for o in cylinders]),
+                np.array([o.height for o in cylinders]), np.array([o.radius for o in cylinders]),
+                (120, 150, 100, 255), [o.name for o in cylinders]), static=True)
+        if spheres := by_kind.get("sphere"):
+            self._log("world/obstacles/spheres", draw.Ellipsoids(
+                np.array([o.center for o in spheres]), np.array([[o.radius] * 3 for o in spheres]), None,
+                grey, [o.name for o in spheres], solid=True), static=True)
+        if cones := by_kind.get("cone"):
+            vertices, triangles = merge_meshes([cone_mesh(np.asarray(o.center), o.radius, o.height) for o in cones])
+            self._log("world/obstacles/cones", draw.Mesh(vertices, triangles, (60, 120, 60, 255)), static=True)
+
+    def _on_truth(self, scope: str, truth: GroundTruth) -> None:
+        """The evaluation layer: drawn as 'truth', never what a UAV believes."""
+        p = self.params
+        for target in truth.targets:
+            path = self._target_paths.setdefault(target.id, deque())
+            if not target.destroyed:
+                self._target_last[target.id] = target.position
+                if not path or self._stamp - path[-1][0] >= p.trail_spacing * NS:
+                    path.append((self._stamp, target.position))
+            while path and self._stamp - path[0][0] > p.trail_length * NS:
+                path.popleft()
+        if self._due_now(self._due, "truth", p.truth_period):
+            live = [t for t in truth.targets if not t.destroyed]
+            self._log("truth/targets", draw.Ellipsoids(
+                np.array([t.position for t in live]).reshape(-1, 3), np.array([[t.radius] * 3 for t in live]).reshape(-1, 3),
+                None, TRUTH_COLOR, [f"truth: {t.id}" for t in live], solid=True))
+            flying = [v for v in truth.uavs if v.alive]
+            self._log("truth/uavs", draw.Points(np.array([v.position for v in flying]).reshape(-1, 3), TRUTH_COLOR,
+                                                0.25, [f"truth: {v.name}" for v in flying]))
+            self._nearest_partners(truth)
+        if self._due_now(self._due, "truth_paths", p.trail_period):
+            paths = [(tid, np.array([q for _, q in path])) for tid, path in sorted(self._target_paths.items())
+                     if len(path) > 1]
+            moving = [(tid, q) for tid, q in paths if np.ptp(q, axis=0).max() > 1.0]  # not a swaying balloon
+            self._log("truth/target_paths", draw.Lines([q for _, q in moving], TRUTH_COLOR, 0.05,
+                                                       [f"truth: {tid}" for tid, _ in moving]))
+
+    def _nearest_partners(self, truth: GroundTruth) -> None:
+        flying = [v for v in truth.uavs if v.airborne and v.alive]
+        if len(flying) < 2:
+            return
+        where = np.array([v.position for v in flying])
+        gaps = np.linalg.norm(where[:, None] - where[None], axis=2) + np.diag(np.full(len(flying), np.inf))
+        for v, gap in zip(flying, gaps.min(axis=1)):
+            self._uav(v.name)
+            self._log(f"plots/nearest_partner/{v.name}", draw.Scalar(float(gap)))
+
+    def _on_event(self, scope: str, event: SimEvent) -> None:
+        level = EVENT_LEVELS.get(event.kind, "INFO")
+        line = f"{event.kind} {event.subject}" + (f": {event.detail}" if event.detail else "")
+        self._log("events", draw.Text(line, level))
+        owner = event.subject.split("/", 1)[0]
+        if owner in self.uavs:
+            self._log(f"{owner}/events", draw.Text(line, level))
+        if event.kind in ("target_destroyed", "target_captured") and event.subject in self._target_last:
+            verb = "destroyed" if event.kind == "target_destroyed" else "captured"
+            self._destroyed.append((np.asarray(self._target_last[event.subject]),
+                                    f"{event.subject} {verb} by {event.detail} t={self._stamp / NS:.1f} s"))
+            self._log("truth/destroyed", draw.Points(np.array([p for p, _ in self._destroyed]), (255, 255, 255, 255),
+                                                     0.5, [label for _, label in self._destroyed]))
+
+    def _on_health(self, scope: str, health: ServiceHealth) -> None:
+        name = f"{health.uav}/{health.service}"
+        last = self._cpu.get(name)
+        self._cpu[name] = _Cpu(health.pid, health.cpu_time, health.uptime)
+        if last is not None and last.pid == health.pid and health.uptime > last.uptime:
+            share = 100.0 * (health.cpu_time - last.cpu_time) / (health.uptime - last.uptime)
+            self._log(f"plots/cpu/{name}", draw.Scalar(share))
+        if health.memory:
+            self._log(f"plots/memory_mb/{name}", draw.Scalar(health.memory / 1e6))
+
+    # ---------------------------------------------------------------- per UAV
+    def _on_odometry(self, name: str, odometry: Odometry) -> None:
+        uav, p = self._uav(name), self.params
+        position = np.asarray(odometry.pose.position, dtype=np.float64)
+        if self._due_now(uav.due, "pose", p.pose_period):
+            self._log(f"{name}/pose", draw.Pose(position, wxyz_to_xyzw(odometry.pose.orientation)))
+        if not uav.trail or self._stamp - uav.trail[-1][0] >= p.trail_spacing * NS:
+            uav.trail.append((self._stamp, position))
+        while uav.trail and self._stamp - uav.trail[0][0] > p.trail_length * NS:
+            uav.trail.popleft()
+        if len(uav.trail) > 1 and self._due_now(uav.due, "trail", p.trail_period):
+            self._log(f"{name}/trail", draw.Lines([np.array([q for _, q in uav.trail])], uav.color, 0.06))
+
+    def _note_scan(self, uav: _Uav) -> None:
+        uav.scans_received[self._stamp] = self._received
+        if len(uav.scans_received) > 64:
+            uav.scans_received.pop(next(iter(uav.scans_received)))
+
+    def _on_points(self, name: str, cloud: PointCloud) -> None:
+        uav = self._uav(name)
+        self._note_scan(uav)
+        if uav.has_labels or not self._due_now(uav.due, "scan", self.params.scan_period):
+            return
+        points = to_numpy(cloud.points).reshape(-1, 3)
+        points = points[np.isfinite(points).all(axis=1)]
+        points = points[thin_out(len(points), self.params.scan_points)]
+        self._log(f"{name}/scan", draw.Points(points, height_colors(points[:, 2], 0.0, 12.0), 0.06))
+
+    def _on_labels(self, name: str, labels: LabelSet) -> None:
+        uav = self._uav(name)
+        uav.has_labels = True
+        if not self._due_now(uav.due, "scan", self.params.scan_period):
+            return
+        points = to_numpy(labels.points).reshape(-1, 3)
+        codes = to_numpy(labels.point_labels).reshape(-1)
+        if len(codes) != len(points):
+            raise ValueError("labels and points differ in length")
+        background = np.flatnonzero(codes == voxels.BACKGROUND)
+        others = np.flatnonzero(codes != voxels.BACKGROUND)  # the interesting ones: always drawn
+        keep = np.concatenate([others, background[thin_out(len(background), max(self.params.scan_points - len(others), 0))]])
+        colors = LABEL_COLORS[np.clip(codes[keep], 0, len(LABEL_COLORS) - 1)]
+        self._log(f"{name}/scan", draw.Points(points[keep], colors, 0.06))
+
+    def _lag(self, name: str, uav: _Uav, what: str) -> None:
+        """Wall time from a scan's arrival to the arrival of what was made from it (same stamp)."""
+        scan_at = uav.scans_received.get(self._stamp)
+        if scan_at and self._received:
+            self._log(f"plots/lag_ms/{name}/{what}", draw.Scalar((self._received - scan_at) / 1e6))
+
+    def _on_detections(self, name: str, detections: Detections) -> None:
+        uav = self._uav(name)
+        positions = to_numpy(detections.positions).reshape(-1, 3)
+        half, rotations = covariance_ellipsoids(to_numpy(detections.covariances).reshape(-1, 3, 3),
+                                                self.params.ellipsoid_sigma)
+        counts = to_numpy(detections.point_counts).reshape(-1)
+        if not (len(positions) == len(half) == len(counts)):
+            raise ValueError("detection arrays differ in length")
+        self._log(f"{name}/detections", draw.Ellipsoids(positions, half, rotations, (230, 25, 25, 255),
+                                                        [f"{n} pts" for n in counts.tolist()]))
+        self._log(f"plots/detections/{name}", draw.Scalar(float(len(positions))))
+        self._lag(name, uav, "detections")
+
+    def _on_map(self, name: str, voxel_map: VoxelMap) -> None:
+        uav = self._uav(name)
+        if uav.map is None:
+            uav.map = MapView(self.params.map_cell, self.params.map_layers)
+        void = uav.map.apply(voxel_map.snapshot, voxel_map.origin, voxel_map.shape, voxel_map.voxel_size,
+                             voxel_map.default_value, to_numpy(voxel_map.indices), to_numpy(voxel_map.values))
+        for layer in void:  # the map changed its geometry: what was drawn is no longer it
+            self._log(f"{name}/map/occupied/{layer:04d}", draw.Boxes(np.zeros((0, 3)), np.zeros(3), (0, 0, 0, 0)))
+            self._log(f"{name}/map/unknown/{layer:04d}", draw.Points(np.zeros((0, 3)), (0, 0, 0, 0), 0.0))
+        if not voxel_map.snapshot:
+            self._lag(name, uav, "map")
+        if not self._due_now(uav.due, "map", self.params.map_period):
+            return
+        half = uav.map.cell_size() * 0.45
+        for layer in uav.map.drain():
+            colors = height_colors(layer.occupied[:, 2], 0.0, 12.0)
+            colors[~layer.confident] = (235, 235, 235, 160)
+            self._log(f"{name}/map/occupied/{layer.layer:04d}", draw.Boxes(layer.occupied, np.array([half] * 3), colors))
+            self._log(f"{name}/map/unknown/{layer.layer:04d}", draw.Points(layer.unknown, (120, 200, 255, 120), half * 0.6))
+
+    def _on_tracks(self, name: str, tracks: Tracks) -> None:
+        uav, p = self._uav(name), self.params
+        if not self._due_now(uav.due, "tracks", p.track_period):
+            return
+        for confirmed in (True, False):
+            chosen = [t for t in tracks.tracks if t.confirmed == confirmed]
+            states = np.array([to_numpy(t.state)[:9] for t in chosen]).reshape(-1, 9)
+            covariances = np.array([to_numpy(t.covariance).reshape(9, 9)[:3, :3] for t in chosen]).reshape(-1, 3, 3)
+            half, rotations = covariance_ellipsoids(covariances, p.ellipsoid_sigma)
+            kind = "confirmed" if confirmed else "tentative"
+            color = uav.color if confirmed else (200, 200, 200, 200)
+            self._log(f"{name}/tracks/{kind}", draw.Ellipsoids(
+                states[:, :3], half, rotations, color,
+                [f"#{t.id} r={t.uncertainty_radius:.1f} m, {t.detections} det" for t in chosen]))
+            if confirmed:
+                paths = [constant_acceleration_path(s, p.prediction_horizon, 0.1) for s in states]
+                self._log(f"{name}/tracks/predicted", draw.Lines(paths, uav.color, 0.04, [f"#{t.id}" for t in chosen]))
+                for t in chosen:
+                    self._log(f"plots/track_uncertainty/{name}/{t.id}", draw.Scalar(t.uncertainty_radius))
+
+    def _on_command(self, name: str, command: MissionCommand) -> None:
+        uav = self._uav(name)
+        if command.command_id == uav.command_id:
+            return  # the 2 s repeat of a command already drawn
+        uav.command_id = command.command_id
+        target = "" if command.target is None else " to (%.1f, %.1f, %.1f)" % command.target
+        self._log(f"{name}/events", draw.Text(f"command {command.command_id}: {command.action}{target}", "DEBUG"))
+
+    def _on_trajectory(self, name: str, trajectory: TrajectoryReference) -> None:
+        uav = self._uav(name)
+        positions = to_numpy(trajectory.positions).reshape(-1, 3)
+        positions = positions[thin_out(len(positions), 400)]
+        self._log(f"{name}/trajectory", draw.Lines([positions], uav.color, 0.03,
+                                                    [f"command {trajectory.command_id}"]))
+
+    def _on_status(self, name: str, status: UavStatus) -> None:
+        uav = self._uav(name)
+        if status.state != uav.state:
+            uav.state = status.state
+            self._log(f"{name}/state", draw.State(status.state))
+            self._log(f"{name}/events", draw.Text(f"state {status.state}"))
+        view = (status.state, status.flying_normally, status.airborne, status.target, tuple(status.working_area),
+                tuple(status.fallen_partners), len(status.forbidden_zones))
+        due = self._due_now(uav.due, "status", self.params.status_period)  # zones' remaining life changes
+        if not due and view == uav.status_view:
+            return
+        uav.status_view = view
+        self._log(f"{name}/status", draw.Document(status_markdown(name, status, self._stamp)))
+        self._log(f"{name}/working_area", draw.Lines([closed_polygon(status.working_area, 0.15)], uav.color, 0.12,
+                                                      [f"{name} working area"] if status.working_area else None))
+        zones = status.forbidden_zones
+        self._log(f"{name}/forbidden_zones", draw.Ellipsoids(
+            np.array([z.center for z in zones]).reshape(-1, 3), np.array([[z.radius] * 3 for z in zones]).reshape(-1, 3),
+            None, (255, 60, 60, 90),
+            [f"forbidden r={z.radius:g} m, {max(z.expires - self._stamp, 0) / NS:.0f} s left ({z.reason})" for z in zones]))
+
+
+def status_markdown(name: str, status: UavStatus, now: int) -> str:
+    """The job manager's status as a short markdown document."""
+    xs = [x for x, _ in status.working_area]
+    area = f"x {min(xs):.0f}..{max(xs):.0f} m" if xs else "none"
+    target = "none" if status.target is None else "(%.1f, %.1f, %.1f)" % status.target
+    zones = ", ".join(f"({z.center[0]:.0f}, {z.center[1]:.0f}) {max(z.expires - now, 0) / NS:.0f} s left"
+                      for z in status.forbidden_zones) or "none"
+    return "\n".join([
+        f"## {name}: {status.state}",
+        "",
+        "| | |",
+        "| --- | --- |",
+        f"| flying normally | {'yes' if status.flying_normally else 'no'} |",
+        f"| airborne | {'yes' if status.airborne else 'no'} |",
+        f"| position | ({status.position[0]:.1f}, {status.position[1]:.1f}, {status.position[2]:.1f}) |",
+        f"| target | {target} |",
+        f"| working area | {area} |",
+        f"| fallen partners | {', '.join(status.fallen_partners) or 'none'} |",
+        f"| forbidden zones | {zones} |",
+    ])

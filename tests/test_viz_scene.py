@@ -1,0 +1,297 @@
+"""The viewer's pure parts: geometry, the map tiles and the scene builder on hand-made messages."""
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from schemas import voxels
+from schemas.arrays import from_numpy
+from schemas.messages import (
+    Detections,
+    ForbiddenZoneStatus,
+    GroundTruth,
+    Header,
+    LabelSet,
+    Obstacle,
+    Odometry,
+    Pose,
+    ServiceHealth,
+    SimEvent,
+    TargetTruth,
+    Track,
+    Tracks,
+    UavStatus,
+    VehicleTruth,
+    VoxelMap,
+    WorldModel,
+)
+from services.viz import draw
+from services.viz.geometry import cone_mesh, constant_acceleration_path, covariance_ellipsoids, thin_out
+from services.viz.mapview import MapView
+from services.viz.scene import SceneBuilder
+from services.viz.settings import ViewParams
+
+S = 1_000_000_000
+encode = msgspec.msgpack.encode
+
+
+def entities(logs) -> dict[str, list[draw.Log]]:
+    out: dict[str, list[draw.Log]] = {}
+    for log in logs:
+        out.setdefault(log.entity, []).append(log)
+    return out
+
+
+# ------------------------------------------------------------------ geometry
+def test_covariance_ellipsoid_axes_and_rotation_rebuild_the_covariance():
+    rng = np.random.default_rng(3)
+    rotation = Rotation.random(random_state=5).as_matrix()
+    cov = rotation @ np.diag([4.0, 1.0, 0.25]) @ rotation.T
+    half, quats = covariance_ellipsoids(np.stack([cov, np.diag([0.09, 0.04, 0.01])]), sigma=2.0)
+    assert np.allclose(sorted(half[0]), [1.0, 2.0, 4.0])  # 2 sigma of 0.5, 1, 2
+    assert np.allclose(half[1], [0.2, 0.4, 0.6])
+    axes = Rotation.from_quat(quats[0]).as_matrix()
+    assert np.allclose(axes @ np.diag((half[0] / 2) ** 2) @ axes.T, cov)
+    assert covariance_ellipsoids(np.zeros((0, 3, 3)), 2.0)[0].shape == (0, 3)
+    # round-off below zero is a flat axis, not a NaN
+    half, _ = covariance_ellipsoids(np.diag([1.0, 1.0, -1e-12])[None] + rng.normal(0, 0, (1, 3, 3)), 1.0)
+    assert np.isfinite(half).all() and half[0].min() == 0.0
+
+
+def test_constant_acceleration_path_follows_the_tracker_model():
+    state = np.array([1.0, 2.0, 3.0, 1.0, 0.0, -1.0, 0.0, 2.0, 0.0])
+    path = constant_acceleration_path(state, horizon=2.0, step=0.5)
+    assert path.shape == (5, 3)
+    assert np.allclose(path[0], [1, 2, 3])
+    assert np.allclose(path[-1], [3.0, 2.0 + 0.5 * 2.0 * 4.0, 1.0])
+
+
+def test_thin_out_and_cone_mesh():
+    assert list(thin_out(3, 10)) == [0, 1, 2]
+    picked = thin_out(1000, 10)
+    assert len(picked) == 10 and picked[0] == 0 and picked[-1] == 999
+    vertices, triangles = cone_mesh(np.array([1.0, 2.0, 0.0]), radius=1.0, height=3.0, sides=8)
+    assert vertices.shape == (10, 3) and triangles.shape == (16, 3) and triangles.max() == 9
+    assert np.isclose(vertices[:, 2].max(), 3.0)
+
+
+# ------------------------------------------------------------------ map layers
+GEOMETRY = dict(origin=(0.0, 0.0, 0.0), shape=(40, 40, 10), voxel_size=0.5, default_value=-740.0)
+
+
+def flat(*voxel):
+    return np.ravel_multi_index(tuple(np.array(v) for v in zip(*voxel)), (40, 40, 10))
+
+
+def test_map_view_draws_named_voxels_by_state_in_layers_of_what_changed():
+    view = MapView(cell=2)
+    occupied, tentative = flat((1, 1, 0), (2, 1, 0)), flat((20, 30, 3))
+    view.apply(False, **GEOMETRY, indices=np.r_[occupied, tentative],
+               values=np.array([0.0, 0.0, -200.0], dtype=np.float32))
+    (first,) = view.drain()
+    # (1,1,0) is in cell (0,0,0) and (2,1,0) in cell (1,0,0): 1 m cubes centred on their cells
+    assert np.allclose(sorted(first.occupied.tolist()), [[0.5, 0.5, 0.5], [1.5, 0.5, 0.5], [10.5, 15.5, 1.5]])
+    assert first.confident.sum() == 2 and len(first.unknown) == 0  # never-named voxels say nothing
+
+    view.apply(False, **GEOMETRY, indices=occupied, values=np.array([-0.05, -0.01], dtype=np.float32))
+    assert view.drain() == []  # still confidently occupied: nothing to draw
+
+    grown = flat((30, 5, 1))
+    view.apply(False, **GEOMETRY, indices=grown, values=np.array([0.0], dtype=np.float32))
+    (second,) = view.drain()  # only the new cell, in a layer of its own; the first layer is untouched
+    assert second.layer != first.layer and np.allclose(second.occupied, [[15.5, 2.5, 0.5]])
+
+    # a snapshot that no longer lists a voxel returns it to the initial value: named, now unknown
+    view.apply(True, **GEOMETRY, indices=np.r_[occupied[:1], grown], values=np.zeros(2, dtype=np.float32))
+    layers = {layer.layer: layer for layer in view.drain()}
+    assert first.layer in layers  # redrawn without what left it
+    assert np.allclose(sorted(layers[first.layer].occupied.tolist()), [[0.5, 0.5, 0.5]])
+    newest = layers[max(layers)]
+    assert np.allclose(sorted(newest.unknown.tolist()), [[1.5, 0.5, 0.5], [10.5, 15.5, 1.5]])
+
+
+def test_map_view_folds_its_layers_to_bound_the_entity_count():
+    view = MapView(cell=1, max_layers=3)
+    drawn = []
+    for i in range(4):
+        view.apply(False, **GEOMETRY, indices=flat((i, 0, 0)), values=np.array([0.0], dtype=np.float32))
+        drawn.append(view.drain())
+    folded = drawn[-1]
+    assert [len(d) for d in drawn[:3]] == [1, 1, 1]
+    assert len(folded) == 4  # the three old layers cleared, one new layer with everything
+    assert all(len(layer.occupied) == 0 for layer in folded[:-1]) and len(folded[-1].occupied) == 4
+    assert view.layers == 1
+
+
+def test_map_view_waits_for_a_snapshot_after_a_delta_of_another_geometry():
+    view = MapView(cell=1)
+    view.apply(False, **GEOMETRY, indices=np.array([5]), values=np.array([0.0], dtype=np.float32))
+    (old,) = view.drain()
+    other = dict(GEOMETRY, origin=(1.0, 0.0, 0.0))
+    assert view.apply(False, **other, indices=np.array([6]), values=np.array([0.0], dtype=np.float32)) == []
+    assert view.drain() == []
+    assert view.apply(True, **other, indices=np.array([6]), values=np.array([0.0], dtype=np.float32)) == [old.layer]
+    (layer,) = view.drain()
+    assert np.allclose(layer.occupied[:, 0], 1.25)
+
+
+def test_map_states_follow_eq_7_thresholds():
+    g = np.array([0.0, -0.1, -0.2, -300.0, -301.0, -750.0, -751.0, -1000.0])
+    assert voxels.map_states(g).tolist() == [3, 3, 2, 2, 1, 1, 0, 0]
+
+
+# ------------------------------------------------------------------ scene
+def world() -> bytes:
+    return encode(WorldModel(
+        header=Header(stamp=0), scenario="test", arena=[(0, 0), (50, 0), (50, 40), (0, 40)], min_height=1,
+        max_height=20, uavs=["uav1", "uav2"],
+        obstacles=[Obstacle(kind="plane", center=(0, 0, 0), name="ground"),
+                   Obstacle(kind="box", center=(10, 10, 2), size=(4, 4, 4), name="house"),
+                   Obstacle(kind="cylinder", center=(20, 5, 0), radius=1, height=6, name="tree"),
+                   Obstacle(kind="cone", center=(30, 5, 0), radius=1, height=4, name="pine"),
+                   Obstacle(kind="sphere", center=(40, 5, 2), radius=1, name="rock")]))
+
+
+def test_world_is_drawn_once_as_static_entities_and_registers_the_team():
+    scene = SceneBuilder()
+    logs = entities(scene.feed("falconry/sim/world", world()))
+    for name in ("world/arena", "world/ground", "world/obstacles/boxes", "world/obstacles/cylinders",
+                 "world/obstacles/cones", "world/obstacles/spheres", "uav1/state", "uav2/state"):
+        assert name in logs and all(log.stamp is None for log in logs[name]), name
+    assert logs["world/obstacles/boxes"][0].item.labels == ["house"]
+    assert sorted(scene.uavs) == ["uav1", "uav2"] and scene.layout_changed
+    assert not [log for log in scene.feed("falconry/sim/world", world()) if log.entity.startswith("world")]
+
+
+def test_scan_keeps_every_flying_and_unknown_point_when_thinning():
+    scene = SceneBuilder(ViewParams(scan_points=50, scan_period=0.5))
+    points = np.random.default_rng(1).uniform(0, 30, (1000, 3)).astype(np.float32)
+    labels = np.zeros(1000, dtype=np.uint8)
+    labels[[3, 500, 999]] = voxels.FLYING
+    labels[7] = voxels.UNKNOWN
+    msg = LabelSet(header=Header(stamp=S), sensor_origin=(0, 0, 5), points=from_numpy(points),
+                   point_labels=from_numpy(labels), voxel_size=0.5, voxels=from_numpy(np.zeros((0, 3), np.int32)),
+                   voxel_labels=from_numpy(np.zeros(0, np.uint8)), voxel_weights=from_numpy(np.zeros(0, np.float32)))
+    (scan,) = entities(scene.feed("falconry/uav1/labels", encode(msg)))["uav1/scan"]
+    assert len(scan.item.positions) == 50 and scan.stamp == S
+    red = (scan.item.colors == [230, 25, 25, 255]).all(axis=1)
+    assert red.sum() == 3
+    msg.header.stamp = S + S // 10  # 0.1 s later: not yet due
+    assert "uav1/scan" not in entities(scene.feed("falconry/uav1/labels", encode(msg)))
+
+
+def test_detections_tracks_and_lag_from_one_scan():
+    scene = SceneBuilder()
+    cloud_stamp = 2 * S
+    labels = LabelSet(header=Header(stamp=cloud_stamp), sensor_origin=(0, 0, 5),
+                      points=from_numpy(np.zeros((1, 3), np.float32)), point_labels=from_numpy(np.zeros(1, np.uint8)),
+                      voxel_size=0.5, voxels=from_numpy(np.zeros((0, 3), np.int32)),
+                      voxel_labels=from_numpy(np.zeros(0, np.uint8)), voxel_weights=from_numpy(np.zeros(0, np.float32)))
+    scene.feed("falconry/uav1/labels", encode(labels), received=1_000_000_000)
+    scene._uav("uav1").scans_received[cloud_stamp] = 1_000_000_000  # the scan arrived then
+    detections = Detections(header=Header(stamp=cloud_stamp), detector="classifier",
+                            positions=from_numpy(np.array([[5.0, 5.0, 5.0]])),
+                            covariances=from_numpy(np.diag([0.04, 0.04, 0.01])[None]),
+                            point_counts=from_numpy(np.array([12], np.int32)), extents=from_numpy(np.ones(1, np.float32)))
+    logs = entities(scene.feed("falconry/uav1/detections", encode(detections), received=1_004_000_000))
+    (det,) = logs["uav1/detections"]
+    assert np.allclose(sorted(det.item.half_sizes[0]), [0.2, 0.4, 0.4]) and det.item.labels == ["12 pts"]
+    assert logs["plots/detections/uav1"][0].item.value == 1.0
+    assert logs["plots/lag_ms/uav1/detections"][0].item.value == pytest.approx(4.0)
+
+    state = np.array([5.0, 5, 5, 1, 0, 0, 0, 0, 0])
+    cov = np.eye(9) * 0.25
+    tracks = Tracks(header=Header(stamp=cloud_stamp), tracks=[
+        Track(id=7, state=from_numpy(state), covariance=from_numpy(cov), detections=4, confirmed=True,
+              uncertainty_radius=2.5, last_detection=cloud_stamp),
+        Track(id=8, state=from_numpy(state + 3), covariance=from_numpy(cov), detections=1, confirmed=False,
+              uncertainty_radius=2.5, last_detection=cloud_stamp)])
+    logs = entities(scene.feed("falconry/uav1/tracks", encode(tracks)))
+    assert logs["uav1/tracks/confirmed"][0].item.labels[0].startswith("#7")
+    assert len(logs["uav1/tracks/tentative"][0].item.centers) == 1
+    (path,) = logs["uav1/tracks/predicted"][0].item.strips
+    assert np.allclose(path[-1], [8.0, 5.0, 5.0])  # 3 s at 1 m/s
+    assert logs["plots/track_uncertainty/uav1/7"][0].item.value == 2.5
+
+
+def test_status_draws_state_changes_working_area_and_forbidden_zones_with_remaining_life():
+    scene = SceneBuilder()
+    status = UavStatus(header=Header(stamp=10 * S), uav="uav1", state="GOING_AROUND", flying_normally=True,
+                       airborne=True, position=(1, 2, 5), working_area=[(0, 0), (25, 0), (25, 40), (0, 40)],
+                       forbidden_zones=[ForbiddenZoneStatus(center=(5, 5, 3), radius=4.5, expires=22 * S,
+                                                            reason="CHECKING_TARGET took over 30 s")])
+    logs = entities(scene.feed("falconry/uav1/status", encode(status)))
+    assert logs["uav1/state"][-1].item.value == "GOING_AROUND"
+    assert logs["uav1/working_area"][0].item.strips[0].shape == (5, 3)
+    (zones,) = logs["uav1/forbidden_zones"]
+    assert np.allclose(zones.item.half_sizes, [[4.5, 4.5, 4.5]])
+    assert "12 s left" in zones.item.labels[0]
+    assert "GOING_AROUND" in logs["uav1/status"][0].item.markdown
+    status.header.stamp = 10 * S + S // 5  # same view, 0.2 s later: nothing new to draw
+    assert scene.feed("falconry/uav1/status", encode(status)) == []
+    status.header.stamp = 11 * S  # a second later the zone's remaining life is drawn again
+    logs = entities(scene.feed("falconry/uav1/status", encode(status)))
+    assert "11 s left" in logs["uav1/forbidden_zones"][0].item.labels[0]
+    assert "uav1/state" not in logs
+
+
+def test_truth_events_and_health():
+    scene = SceneBuilder()
+    scene.feed("falconry/sim/world", world())
+    truth = GroundTruth(header=Header(stamp=5 * S), step=100,
+                        uavs=[VehicleTruth(name="uav1", position=(0, 0, 5), velocity=(0, 0, 0), heading=0, airborne=True),
+                              VehicleTruth(name="uav2", position=(3, 4, 5), velocity=(0, 0, 0), heading=0, airborne=True)],
+                        targets=[TargetTruth(id="balloon1", kind="balloon", position=(9, 9, 3), velocity=(0, 0, 0),
+                                             radius=0.3)])
+    logs = entities(scene.feed("falconry/sim/truth", encode(truth)))
+    assert logs["truth/targets"][0].item.labels == ["truth: balloon1"]
+    assert logs["plots/nearest_partner/uav1"][0].item.value == pytest.approx(5.0)
+    event = SimEvent(header=Header(stamp=6 * S), kind="target_destroyed", subject="balloon1", detail="uav2")
+    logs = entities(scene.feed("falconry/sim/events", encode(event)))
+    assert "balloon1 destroyed by uav2" in logs["truth/destroyed"][0].item.labels[0]
+    fault = SimEvent(header=Header(stamp=7 * S), kind="fault_injected", subject="uav2/tracker", detail="kill")
+    logs = entities(scene.feed("falconry/sim/events", encode(fault)))
+    assert logs["uav2/events"][0].item.level == "WARN" and logs["events"][0].item.text.startswith("fault_injected")
+
+    def health(uptime, cpu):
+        return encode(ServiceHealth(header=Header(stamp=int(uptime * S)), uav="uav1", service="mapper", pid=42,
+                                    uptime=uptime, state="running", cpu_time=cpu, memory=80_000_000))
+    scene.feed("falconry/uav1/health/mapper", health(10.0, 2.0))
+    logs = entities(scene.feed("falconry/uav1/health/mapper", health(12.0, 3.0)))
+    assert logs["plots/cpu/uav1/mapper"][0].item.value == pytest.approx(50.0)
+
+
+def test_bad_payloads_are_counted_and_never_raise():
+    scene = SceneBuilder()
+    assert scene.feed("falconry/uav1/detections", b"\x93garbage") == []
+    wrong_shape = Detections(header=Header(stamp=S), detector="classifier", positions=from_numpy(np.zeros((2, 3))),
+                             covariances=from_numpy(np.zeros((1, 3, 3))), point_counts=from_numpy(np.zeros(2, np.int32)),
+                             extents=from_numpy(np.zeros(2, np.float32)))
+    scene.feed("falconry/uav1/detections", encode(wrong_shape))
+    assert scene.decode_errors == 2
+    assert scene.feed("falconry/uav1/no_such_topic", b"") == []
+
+
+def test_wall_clock_stamps_count_from_the_first_one():
+    scene = SceneBuilder()
+    epoch = 1_790_000_000 * S
+    for offset in (0, 2 * S):
+        odometry = Odometry(header=Header(stamp=epoch + offset), pose=Pose(position=(1, 2, 3)))
+        (pose, *_) = scene.feed("falconry/uav1/odometry", encode(odometry))
+    assert pose.entity == "uav1/pose" and pose.stamp == 2 * S and pose.tick == 40
+
+
+def test_every_map_message_updates_the_view_but_layers_are_drawn_at_the_map_rate():
+    scene = SceneBuilder(ViewParams(map_period=1.0))
+
+    def delta(stamp, index):
+        return encode(VoxelMap(header=Header(stamp=stamp), snapshot=False, voxel_size=0.5, origin=(0, 0, 0),
+                               shape=(40, 40, 10), indices=from_numpy(np.array([index], np.int64)),
+                               values=from_numpy(np.array([0.0], np.float32))))
+    first = entities(scene.feed("falconry/uav1/map", delta(S, 0)))
+    assert len(first["uav1/map/occupied/0000"][0].item.centers) == 1
+    assert not [e for e in entities(scene.feed("falconry/uav1/map", delta(S + S // 2, 800))) if "/map/" in e]
+    later = entities(scene.feed("falconry/uav1/map", delta(2 * S, 1600)))
+    assert len(later["uav1/map/occupied/0001"][0].item.centers) == 2  # the voxel of the skipped draw too
