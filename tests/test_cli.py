@@ -1,6 +1,7 @@
 """The command line explains itself and turns user mistakes into one-line errors (exit 2)."""
 from __future__ import annotations
 
+import os
 import subprocess
 
 import pytest
@@ -12,7 +13,7 @@ def falconry(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run(falconry_argv(*args), cwd=REPO, capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.mark.parametrize("command", [(), ("sim",), ("run",), ("health",)])
+@pytest.mark.parametrize("command", [(), ("sim",), ("run",), ("health",), ("view",), ("record",)])
 def test_help_explains_every_option(command):
     result = falconry(*command, "--help")
     assert result.returncode == 0
@@ -38,6 +39,16 @@ def test_help_explains_every_option(command):
     (("run", "tracker", "--uav", "uav1", "--config", "/nonexistent.toml"), "config file not found"),
     (("run", "tracker", "--uav", "uav1", "--zenoh-config", "/nonexistent.json5"), "zenoh config file not found"),
     (("health",), "--connect"),
+    (("view",), "give a recording"),
+    (("view", "/tmp/definitely/missing.mcap"), "no such recording"),
+    (("view", str(REPO / "README.md"), "--rrd", "/tmp/never-written.rrd"), "is not an MCAP file"),
+    (("view", "--connect", "tcp/127.0.0.1:9", "--viz", "bogus"), "--viz takes spawn, web or"),
+    (("view", "--connect", "tcp/127.0.0.1:9", "--rrd", "/tmp/x.rrd", "--scan-hz", "0"), "--scan-hz must be positive"),
+    (("view", "--connect", "tcp/127.0.0.1:9", "--rrd", "/definitely/missing/dir/x.rrd"), "--rrd: no such directory"),
+    (("sim", "--viz", "bogus"), "--viz takes spawn, web or"),
+    (("sim", "--plot", "/tmp/timeline.txt"), "--plot writes a PNG"),
+    (("sim", "--rrd", "/definitely/missing/dir/run.rrd"), "--rrd: no such directory"),
+    (("record", "/tmp/x.mcap", "--connect", "tcp/127.0.0.1:9", "--health", "-1"), "--health must be"),
     (("frobnicate",), "invalid choice"),
 ])
 def test_user_mistakes_give_one_line_and_exit_2(args, expected):
@@ -57,3 +68,11 @@ def test_bad_parameter_file_names_table_and_field(tmp_path):
     config.write_text("[warp]\nx = 1\n")
     result = falconry("sim", "--config", str(config))
     assert result.returncode == 2 and "unknown table [warp]" in result.stderr
+
+
+def test_a_native_viewer_without_a_display_says_what_to_use_instead():
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    for args in (("sim", "--viz"), ("view", "--connect", "tcp/127.0.0.1:9")):
+        result = subprocess.run(falconry_argv(*args), cwd=REPO, capture_output=True, text=True, timeout=60, env=env)
+        assert result.returncode == 2 and "Traceback" not in result.stderr
+        assert "no display for a native viewer" in result.stderr and "--viz web" in result.stderr, result.stderr

@@ -198,8 +198,14 @@ def test_detections_tracks_and_lag_from_one_scan():
     logs = entities(scene.feed("falconry/uav1/detections", encode(detections), received=1_004_000_000))
     (det,) = logs["uav1/detections"]
     assert np.allclose(sorted(det.item.half_sizes[0]), [0.2, 0.4, 0.4]) and det.item.labels == ["12 pts"]
-    assert logs["plots/detections/uav1"][0].item.value == 1.0
-    assert logs["plots/lag_ms/uav1/detections"][0].item.value == pytest.approx(4.0)
+    detections.header.stamp = cloud_stamp + S // 10  # the same second: folded into one plot point
+    scene.feed("falconry/uav1/detections", encode(detections))
+    scene._uav("uav1").scans_received[3 * S] = 1_100_000_000
+    detections.header.stamp = 3 * S  # the next second: the last one's figures are plotted
+    logs = entities(scene.feed("falconry/uav1/detections", encode(detections), received=1_101_000_000))
+    (count,) = logs["plots/detections/uav1"]
+    assert count.item.value == 2.0 and count.stamp == 2 * S
+    assert logs["plots/lag_ms/uav1/detections"][0].item.value == pytest.approx(4.0)  # the worst of t=2 s
 
     state = np.array([5.0, 5, 5, 1, 0, 0, 0, 0, 0])
     cov = np.eye(9) * 0.25
@@ -295,3 +301,24 @@ def test_every_map_message_updates_the_view_but_layers_are_drawn_at_the_map_rate
     assert not [e for e in entities(scene.feed("falconry/uav1/map", delta(S + S // 2, 800))) if "/map/" in e]
     later = entities(scene.feed("falconry/uav1/map", delta(2 * S, 1600)))
     assert len(later["uav1/map/occupied/0001"][0].item.centers) == 2  # the voxel of the skipped draw too
+
+
+def test_a_map_snapshot_is_applied_only_when_messages_went_missing():
+    scene = SceneBuilder(ViewParams(map_period=0.0))
+
+    def voxel_map(seq, snapshot, indices):
+        return encode(VoxelMap(header=Header(stamp=seq * S, seq=seq), snapshot=snapshot, voxel_size=0.5,
+                               origin=(0, 0, 0), shape=(40, 40, 10), indices=from_numpy(np.array(indices, np.int64)),
+                               values=from_numpy(np.zeros(len(indices), np.float32))))
+
+    def drawn(logs):
+        return sum(len(log.item.centers) for log in logs if "/map/occupied/" in log.entity)
+    assert drawn(scene.feed("falconry/uav1/map", voxel_map(1, True, [0]))) == 1
+    assert drawn(scene.feed("falconry/uav1/map", voxel_map(2, False, [800]))) == 1
+    # in sequence: the snapshot says what the deltas said (and here would wrongly drop voxel 800)
+    assert drawn(scene.feed("falconry/uav1/map", voxel_map(3, True, [0]))) == 0
+    # message 4 went missing: the next snapshot is the truth again
+    assert drawn(scene.feed("falconry/uav1/map", voxel_map(5, False, [1600]))) == 1
+    scene.feed("falconry/uav1/map", voxel_map(6, True, [0, 1600, 2400]))
+    final = scene.uavs["uav1"].map
+    assert final.replica.grid.reshape(-1)[[0, 800, 1600, 2400]].tolist() == [0.0, -740.0, 0.0, 0.0]

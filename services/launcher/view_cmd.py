@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
 from services.launcher.monitor import RunMonitor
+from services.recorder.mcap_io import is_mcap
 from services.runtime.errors import UsageError
 from services.runtime.zenoh_config import init_logging, open_session
 from services.viz.settings import ViewParams, check_viewer
@@ -80,6 +81,9 @@ def add_parser(commands) -> None:
     live.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time (live)")
     live.add_argument("--exit-with-parent", action="store_true",
                       help="stop when the launching process dies (falconry sim sets this)")
+    live.add_argument("--nice", type=int, default=10, metavar="N",
+                      help="run N steps below normal priority, so the services watched get the CPU first "
+                           "(default 10; 0 = normal)")
     live.add_argument("--quiet", action="store_true", help="no progress lines")
     add_zenoh_options(p, "Live: give the run's hub, e.g. --connect tcp/127.0.0.1:PORT.")
     p.set_defaults(handler=run_view)
@@ -99,8 +103,13 @@ def run_view(args: argparse.Namespace) -> int:
         raise CliError("give a recording (falconry view RUN.mcap) or the run to watch (--connect tcp/HOST:PORT)")
     if args.recording and not Path(args.recording).is_file():
         raise CliError(f"no such recording: {args.recording}")
+    if args.recording and not is_mcap(args.recording):
+        raise CliError(f"{args.recording} is not an MCAP file (record one with `falconry sim --record` or "
+                       f"`falconry record`)")
     if args.duration is not None and args.duration <= 0:
         raise CliError("--duration must be positive")
+    if not 0 <= args.nice <= 19:
+        raise CliError("--nice takes 0 (normal priority) to 19 (lowest)")
     if args.rrd is None and args.viz is None:
         args.viz = "spawn"
     check_view_options(args)
@@ -156,6 +165,7 @@ def _live(args: argparse.Namespace, viewer: Viewer) -> ViewStats:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    yield_cpu(args.nice)
     init_logging()
     session = open_session(zenoh_settings(args))
     parent = os.getppid()
@@ -186,6 +196,19 @@ def _live(args: argparse.Namespace, viewer: Viewer) -> ViewStats:
     if feed.dropped:
         print(f"view: dropped {feed.dropped} scans to keep up", flush=True)
     return viewer.close()
+
+
+def yield_cpu(steps: int) -> None:
+    """Lower this process's priority; where the kernel schedules by session (autogroup, and every
+    process `falconry sim` starts has a session of its own), lower the session's too, since
+    a niceness only counts within it."""
+    if steps <= 0:
+        return
+    try:
+        os.nice(steps)
+        Path("/proc/self/autogroup").write_text(str(min(steps, 19)))
+    except OSError:
+        pass  # not Linux, or no autogroup: the niceness alone
 
 
 def _report(args: argparse.Namespace, stats: ViewStats, wall_s: float) -> None:

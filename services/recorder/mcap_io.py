@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import json
 import time
+from pathlib import Path
 from dataclasses import dataclass, field
 from typing import BinaryIO, Callable, Iterator
 
@@ -163,6 +164,18 @@ class _ExactReads:
             raise EndOfFile()
         self.position += len(data)
         return data
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
+def is_mcap(path: str | Path) -> bool:
+    """Does the file start like an MCAP file? (Checked before anything is written for it.)"""
+    try:
+        with open(path, "rb") as file:
+            return file.read(len(MCAP_MAGIC)) == MCAP_MAGIC
+    except OSError:
+        return False
 
 
 def read_recording(path: str, wanted: Callable[[str], bool] | None = None,

@@ -38,10 +38,10 @@ def blueprint(uavs: list[str]) -> rrb.Blueprint:
         rrb.TextLogView(name="events", origin="/events"),
         row_shares=[1, 2])
     plots = rrb.Vertical(
-        rrb.TimeSeriesView(name="detections per scan", origin="/plots/detections"),
+        rrb.TimeSeriesView(name="detections per second", origin="/plots/detections"),
         rrb.TimeSeriesView(name="track uncertainty radius (m)", origin="/plots/track_uncertainty"),
         rrb.TimeSeriesView(name="CPU per service (%)", origin="/plots/cpu"),
-        rrb.TimeSeriesView(name="lag after the scan (ms)", origin="/plots/lag_ms"),
+        rrb.TimeSeriesView(name="lag after the scan, worst per second (ms)", origin="/plots/lag_ms"),
         rrb.TimeSeriesView(name="nearest partner (m, truth)", origin="/plots/nearest_partner"),
         name="plots")
     return rrb.Blueprint(
@@ -126,6 +126,7 @@ class RerunOutput:
             sinks.append(rr.GrpcSink(viewer))
         self.rec.set_sinks(*sinks)
         self.logged = 0
+        self._time: int | None = None  # the mission time the stream is set to
         self._uavs: list[str] = []
         self.layout([])
 
@@ -138,7 +139,8 @@ class RerunOutput:
     def write(self, logs: list[draw.Log]) -> None:
         rec = self.rec
         for log in logs:
-            if log.stamp is not None:
+            if log.stamp is not None and log.stamp != self._time:  # a message's logs share one time
+                self._time = log.stamp
                 rec.set_time("mission_time", duration=np.timedelta64(log.stamp, "ns"))
                 rec.set_time("tick", sequence=log.tick)
             rec.log(log.entity, archetype(log.item), static=log.stamp is None)

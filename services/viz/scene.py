@@ -14,7 +14,7 @@ Entities (`UAV_FAMILIES` under each UAV's name; the rest run-wide):
   tracks with covariance ellipsoids, predicted track paths, trajectory reference, working area,
   forbidden zones, the job manager's state (timeline and document), events (faults, restarts,
   commands, state changes);
-- plots/…: detections per scan, track uncertainty, CPU per service, pipeline lags, distance to the
+- plots/…: detections per second, track uncertainty, CPU per service, pipeline lags, distance to the
   nearest partner (truth), real-time factor; events: every event as a log line.
 """
 from __future__ import annotations
@@ -86,6 +86,8 @@ class _Uav:
     status_view: tuple = ()
     command_id: int = -1
     map: MapView | None = None
+    map_seq: int = -1  # header.seq of the last map message
+    map_exact: bool = False  # a snapshot and then every message in sequence: snapshots add nothing
     due: dict[str, int] = field(default_factory=dict)  # what -> next mission ns it may be drawn
 
 
@@ -112,6 +114,7 @@ class SceneBuilder:
         self._target_last: dict[str, tuple[float, float, float]] = {}
         self._destroyed: list[tuple[np.ndarray, str]] = []
         self._cpu: dict[str, _Cpu] = {}
+        self._windows: dict[str, tuple[int, float]] = {}  # plot entity -> (second's start, value so far)
         self._due: dict[str, int] = {}
         self._decoders: dict[type, msgspec.msgpack.Decoder] = {}
         self._handlers = {
@@ -336,10 +339,23 @@ class SceneBuilder:
         self._log(f"{name}/scan", draw.Points(points[keep], colors, 0.06))
 
     def _lag(self, name: str, uav: _Uav, what: str) -> None:
-        """Wall time from a scan's arrival to the arrival of what was made from it (same stamp)."""
+        """Wall time from a scan's arrival to the arrival of what was made from it (same stamp);
+        the worst of each second is plotted."""
         scan_at = uav.scans_received.get(self._stamp)
         if scan_at and self._received:
-            self._log(f"plots/lag_ms/{name}/{what}", draw.Scalar((self._received - scan_at) / 1e6))
+            self._per_second(f"plots/lag_ms/{name}/{what}", (self._received - scan_at) / 1e6, max)
+
+    def _per_second(self, entity: str, value: float, combine) -> None:
+        """Fold values into one per second of mission time, plotted at the second's start once
+        the next second begins (a plot point per scan would cost more than it shows)."""
+        second = self._stamp // NS * NS
+        window = self._windows.get(entity)
+        if window is None or window[0] != second:
+            if window is not None:
+                self._log(entity, draw.Scalar(window[1]), stamp=window[0])
+            self._windows[entity] = (second, value)
+        else:
+            self._windows[entity] = (second, combine(window[1], value))
 
     def _on_detections(self, name: str, detections: Detections) -> None:
         uav = self._uav(name)
@@ -351,15 +367,22 @@ class SceneBuilder:
             raise ValueError("detection arrays differ in length")
         self._log(f"{name}/detections", draw.Ellipsoids(positions, half, rotations, (230, 25, 25, 255),
                                                         [f"{n} pts" for n in counts.tolist()]))
-        self._log(f"plots/detections/{name}", draw.Scalar(float(len(positions))))
+        self._per_second(f"plots/detections/{name}", float(len(positions)), lambda a, b: a + b)
         self._lag(name, uav, "detections")
 
     def _on_map(self, name: str, voxel_map: VoxelMap) -> None:
         uav = self._uav(name)
         if uav.map is None:
             uav.map = MapView(self.params.map_cell, self.params.map_layers)
-        void = uav.map.apply(voxel_map.snapshot, voxel_map.origin, voxel_map.shape, voxel_map.voxel_size,
-                             voxel_map.default_value, to_numpy(voxel_map.indices), to_numpy(voxel_map.values))
+        in_sequence = voxel_map.header.seq == uav.map_seq + 1
+        uav.map_seq = voxel_map.header.seq
+        void: list[int] = []
+        if voxel_map.snapshot and uav.map_exact and in_sequence:
+            pass  # every delta since the last applied snapshot arrived: this one repeats them
+        else:
+            uav.map_exact = (uav.map_exact and in_sequence) or voxel_map.snapshot
+            void = uav.map.apply(voxel_map.snapshot, voxel_map.origin, voxel_map.shape, voxel_map.voxel_size,
+                                 voxel_map.default_value, to_numpy(voxel_map.indices), to_numpy(voxel_map.values))
         for layer in void:  # the map changed its geometry: what was drawn is no longer it
             self._log(f"{name}/map/occupied/{layer:04d}", draw.Boxes(np.zeros((0, 3)), np.zeros(3), (0, 0, 0, 0)))
             self._log(f"{name}/map/unknown/{layer:04d}", draw.Points(np.zeros((0, 3)), (0, 0, 0, 0), 0.0))

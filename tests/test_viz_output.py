@@ -1,0 +1,67 @@
+"""The rerun side of the viewer: every draw record is a valid rerun archetype, and a recording
+written by RerunOutput is one `rerun rrd verify` accepts, with its timelines and layout."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import rerun as rr
+
+from services.viz import draw
+from services.viz.output import RerunOutput, archetype, blueprint
+from tests.tools.rrd import entity_times, verify
+
+S = 1_000_000_000
+RECORDS = [
+    draw.Points(np.zeros((3, 3)), np.zeros((3, 4), np.uint8), 0.1, ["a", "b", "c"]),
+    draw.Points(np.zeros((0, 3)), (1, 2, 3, 4), 0.1),
+    draw.Lines([np.zeros((4, 3)), np.ones((2, 3))], (1, 2, 3, 255), 0.05, ["x", "y"]),
+    draw.Ellipsoids(np.zeros((2, 3)), np.ones((2, 3)), np.tile([0.0, 0, 0, 1], (2, 1)), (255, 0, 0, 255), ["p", "q"]),
+    draw.Ellipsoids(np.zeros((1, 3)), np.ones((1, 3)), None, (255, 0, 0, 90), solid=True),
+    draw.Boxes(np.zeros((5, 3)), np.array([0.2, 0.2, 0.2]), np.zeros((5, 4), np.uint8)),
+    draw.Cylinders(np.zeros((1, 3)), np.ones(1), np.ones(1), (0, 255, 0, 255), ["tree"]),
+    draw.Mesh(np.eye(3), np.array([[0, 1, 2]], np.uint32), (9, 9, 9, 255)),
+    draw.Pose(np.array([1.0, 2, 3]), np.array([0.0, 0, 0, 1])),
+    draw.Axes(1.0),
+    draw.Text("fault_injected uav1: kill", "WARN"),
+    draw.Document("## uav1\n| a | b |\n| --- | --- |\n| 1 | 2 |"),
+    draw.State("IDLE"),
+    draw.StateStyle(["IDLE", "LANDED"], [(1, 2, 3, 255), (4, 5, 6, 255)]),
+    draw.Scalar(2.5),
+    draw.SeriesStyle("uav1", (31, 119, 180, 255)),
+    draw.ZUp(),
+]
+
+
+@pytest.fixture
+def strict_rerun():
+    """Rerun turns bad input into warnings (slow, and easy to miss); here they must raise."""
+    before = rr.strict_mode()
+    rr.set_strict_mode(True)
+    yield
+    rr.set_strict_mode(before)
+
+
+def test_every_draw_record_is_a_valid_rerun_archetype(strict_rerun):
+    for record in RECORDS:
+        archetype(record)
+    blueprint(["uav1", "uav2", "uav3"])
+    with pytest.raises(TypeError):
+        archetype(object())
+
+
+def test_a_written_recording_verifies_and_keeps_mission_time_and_static_data(tmp_path, strict_rerun):
+    path = tmp_path / "out.rrd"
+    output = RerunOutput(rrd=str(path), recording_name="unit")
+    output.layout(["uav1"])
+    logs = [draw.Log("world", draw.ZUp(), None)]
+    logs += [draw.Log(f"entity/{i}", record, i * S // 10, i * 2) for i, record in enumerate(RECORDS) if
+             not isinstance(record, draw.ZUp)]
+    logs += [draw.Log("uav1/pose", draw.Pose(np.array([float(i), 0, 5]), np.array([0.0, 0, 0, 1])), i * S)
+             for i in range(5)]
+    output.write(logs)
+    output.close()
+    assert verify(path).returncode == 0
+    entities = entity_times(path)
+    assert entities["world"] == {-1}
+    assert entities["uav1/pose"] == {i * S for i in range(5)}
+    assert entities["entity/1"] == {S // 10}
