@@ -129,9 +129,14 @@ def run_view(args: argparse.Namespace) -> int:
     viewer = Viewer(output, params, also=monitor.handle if monitor else None)
     started = time.monotonic()
     if args.recording:
-        stats = _convert(args, viewer)
+        _convert(args, viewer)
+        if output.web_address:  # the web viewer lives in this process: keep it up until asked to stop
+            viewer.output.flush()
+            print(f"converted; the web viewer keeps serving on {output.web_address} (Ctrl-C to stop)", flush=True)
+            _wait_for_stop()
     else:
-        stats = _live(args, viewer)
+        _live(args, viewer)
+    stats = viewer.close()
     _report(args, stats, time.monotonic() - started)
     if monitor is not None:
         from services.launcher.plot import plot_timeline  # matplotlib, likewise
@@ -141,7 +146,15 @@ def run_view(args: argparse.Namespace) -> int:
     return 0
 
 
-def _convert(args: argparse.Namespace, viewer: Viewer) -> ViewStats:
+def _wait_for_stop() -> None:
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    while not stop.wait(0.5):
+        pass
+
+
+def _convert(args: argparse.Namespace, viewer: Viewer) -> None:
     from services.viz.viewer import convert_recording
 
     def progress(stats: ViewStats, duration: float) -> None:
@@ -149,17 +162,12 @@ def _convert(args: argparse.Namespace, viewer: Viewer) -> ViewStats:
             whole = f"/{duration:g}" if duration else ""
             print(f"view: t={stats.mission_s:.1f}{whole} s of mission, {stats.messages} messages", flush=True)
 
-    try:
-        report = convert_recording(viewer, args.recording, progress)
-    except UsageError as exc:  # not an MCAP file
-        viewer.close()
-        raise CliError(str(exc)) from None
+    report = convert_recording(viewer, args.recording, progress)
     if not report.complete:
         print(f"warning: {report.describe(args.recording)}", flush=True)
-    return viewer.close()
 
 
-def _live(args: argparse.Namespace, viewer: Viewer) -> ViewStats:
+def _live(args: argparse.Namespace, viewer: Viewer) -> None:
     from services.viz.live import LiveFeed
 
     stop = threading.Event()
@@ -195,7 +203,6 @@ def _live(args: argparse.Namespace, viewer: Viewer) -> ViewStats:
         session.close()
     if feed.dropped:
         print(f"view: dropped {feed.dropped} scans to keep up", flush=True)
-    return viewer.close()
 
 
 def yield_cpu(steps: int) -> None:

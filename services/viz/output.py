@@ -146,6 +146,9 @@ class RerunOutput:
             rec.log(log.entity, archetype(log.item), static=log.stamp is None)
             self.logged += 1
 
+    def flush(self) -> None:
+        self.rec.flush()
+
     def close(self) -> None:
         self.rec.flush()
         self.rec.disconnect()
