@@ -20,6 +20,7 @@ class Points:
     colors: np.ndarray | Color  # (N, 4) uint8, or one colour for all
     radius: float
     labels: list[str] | None = None
+    show_labels: bool = True  # False: the labels show on hover only
 
 
 @dataclass(frozen=True)
@@ -28,6 +29,7 @@ class Lines:
     color: Color
     radius: float
     labels: list[str] | None = None
+    show_labels: bool = True  # False: the labels show on hover only
 
 
 @dataclass(frozen=True)
@@ -37,6 +39,7 @@ class Ellipsoids:
     quaternions: np.ndarray | None  # (N, 4), None: axis-aligned
     color: Color
     labels: list[str] | None = None
+    show_labels: bool = True  # False: the labels show on hover only
     solid: bool = False
 
 
@@ -46,6 +49,7 @@ class Boxes:
     half_sizes: np.ndarray  # (N, 3), or (3,): one size for every box
     colors: np.ndarray | Color
     labels: list[str] | None = None
+    show_labels: bool = True  # False: the labels show on hover only
     solid: bool = True
 
 
@@ -56,6 +60,7 @@ class Cylinders:
     radii: np.ndarray  # (N,)
     color: Color
     labels: list[str] | None = None
+    show_labels: bool = True  # False: the labels show on hover only
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,9 @@ from scipy.spatial.transform import Rotation
 Color = tuple[int, int, int, int]
 
 # Colour stops of matplotlib's viridis, enough for a height ramp without importing matplotlib.
-_RAMP = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=np.float64)
+VIRIDIS = np.array([[68, 1, 84], [59, 82, 139], [33, 145, 140], [94, 201, 98], [253, 231, 37]], dtype=np.float64)
+# Sand to rust: solid things, light at the ground so the map does not bury the scene in one dark slab.
+TERRAIN = np.array([[214, 205, 180], [190, 170, 130], [170, 130, 90], [200, 105, 50], [170, 50, 30]], dtype=np.float64)
 
 
 def covariance_ellipsoids(covariances: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray]:
@@ -49,12 +51,12 @@ def thin_out(count: int, budget: int) -> np.ndarray:
     return np.linspace(0, count - 1, budget).round().astype(np.int64)
 
 
-def height_colors(z: np.ndarray, low: float, high: float, alpha: int = 255) -> np.ndarray:
-    """(N, 4) uint8 colours on a viridis ramp from `low` to `high` metres."""
+def height_colors(z: np.ndarray, low: float, high: float, alpha: int = 255, ramp: np.ndarray = VIRIDIS) -> np.ndarray:
+    """(N, 4) uint8 colours on a ramp (viridis unless given) from `low` to `high` metres."""
     z = np.asarray(z, dtype=np.float64).reshape(-1)
-    where = np.clip((z - low) / max(high - low, 1e-9), 0.0, 1.0) * (len(_RAMP) - 1)
-    stops = np.arange(len(_RAMP))
-    rgb = np.stack([np.interp(where, stops, _RAMP[:, c]) for c in range(3)], axis=1)
+    where = np.clip((z - low) / max(high - low, 1e-9), 0.0, 1.0) * (len(ramp) - 1)
+    stops = np.arange(len(ramp))
+    rgb = np.stack([np.interp(where, stops, ramp[:, c]) for c in range(3)], axis=1)
     return np.concatenate([rgb.round(), np.full((len(z), 1), alpha)], axis=1).astype(np.uint8)
 
 

@@ -10,6 +10,7 @@ distance to the nearest partner and the real-time factor.
 from __future__ import annotations
 
 import time
+from urllib.parse import quote
 
 import numpy as np
 import rerun as rr
@@ -49,7 +50,7 @@ def blueprint(uavs: list[str]) -> rrb.Blueprint:
             rrb.Vertical(everything, timelines, row_shares=[3, 2]),
             rrb.Tabs(*per_uav, plots, name="per UAV") if per_uav else plots,
             column_shares=[3, 2]),
-        rrb.TimePanel(state="expanded"),
+        rrb.TimePanel(state="expanded", timeline="mission_time"),
         collapse_panels=False,
     )
 
@@ -58,20 +59,23 @@ def archetype(item: draw.Drawable):
     """The rerun archetype that draws one record."""
     match item:
         case draw.Points():
-            return rr.Points3D(item.positions, colors=item.colors, radii=item.radius, labels=item.labels)
+            return rr.Points3D(item.positions, colors=item.colors, radii=item.radius, labels=item.labels,
+                               show_labels=item.show_labels)
         case draw.Lines():
-            return rr.LineStrips3D(item.strips, colors=item.color, radii=item.radius, labels=item.labels)
+            return rr.LineStrips3D(item.strips, colors=item.color, radii=item.radius, labels=item.labels,
+                                   show_labels=item.show_labels)
         case draw.Ellipsoids():
             return rr.Ellipsoids3D(centers=item.centers, half_sizes=item.half_sizes, quaternions=item.quaternions,
-                                   colors=item.color, labels=item.labels,
+                                   colors=item.color, labels=item.labels, show_labels=item.show_labels,
                                    fill_mode=FILL_SOLID if item.solid else FILL_WIRES)
         case draw.Boxes():
             # one half size for all is repeated by rerun for every centre
             return rr.Boxes3D(centers=item.centers, half_sizes=np.asarray(item.half_sizes).reshape(-1, 3),
-                              colors=item.colors, labels=item.labels, fill_mode=FILL_SOLID if item.solid else FILL_WIRES)
+                              colors=item.colors, labels=item.labels, show_labels=item.show_labels,
+                              fill_mode=FILL_SOLID if item.solid else FILL_WIRES)
         case draw.Cylinders():
             return rr.Cylinders3D(centers=item.centers, lengths=item.lengths, radii=item.radii, colors=item.color,
-                                  labels=item.labels, fill_mode=FILL_SOLID)
+                                  labels=item.labels, show_labels=item.show_labels, fill_mode=FILL_SOLID)
         case draw.Mesh():
             return rr.Mesh3D(vertex_positions=item.vertices, triangle_indices=item.triangles, albedo_factor=item.color)
         case draw.Pose():
@@ -121,7 +125,8 @@ class RerunOutput:
             server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=GRPC_PORT)
             sinks.append(server)
             rr.serve_web_viewer(web_port=WEB_PORT, open_browser=False, connect_to=server.uri)
-            self.web_address = f"http://127.0.0.1:{WEB_PORT}"
+            # the page connects to the recording's server only when told where it is
+            self.web_address = f"http://127.0.0.1:{WEB_PORT}/?url={quote(server.uri, safe='')}"
         elif viewer:
             sinks.append(rr.GrpcSink(viewer))
         self.rec.set_sinks(*sinks)

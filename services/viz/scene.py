@@ -46,6 +46,7 @@ from schemas.messages import (
 )
 from services.viz import draw
 from services.viz.geometry import (
+    TERRAIN,
     Color,
     closed_polygon,
     cone_mesh,
@@ -220,16 +221,16 @@ class SceneBuilder:
         if boxes := by_kind.get("box"):
             self._log("world/obstacles/boxes", draw.Boxes(
                 np.array([o.center for o in boxes]), np.array([o.size for o in boxes]) / 2, grey,
-                [o.name for o in boxes]), static=True)
+                [o.name for o in boxes], show_labels=False), static=True)
         if cylinders := by_kind.get("cylinder"):
             self._log("world/obstacles/cylinders", draw.Cylinders(
                 np.array([o.center for o in cylinders]) + np.array([[0, 0, o.height / 2] for o in cylinders]),
                 np.array([o.height for o in cylinders]), np.array([o.radius for o in cylinders]),
-                (120, 150, 100, 255), [o.name for o in cylinders]), static=True)
+                (120, 150, 100, 255), [o.name for o in cylinders], show_labels=False), static=True)
         if spheres := by_kind.get("sphere"):
             self._log("world/obstacles/spheres", draw.Ellipsoids(
                 np.array([o.center for o in spheres]), np.array([[o.radius] * 3 for o in spheres]), None,
-                grey, [o.name for o in spheres], solid=True), static=True)
+                grey, [o.name for o in spheres], solid=True, show_labels=False), static=True)
         if cones := by_kind.get("cone"):
             vertices, triangles = merge_meshes([cone_mesh(np.asarray(o.center), o.radius, o.height) for o in cones])
             self._log("world/obstacles/cones", draw.Mesh(vertices, triangles, (60, 120, 60, 255)), static=True)
@@ -366,7 +367,7 @@ class SceneBuilder:
         if not (len(positions) == len(half) == len(counts)):
             raise ValueError("detection arrays differ in length")
         self._log(f"{name}/detections", draw.Ellipsoids(positions, half, rotations, (230, 25, 25, 255),
-                                                        [f"{n} pts" for n in counts.tolist()]))
+                                                        [f"{n} pts" for n in counts.tolist()], show_labels=False))
         self._per_second(f"plots/detections/{name}", float(len(positions)), lambda a, b: a + b)
         self._lag(name, uav, "detections")
 
@@ -392,8 +393,8 @@ class SceneBuilder:
             return
         half = uav.map.cell_size() * 0.45
         for layer in uav.map.drain():
-            colors = height_colors(layer.occupied[:, 2], 0.0, 12.0)
-            colors[~layer.confident] = (235, 235, 235, 160)
+            colors = height_colors(layer.occupied[:, 2], 0.0, 10.0, ramp=TERRAIN)
+            colors[~layer.confident] = (120, 220, 220, 160)  # tentative: pale cyan
             self._log(f"{name}/map/occupied/{layer.layer:04d}", draw.Boxes(layer.occupied, np.array([half] * 3), colors))
             self._log(f"{name}/map/unknown/{layer.layer:04d}", draw.Points(layer.unknown, (120, 200, 255, 120), half * 0.6))
 
@@ -430,7 +431,7 @@ class SceneBuilder:
         positions = to_numpy(trajectory.positions).reshape(-1, 3)
         positions = positions[thin_out(len(positions), 400)]
         self._log(f"{name}/trajectory", draw.Lines([positions], uav.color, 0.03,
-                                                    [f"command {trajectory.command_id}"]))
+                                                    [f"command {trajectory.command_id}"], show_labels=False))
 
     def _on_status(self, name: str, status: UavStatus) -> None:
         uav = self._uav(name)
@@ -446,7 +447,7 @@ class SceneBuilder:
         uav.status_view = view
         self._log(f"{name}/status", draw.Document(status_markdown(name, status, self._stamp)))
         self._log(f"{name}/working_area", draw.Lines([closed_polygon(status.working_area, 0.15)], uav.color, 0.12,
-                                                      [f"{name} working area"] if status.working_area else None))
+                                                      [f"{name} working area"] if status.working_area else None, show_labels=False))
         zones = status.forbidden_zones
         self._log(f"{name}/forbidden_zones", draw.Ellipsoids(
             np.array([z.center for z in zones]).reshape(-1, 3), np.array([[z.radius] * 3 for z in zones]).reshape(-1, 3),

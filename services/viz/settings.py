@@ -23,7 +23,7 @@ class ViewParams:
     scan_period: float = 0.5  # s of mission time between drawn scans of one UAV
     scan_points: int = 2000  # at most this many points per drawn scan (flying / unknown points always)
     map_period: float = 1.0  # s between map draws of one UAV (each draws only what changed)
-    map_cell: int = 2  # map voxels per side of a drawn cube (decimation: 1 m cubes for 0.5 m voxels)
+    map_cell: int = 1  # map voxels per side of a drawn cube (2: 1 m cubes for 0.5 m voxels, a quarter the data)
     map_layers: int = 64  # drawn map layers per UAV before they fold into one
     pose_period: float = 0.1  # s between drawn poses of one UAV
     track_period: float = 0.2  # s between drawn track sets of one UAV
