@@ -119,6 +119,8 @@ def run_view(args: argparse.Namespace) -> int:
     from services.viz.viewer import Viewer
 
     name = Path(args.recording).stem if args.recording else "live"
+    if not args.recording:
+        yield_cpu(args.nice)  # before rerun's and Zenoh's threads start: a thread's niceness is its own
     try:
         output = RerunOutput(rrd=args.rrd, viewer=args.viz, recording_name=name)
     except (OSError, RuntimeError, ValueError) as exc:
@@ -173,7 +175,6 @@ def _live(args: argparse.Namespace, viewer: Viewer) -> None:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    yield_cpu(args.nice)
     init_logging()
     session = open_session(zenoh_settings(args))
     parent = os.getppid()

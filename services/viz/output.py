@@ -4,8 +4,8 @@ Timelines: "mission_time" (duration, the messages' header stamps) and "tick" (th
 step); rerun's own wall-clock log time is switched off, so a recording converted later reads the
 same as the one drawn live. The blueprint opens on: the 3D arena with everything; one tab per UAV
 (its own 3D view, status document and event log); the job managers' states as a state timeline;
-every event; plots of detections per scan, track uncertainty, CPU per service, pipeline lag,
-distance to the nearest partner and the real-time factor.
+every event; plots of detections per second, track uncertainty, CPU and memory per service,
+pipeline lag, distance to the nearest partner and the real-time factor.
 """
 from __future__ import annotations
 
@@ -44,6 +44,8 @@ def blueprint(uavs: list[str]) -> rrb.Blueprint:
         rrb.TimeSeriesView(name="CPU per service (%)", origin="/plots/cpu"),
         rrb.TimeSeriesView(name="lag after the scan, worst per second (ms)", origin="/plots/lag_ms"),
         rrb.TimeSeriesView(name="nearest partner (m, truth)", origin="/plots/nearest_partner"),
+        rrb.TimeSeriesView(name="memory per service (MB)", origin="/plots/memory_mb"),
+        rrb.TimeSeriesView(name="real-time factor", origin="/plots/real_time_factor"),
         name="plots")
     return rrb.Blueprint(
         rrb.Horizontal(
@@ -132,12 +134,12 @@ class RerunOutput:
         self.rec.set_sinks(*sinks)
         self.logged = 0
         self._time: int | None = None  # the mission time the stream is set to
-        self._uavs: list[str] = []
+        self._uavs: list[str] | None = None  # the team the layout was sent for
         self.layout([])
 
     def layout(self, uavs: list[str]) -> None:
         """Send the layout for this team (again when a UAV appears)."""
-        if uavs != self._uavs or not self.logged:
+        if uavs != self._uavs:
             self._uavs = list(uavs)
             self.rec.send_blueprint(blueprint(self._uavs), make_active=True, make_default=True)
 

@@ -20,6 +20,7 @@ Entities (`UAV_FAMILIES` under each UAV's name; the rest run-wide):
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import msgspec
@@ -118,6 +119,9 @@ class SceneBuilder:
         self._windows: dict[str, tuple[int, float]] = {}  # plot entity -> (second's start, value so far)
         self._due: dict[str, int] = {}
         self._decoders: dict[type, msgspec.msgpack.Decoder] = {}
+        self._out: list[draw.Log] = []  # what the message being fed draws
+        self._received = 0  # its wall-clock arrival, ns
+        self._stamp = 0  # its mission time, ns
         self._handlers = {
             keys.CLOCK: self._on_clock, keys.WORLD: self._on_world, keys.TRUTH: self._on_truth,
             keys.EVENTS: self._on_event,
@@ -144,7 +148,7 @@ class SceneBuilder:
             self.decode_errors += 1
             return []
         self.messages += 1
-        self._out: list[draw.Log] = []
+        self._out = []
         self._received = received
         self._stamp = self._mission(msg.header.stamp)
         self.mission_ns = max(self.mission_ns, self._stamp)
@@ -346,7 +350,7 @@ class SceneBuilder:
         if scan_at and self._received:
             self._per_second(f"plots/lag_ms/{name}/{what}", (self._received - scan_at) / 1e6, max)
 
-    def _per_second(self, entity: str, value: float, combine) -> None:
+    def _per_second(self, entity: str, value: float, combine: Callable[[float, float], float]) -> None:
         """Fold values into one per second of mission time, plotted at the second's start once
         the next second begins (a plot point per scan would cost more than it shows)."""
         second = self._stamp // NS * NS
