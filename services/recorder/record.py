@@ -20,6 +20,7 @@ import zenoh
 
 from services.recorder.mcap_io import CHUNK_SIZE, McapRecordWriter, WriteStats
 from services.runtime.health import HealthPoller
+from services.runtime.zenoh_config import undeclare_all
 
 DEFAULT_KEYS = ("falconry/**",)
 
@@ -96,12 +97,7 @@ class Recorder:
 
     def close(self) -> WriteStats:
         """Stop receiving, write what is queued, finish the file (summary, footer)."""
-        for sub in self._subscribers:
-            try:
-                sub.undeclare()
-            except Exception:
-                pass
-        self._subscribers = []
+        undeclare_all(self._subscribers)
         if self._thread.is_alive():
             self._queue.put(None)
             self._thread.join()

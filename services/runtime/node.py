@@ -34,7 +34,7 @@ from services.runtime.clock import MissionClock, WallClock
 from services.runtime.health import process_usage
 from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.typed import Counters, M, Subscription, TypedPublisher
-from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session
+from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session, undeclare_all
 
 POLL_S = 0.1  # how often the loop looks at stop requests when idle
 LOCKSTEP_TIMEOUT_S = 5.0
@@ -225,11 +225,7 @@ class Node:
         finally:
             if token is not None:
                 token.undeclare()
-            for handle in self._zenoh_handles:
-                try:
-                    handle.undeclare()
-                except Exception:
-                    pass
+            undeclare_all(self._zenoh_handles)
             self.session.close()
             self.session = None
         self.log.info("stopped")

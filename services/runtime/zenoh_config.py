@@ -109,6 +109,17 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
         raise ZenohConfigError(f"cannot open zenoh session ({settings.profile}): {exc}") from None
 
 
+def undeclare_all(handles: list) -> None:
+    """Undeclare subscribers, queryables and publishers on the way out; one that is already gone
+    (its session closing) must not keep the others declared."""
+    for handle in handles:
+        try:
+            handle.undeclare()
+        except Exception:
+            pass
+    handles.clear()
+
+
 _logging_initialised = False
 
 

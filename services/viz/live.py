@@ -14,6 +14,7 @@ import zenoh
 
 from schemas import keys
 from services.runtime.health import HealthPoller
+from services.runtime.zenoh_config import undeclare_all
 
 LIVE_KEYS = (keys.CLOCK, keys.WORLD, keys.TRUTH, keys.EVENTS) + tuple(
     f"{keys.ROOT}/*/{topic}" for topic in
@@ -51,9 +52,4 @@ class LiveFeed:
         return self._queue.qsize()
 
     def close(self) -> None:
-        for sub in self._subscribers:
-            try:
-                sub.undeclare()
-            except Exception:
-                pass
-        self._subscribers = []
+        undeclare_all(self._subscribers)
