@@ -106,3 +106,11 @@ def polygon_self_intersection(polygon: np.ndarray) -> tuple[int, int] | None:
             if _segments_touch(a, b, c, d):
                 return i, j
     return None
+
+
+def pairwise_gaps(points: np.ndarray) -> np.ndarray:
+    """(N, N) distances between (N, 3) points, infinite on the diagonal (no point is its own neighbour)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    gaps = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+    np.fill_diagonal(gaps, np.inf)
+    return gaps

@@ -43,6 +43,8 @@ def test_help_explains_every_option(command):
     (("view", "/tmp/definitely/missing.mcap"), "no such recording"),
     (("view", str(REPO / "README.md"), "--rrd", "/tmp/never-written.rrd"), "is not an MCAP file"),
     (("view", "--connect", "tcp/127.0.0.1:9", "--viz", "bogus"), "--viz takes spawn, web or"),
+    (("view", "--connect", "tcp/127.0.0.1:9", "--viz", "rerun+http://127.0.0.1:9/proxy"), "no rerun viewer answers"),
+    (("view", "--connect", "tcp/127.0.0.1:9", "--rrd", "/tmp"), "is a directory"),
     (("view", "--connect", "tcp/127.0.0.1:9", "--rrd", "/tmp/x.rrd", "--scan-hz", "0"), "--scan-hz must be positive"),
     (("view", "--connect", "tcp/127.0.0.1:9", "--rrd", "/definitely/missing/dir/x.rrd"), "--rrd: no such directory"),
     (("sim", "--viz", "bogus"), "--viz takes spawn, web or"),

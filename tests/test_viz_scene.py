@@ -86,7 +86,7 @@ def flat(*voxel):
 
 
 def test_map_view_draws_named_voxels_by_state_in_layers_of_what_changed():
-    view = MapView(cell=2)
+    view = MapView(cell=2, max_layers=64)
     occupied, tentative = flat((1, 1, 0), (2, 1, 0)), flat((20, 30, 3))
     view.apply(False, **GEOMETRY, indices=np.r_[occupied, tentative],
                values=np.array([0.0, 0.0, -200.0], dtype=np.float32))
@@ -126,15 +126,39 @@ def test_map_view_folds_its_layers_to_bound_the_entity_count():
 
 
 def test_map_view_waits_for_a_snapshot_after_a_delta_of_another_geometry():
-    view = MapView(cell=1)
+    view = MapView(cell=1, max_layers=64)
     view.apply(False, **GEOMETRY, indices=np.array([5]), values=np.array([0.0], dtype=np.float32))
     (old,) = view.drain()
     other = dict(GEOMETRY, origin=(1.0, 0.0, 0.0))
-    assert view.apply(False, **other, indices=np.array([6]), values=np.array([0.0], dtype=np.float32)) == []
+    update = view.apply(False, **other, indices=np.array([6]), values=np.array([0.0], dtype=np.float32))
+    assert not update.accepted and update.void == []
     assert view.drain() == []
-    assert view.apply(True, **other, indices=np.array([6]), values=np.array([0.0], dtype=np.float32)) == [old.layer]
+    update = view.apply(True, **other, indices=np.array([6]), values=np.array([0.0], dtype=np.float32))
+    assert update.accepted and update.void == [old.layer]
     (layer,) = view.drain()
     assert np.allclose(layer.occupied[:, 0], 1.25)
+
+
+def test_map_view_reuses_layer_numbers_so_a_long_mission_draws_into_few_entities():
+    view = MapView(cell=1, max_layers=4)
+    used = set()
+    for i in range(200):
+        view.apply(False, **GEOMETRY, indices=flat((i % 40, i // 40, 0)), values=np.array([0.0], dtype=np.float32))
+        used |= {layer.layer for layer in view.drain()}
+    assert used <= set(range(5)), used
+    assert view.layers <= 4
+
+
+def test_a_snapshot_with_another_initial_value_is_read_from_the_new_grid():
+    view = MapView(cell=1, max_layers=64)
+    view.apply(False, **GEOMETRY, indices=flat((1, 1, 1)), values=np.array([-200.0], dtype=np.float32))
+    view.drain()
+    other = dict(GEOMETRY, default_value=-100.0)  # same geometry, a tentative-occupied initial value
+    view.apply(True, **other, indices=flat((2, 2, 2)), values=np.array([0.0], dtype=np.float32))
+    (layer,) = view.drain()
+    # voxel (1,1,1) went back to the new initial value -100: still tentatively occupied, so unchanged;
+    # (2,2,2) is new and confident
+    assert np.allclose(layer.occupied, [[1.25, 1.25, 1.25]]) and layer.confident.all()
 
 
 def test_map_states_follow_eq_7_thresholds():
@@ -280,13 +304,44 @@ def test_bad_payloads_are_counted_and_never_raise():
     assert scene.feed("falconry/uav1/no_such_topic", b"") == []
 
 
-def test_wall_clock_stamps_count_from_the_first_one():
+def test_wall_clock_stamps_count_from_the_first_one_and_zones_expire_on_their_own_clock():
     scene = SceneBuilder()
     epoch = 1_790_000_000 * S
     for offset in (0, 2 * S):
         odometry = Odometry(header=Header(stamp=epoch + offset), pose=Pose(position=(1, 2, 3)))
         (pose, *_) = scene.feed("falconry/uav1/odometry", encode(odometry))
-    assert pose.entity == "uav1/pose" and pose.stamp == 2 * S and pose.tick == 40
+    assert pose.entity == "uav1/pose" and pose.stamp == 2 * S
+    assert pose.tick is None  # no mission clock in a flight: no tick timeline
+    status = UavStatus(header=Header(stamp=epoch + 3 * S), uav="uav1", state="IDLE", flying_normally=True,
+                       airborne=True, position=(0, 0, 5),
+                       forbidden_zones=[ForbiddenZoneStatus(center=(1, 1, 1), radius=4.5, expires=epoch + 10 * S)])
+    logs = entities(scene.feed("falconry/uav1/status", encode(status)))
+    assert "7 s left" in logs["uav1/forbidden_zones"][0].item.labels[0]
+    assert logs["uav1/forbidden_zones"][0].stamp == 3 * S
+
+
+def test_a_track_that_appears_between_draws_is_drawn_at_once():
+    scene = SceneBuilder(ViewParams(track_period=1.0))
+
+    def tracks(stamp, *ids):
+        return encode(Tracks(header=Header(stamp=stamp), tracks=[
+            Track(id=i, state=from_numpy(np.zeros(9)), covariance=from_numpy(np.eye(9)), detections=1,
+                  confirmed=i < 10, uncertainty_radius=2.5, last_detection=stamp) for i in ids]))
+    assert "uav1/tracks/confirmed" in entities(scene.feed("falconry/uav1/tracks", tracks(S, 1)))
+    assert scene.feed("falconry/uav1/tracks", tracks(S + S // 5, 1)) == []  # the same set, not yet due
+    logs = entities(scene.feed("falconry/uav1/tracks", tracks(S + S // 4, 1, 11)))  # a tentative one appears
+    assert [len(log.item.centers) for log in logs["uav1/tracks/tentative"]] == [1]
+
+
+def test_finish_draws_the_last_second_of_each_plot():
+    scene = SceneBuilder()
+    det = Detections(header=Header(stamp=S + 1), detector="classifier", positions=from_numpy(np.zeros((2, 3))),
+                     covariances=from_numpy(np.tile(np.eye(3), (2, 1, 1))),
+                     point_counts=from_numpy(np.ones(2, np.int32)), extents=from_numpy(np.ones(2, np.float32)))
+    held = entities(scene.feed("falconry/uav1/detections", encode(det))).get("plots/detections/uav1", [])
+    assert [log for log in held if log.stamp is not None] == []  # only the series' static style so far
+    (last,) = entities(scene.finish())["plots/detections/uav1"]
+    assert last.item.value == 2.0 and last.stamp == S
 
 
 def test_every_map_message_updates_the_view_but_layers_are_drawn_at_the_map_rate():
@@ -317,8 +372,14 @@ def test_a_map_snapshot_is_applied_only_when_messages_went_missing():
     assert drawn(scene.feed("falconry/uav1/map", voxel_map(2, False, [800]))) == 1
     # in sequence: the snapshot says what the deltas said (and here would wrongly drop voxel 800)
     assert drawn(scene.feed("falconry/uav1/map", voxel_map(3, True, [0]))) == 0
-    # message 4 went missing: the next snapshot is the truth again
-    assert drawn(scene.feed("falconry/uav1/map", voxel_map(5, False, [1600]))) == 1
-    scene.feed("falconry/uav1/map", voxel_map(6, True, [0, 1600, 2400]))
+    # a delta of another geometry is refused: the map is no longer exact, the next snapshot counts
+    refused = encode(VoxelMap(header=Header(stamp=4 * S, seq=4), snapshot=False, voxel_size=0.5, origin=(1, 0, 0),
+                              shape=(40, 40, 10), indices=from_numpy(np.array([5], np.int64)),
+                              values=from_numpy(np.zeros(1, np.float32))))
+    scene.feed("falconry/uav1/map", refused)
+    assert not scene.uavs["uav1"].map_exact
+    # and message 5 went missing: the next snapshot is the truth again
+    assert drawn(scene.feed("falconry/uav1/map", voxel_map(6, False, [1600]))) == 1
+    scene.feed("falconry/uav1/map", voxel_map(7, True, [0, 1600, 2400]))
     final = scene.uavs["uav1"].map
     assert final.replica.grid.reshape(-1)[[0, 800, 1600, 2400]].tolist() == [0.0, -740.0, 0.0, 0.0]

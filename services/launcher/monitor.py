@@ -8,14 +8,16 @@ import math
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import BinaryIO, Iterator
+from typing import BinaryIO, Iterator, NamedTuple
 
 import msgspec
+import numpy as np
 
 from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import Detections, GroundTruth, SimClock, SimEvent, Tracks, UavStatus
-from services.runtime.clock import seconds
+from services.geometry import pairwise_gaps
+from services.runtime.clock import StampOrigin, seconds
 
 _LENGTH = struct.Struct("<I")
 DETECTED_WITHIN = 1.5  # m between a detection and a target's true position for "first detected"
@@ -40,6 +42,11 @@ def read_truth_log(path: str | Path) -> Iterator[GroundTruth]:
         offset += length
 
 
+class Sample(NamedTuple):
+    t: float  # mission time, s
+    value: float
+
+
 @dataclass
 class UavSummary:
     distance: float = 0.0
@@ -53,8 +60,8 @@ class UavSummary:
     confirmed_tracks: set[int] = field(default_factory=set)
     last_position: tuple[float, float, float] | None = None
     states: list[tuple[float, str]] = field(default_factory=list)  # (mission time, job manager state) changes
-    detection_counts: list[tuple[float, int]] = field(default_factory=list)  # (mission time, detections) per scan
-    nearest_partner: list[tuple[float, float]] = field(default_factory=list)  # (mission time, m), truth, 4 Hz
+    detection_counts: list[Sample] = field(default_factory=list)  # detections per scan
+    nearest_partner: list[Sample] = field(default_factory=list)  # m to the nearest flying partner (truth), 4 Hz
     team_view: tuple | None = None  # (working area x-range, fallen partners) last reported
 
 
@@ -84,6 +91,8 @@ class RunMonitor:
             keys.TRUTH: msgspec.msgpack.Decoder(GroundTruth),
             keys.EVENTS: msgspec.msgpack.Decoder(SimEvent),
         }
+        self._origin = StampOrigin()
+        self.latest = 0.0  # the latest mission time any message carried, s
         self._status = msgspec.msgpack.Decoder(UavStatus)
         self._tracks = msgspec.msgpack.Decoder(Tracks)
         self._detections = msgspec.msgpack.Decoder(Detections)
@@ -113,16 +122,22 @@ class RunMonitor:
                 det = self._detections.decode(payload)
                 count = det.positions.shape[0] if det.positions.shape else 0
                 self._uav(uav).detections += count
-                self._uav(uav).detection_counts.append((seconds(det.header.stamp), count))
+                self._uav(uav).detection_counts.append(Sample(self._seconds(det.header.stamp), count))
                 self._note_first_detections(uav, det)
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
             pass  # not ours to police: the services count their own decode errors
+
+    def _seconds(self, stamp: int) -> float:
+        """Mission time of a stamp (a flight's wall-clock stamps count from the first one)."""
+        t = seconds(self._origin.mission_ns(stamp))
+        self.latest = max(self.latest, t)
+        return t
 
     def _uav(self, name: str) -> UavSummary:
         return self.uavs.setdefault(name, UavSummary())
 
     def _on_status(self, uav: str, status: UavStatus) -> None:
-        u, t = self._uav(uav), seconds(status.header.stamp)
+        u, t = self._uav(uav), self._seconds(status.header.stamp)
         u.state = status.state
         if not u.states or u.states[-1][1] != status.state:
             u.states.append((t, status.state))
@@ -145,7 +160,7 @@ class RunMonitor:
 
     def _on_truth(self, truth: GroundTruth) -> None:
         self.truth_step = max(self.truth_step, truth.step)
-        t = seconds(truth.header.stamp)
+        t = self._seconds(truth.header.stamp)
         for v in truth.uavs:
             u = self._uav(v.name)
             if u.last_position is not None:
@@ -164,17 +179,17 @@ class RunMonitor:
             else:
                 self._target_positions.pop(target.id, None)
         flying = [v for v in truth.uavs if v.airborne and v.alive]
-        nearest = {v.name: math.inf for v in flying}
-        for i, a in enumerate(flying):
-            for b in flying[i + 1:]:
-                gap = math.dist(a.position, b.position)
-                nearest[a.name], nearest[b.name] = min(nearest[a.name], gap), min(nearest[b.name], gap)
-                if self.min_separation is None or gap < self.min_separation[0]:
-                    self.min_separation = (gap, t, f"{a.name}-{b.name}")
-        for name, gap in nearest.items():
-            series = self._uav(name).nearest_partner
-            if gap < math.inf and (not series or t - series[-1][0] >= NEAREST_PERIOD):
-                series.append((t, gap))
+        if len(flying) < 2:
+            return
+        gaps = pairwise_gaps(np.array([v.position for v in flying]))
+        i, j = np.unravel_index(np.argmin(gaps), gaps.shape)
+        if self.min_separation is None or gaps[i, j] < self.min_separation[0]:
+            a, b = sorted((i, j))
+            self.min_separation = (float(gaps[i, j]), t, f"{flying[a].name}-{flying[b].name}")
+        for v, gap in zip(flying, gaps.min(axis=1)):
+            series = self._uav(v.name).nearest_partner
+            if not series or t - series[-1].t >= NEAREST_PERIOD:
+                series.append(Sample(t, float(gap)))
 
     def _note_first_detections(self, uav: str, det: Detections) -> None:
         """When each target was first detected by anyone: a detection within DETECTED_WITHIN of its
@@ -182,7 +197,7 @@ class RunMonitor:
         if not det.positions.shape or not det.positions.shape[0]:
             return
         positions = to_numpy(det.positions).reshape(-1, 3)
-        t = seconds(det.header.stamp)
+        t = self._seconds(det.header.stamp)
         for tid, where in self._target_positions.items():
             if tid not in self.first_detected:
                 if any(math.dist(where, p) <= DETECTED_WITHIN for p in positions.tolist()):
@@ -193,11 +208,11 @@ class RunMonitor:
         if event.kind == "mission_finished":
             self.over = True
         elif event.kind in ("target_destroyed", "target_captured"):
-            self.destroyed.append((seconds(event.header.stamp), event.subject, event.detail))
+            self.destroyed.append((self._seconds(event.header.stamp), event.subject, event.detail))
         elif event.kind == "service_restarted":
             self.restarts.append(f"{event.subject} ({event.detail})")
         elif event.kind.startswith("fault_"):
-            self.faults.append(f"t={seconds(event.header.stamp):.1f} s {event.kind} {event.subject}: {event.detail}")
+            self.faults.append(f"t={self._seconds(event.header.stamp):.1f} s {event.kind} {event.subject}: {event.detail}")
 
     def progress(self, duration: float) -> str:
         airborne = sum(u.airborne for u in self.uavs.values())
@@ -231,5 +246,6 @@ class RunMonitor:
                        "states": [[round(t, 2), state] for t, state in u.states]}
                 for name, u in sorted(self.uavs.items())
             },
-            "events": [f"{seconds(e.header.stamp):.2f} {e.kind} {e.subject} {e.detail}".rstrip() for e in self.events],
+            "events": [f"{seconds(self._origin.mission_ns(e.header.stamp)):.2f} {e.kind} {e.subject} {e.detail}".rstrip()
+                       for e in self.events],
         }

@@ -17,6 +17,7 @@ import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
 from matplotlib.patches import Patch  # noqa: E402
 
 from services.launcher.monitor import RunMonitor  # noqa: E402
+from services.runtime.errors import UsageError  # noqa: E402
 from services.viz.style import OTHER_STATE, STATE_COLORS, uav_color  # noqa: E402
 
 
@@ -34,7 +35,7 @@ def _state_spans(states: list[tuple[float, str]], end: float) -> list[tuple[floa
 
 
 def plot_timeline(monitor: RunMonitor, path: str | Path, title: str, duration: float = 0.0) -> None:
-    end = max(duration, monitor.mission_time, 1.0)
+    end = max(duration, monitor.mission_time, monitor.latest, 1.0)
     names = sorted(monitor.uavs)
     rows = [1.2 + 0.25 * len(monitor.targets)] + [r for _ in names for r in (0.5, 2.0)]
     figure, axes = plt.subplots(len(rows), 1, sharex=True, figsize=(12, 1.2 + sum(rows) * 0.9),
@@ -55,8 +56,12 @@ def plot_timeline(monitor: RunMonitor, path: str | Path, title: str, duration: f
         figure.legend(handles=legend, loc="lower center", ncol=min(len(legend), 5), fontsize=8, frameon=False)
     figure.suptitle(title, fontsize=11)
     figure.subplots_adjust(left=0.09, right=0.91, top=0.93, bottom=0.06 + 0.02 * ((len(legend) + 4) // 5))
-    figure.savefig(path, dpi=110)
-    plt.close(figure)
+    try:
+        figure.savefig(path, dpi=110)
+    except OSError as exc:
+        raise UsageError(f"cannot write the plot {path}: {exc.strerror or exc}") from None
+    finally:
+        plt.close(figure)
 
 
 def _targets(ax, monitor: RunMonitor) -> None:

@@ -32,6 +32,7 @@ from services.runtime import shm
 from services.runtime.zenoh_config import free_port, init_logging, open_session
 from services.simulator.options import add_simulator_options
 from services.simulator.scenario import ScenarioError, load_scenario
+from services.viz.settings import web_address
 
 VIEWER = "sim/viewer"
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, "falconry/*/status", "falconry/*/tracks", "falconry/*/detections")
@@ -133,6 +134,8 @@ def run_sim(args: argparse.Namespace) -> int:
     supervisor.say(f"{scenario.name}: {len(uavs)} UAVs, seed {seed}, {duration:g} s of mission time, {mode}, "
                    f"detector {args.detector}, zenoh {plan.hub_label}"
                    + (f", UAVs in network namespaces on {network.prefix}.0/24" if network else ""))
+    if args.viz == "web":
+        supervisor.say(f"watch the run in a browser: {web_address()}")
     faults = FaultExecutor(supervisor, network, report)
 
     def dispatch(key: str, payload) -> None:
@@ -192,6 +195,9 @@ def run_sim(args: argparse.Namespace) -> int:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         faults.end_all()
         killed = supervisor.stop_all(last={VIEWER: DRAIN_S + 10.0})
+        viewer = supervisor.children.get(VIEWER)
+        if viewer is not None and viewer.process is not None and viewer.process.returncode not in (0, None):
+            viewer.failed = True  # e.g. a live viewer that went away: its own log line says what it missed
         for sub in subscribers:
             sub.undeclare()
         events_pub.undeclare()

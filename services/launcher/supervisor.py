@@ -91,7 +91,8 @@ class Supervisor:
             if not child.restart:
                 child.failed = code != 0
                 child.process = None
-                self.say(f"{child.name} exited ({describe_exit(code)}); the run goes on without it")
+                self.say(f"{child.name} exited ({describe_exit(code)}); the run goes on without it"
+                         + (" and will end with exit code 1" if child.failed else ""))
                 continue
             child.restarts = [t for t in child.restarts if now - t < RESTART_WINDOW_S]
             if len(child.restarts) >= MAX_RESTARTS:

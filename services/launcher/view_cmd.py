@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import os
 import signal
+import sys
 import threading
 import time
 from pathlib import Path
@@ -20,7 +21,7 @@ from services.launcher.monitor import RunMonitor
 from services.recorder.mcap_io import is_mcap
 from services.runtime.errors import UsageError
 from services.runtime.zenoh_config import init_logging, open_session
-from services.viz.settings import ViewParams, check_viewer
+from services.viz.settings import WEB_PORT, ViewParams, check_viewer
 
 if TYPE_CHECKING:
     from services.viz.viewer import Viewer, ViewStats
@@ -31,9 +32,9 @@ DRAIN_S = 20.0  # after a stop request, at most this long to draw what is still 
 def add_view_options(group, viz_help: str) -> None:
     """--viz, --rrd and --plot, shared with `falconry sim`."""
     group.add_argument("--viz", nargs="?", const="spawn", metavar="MODE",
-                       help=f"{viz_help}: 'spawn' (default) opens a native rerun viewer, 'web' serves one on "
-                            "http://127.0.0.1:9090 for a browser, or the address of a running viewer "
-                            "(rerun+http://HOST:PORT/proxy; start one with `rerun`)")
+                       help=f"{viz_help}: 'spawn' (default) opens a native rerun viewer, 'web' serves one to a "
+                            f"browser on port {WEB_PORT} (the address to open is printed), or the address of a "
+                            "running viewer (rerun+http://HOST:PORT/proxy; start one with `rerun`)")
     group.add_argument("--rrd", metavar="FILE.rrd", help="write the rerun recording to FILE (open it with `rerun FILE`)")
     group.add_argument("--plot", metavar="FILE.png",
                        help="write a PNG timeline of the run: per UAV, state, detections per second and distance "
@@ -48,6 +49,8 @@ def check_view_options(args: argparse.Namespace) -> None:
     except UsageError as exc:
         raise CliError(str(exc)) from None
     for option, path in (("--rrd", args.rrd), ("--plot", args.plot)):
+        if path and Path(path).is_dir():
+            raise CliError(f"{option} {path} is a directory: give a file name")
         if path and not Path(path).resolve().parent.is_dir():
             raise CliError(f"{option}: no such directory: {Path(path).resolve().parent}")
     if args.plot and not args.plot.lower().endswith(".png"):
@@ -140,12 +143,15 @@ def run_view(args: argparse.Namespace) -> int:
         _live(args, viewer)
     stats = viewer.close()
     _report(args, stats, time.monotonic() - started)
+    if stats.viewer_problem:
+        print(f"falconry view: error: the viewer did not take the whole recording: {stats.viewer_problem}"
+              + (f" (the file {args.rrd} is complete)" if args.rrd else ""), file=sys.stderr, flush=True)
     if monitor is not None:
         from services.launcher.plot import plot_timeline  # matplotlib, likewise
 
         plot_timeline(monitor, args.plot, f"Falconry run: {name}", viewer.builder.duration)
         print(f"timeline plot: {args.plot}", flush=True)
-    return 0
+    return 1 if stats.viewer_problem else 0
 
 
 def _wait_for_stop() -> None:
@@ -185,7 +191,7 @@ def _live(args: argparse.Namespace, viewer: Viewer) -> None:
         while not stop.is_set():
             item = feed.get(timeout=0.1)
             if item is not None:
-                viewer.consume(*item)
+                viewer.consume(item.key, item.payload, item.received)
             now = time.monotonic()
             if (args.exit_with_parent and os.getppid() != parent) or \
                     (args.duration is not None and now - started >= args.duration):
@@ -193,28 +199,33 @@ def _live(args: argparse.Namespace, viewer: Viewer) -> None:
             if not args.quiet and now >= next_progress:
                 next_progress += 10.0
                 s = viewer.stats
-                print(f"view: t={s.mission_s:.1f} s of mission, {s.messages} messages, {feed.dropped} scans dropped, "
-                      f"{feed.backlog} queued", flush=True)
+                print(f"view: t={s.mission_s:.1f} s of mission, {s.messages} messages, {feed.backlog} queued"
+                      + (f", dropped to keep up: {feed.dropped_line()}" if feed.dropped else ""), flush=True)
         feed.close()
         deadline = time.monotonic() + DRAIN_S
         while time.monotonic() < deadline and (item := feed.get(timeout=0.0)) is not None:
-            viewer.consume(*item)
+            viewer.consume(item.key, item.payload, item.received)
     finally:
         feed.close()
         session.close()
     if feed.dropped:
-        print(f"view: dropped {feed.dropped} scans to keep up", flush=True)
+        print(f"view: dropped to keep up: {feed.dropped_line()}", flush=True)
+    if feed.backlog:
+        print(f"view: {feed.backlog} messages still queued after {DRAIN_S:g} s of drawing at the end were not drawn",
+              flush=True)
 
 
 def yield_cpu(steps: int) -> None:
-    """Lower this process's priority; where the kernel schedules by session (autogroup, and every
-    process `falconry sim` starts has a session of its own), lower the session's too, since
-    a niceness only counts within it."""
+    """Lower this process's priority; where the kernel schedules by session (autogroup) and this
+    process leads its own session (every process `falconry sim` starts does), lower the session's
+    too, since a niceness only counts within it. A viewer started from a terminal leaves the
+    terminal's session alone."""
     if steps <= 0:
         return
     try:
         os.nice(steps)
-        Path("/proc/self/autogroup").write_text(str(min(steps, 19)))
+        if os.getsid(0) == os.getpid():  # our own session (falconry sim), not the user's terminal
+            Path("/proc/self/autogroup").write_text(str(min(steps, 19)))
     except OSError:
         pass  # not Linux, or no autogroup: the niceness alone
 

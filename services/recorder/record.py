@@ -64,7 +64,8 @@ class Recorder:
 
     def handle(self, key: str, payload: bytes, receive_ns: int | None = None) -> None:
         """Record one message received by the caller (thread-safe)."""
-        self._queue.put((key, bytes(payload), receive_ns if receive_ns is not None else time.time_ns()))
+        if self._error is None:  # after a write error (disk full) nothing would drain the queue
+            self._queue.put((key, bytes(payload), receive_ns if receive_ns is not None else time.time_ns()))
 
     @property
     def stats(self) -> WriteStats:

@@ -47,6 +47,25 @@ class ManualClock:
         self._now += int(round(seconds * NS))
 
 
+EPOCH_NS = 10**18  # a stamp beyond this is wall-clock time (ns since 1970, ~2001 on), not mission time
+
+
+class StampOrigin:
+    """Mission time of message stamps. A simulated run's stamps are mission time already; stamps of
+    `--clock wall` services (a real flight) are system time, and count from the first one seen,
+    so a flight's recording reads from t = 0 like a simulated one."""
+
+    def __init__(self) -> None:
+        self.origin: int | None = None
+
+    def mission_ns(self, stamp: int) -> int:
+        if stamp < EPOCH_NS:
+            return max(stamp, 0)
+        if self.origin is None:
+            self.origin = stamp
+        return max(stamp - self.origin, 0)
+
+
 def seconds(stamp_ns: int) -> float:
     return stamp_ns / NS
 

@@ -13,9 +13,10 @@ from typing import Callable
 import msgspec
 import zenoh
 
+from schemas import keys
 from schemas.messages import ServiceHealth
 
-ALL_HEALTH = "falconry/*/health/*"
+ALL_HEALTH = keys.health("*", "*")
 _PAGE = os.sysconf("SC_PAGE_SIZE") if hasattr(os, "sysconf") else 4096
 
 

@@ -128,5 +128,5 @@ class Log:
     entity: str  # e.g. "uav1/detections"
     item: Drawable
     stamp: int | None  # mission time, ns; None: static (holds at every time)
-    tick: int = 0  # the mission clock's step at `stamp`
+    tick: int | None = None  # the mission clock's step at `stamp` (None: no mission clock, e.g. a flight)
     received: int = 0  # wall-clock ns when the message arrived (0: unknown)

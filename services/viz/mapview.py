@@ -1,16 +1,16 @@
 """A viewer's copy of one UAV's occupancy map, drawn as append-only layers.
 
-What is drawn: display cells of `cell` × `cell` × `cell` voxels (decimation; 1 m cubes for 0.5 m
-voxels by default), each in the most telling state of its voxels — confidently occupied,
-tentatively occupied, or unknown — by the thresholds of eq. 7 (schemas/voxels.py). Only voxels a
-VoxelMap ever named count: a never-touched voxel holds the initial "unknown" value and says nothing.
+What is drawn: display cells of `cell` × `cell` × `cell` voxels (`cell` > 1 decimates), each in
+the most telling state of its voxels — confidently occupied, tentatively occupied, or unknown — by
+the thresholds of eq. 7 (schemas/voxels.py). Only voxels a VoxelMap ever named count: a
+never-touched voxel holds the initial "unknown" value and says nothing.
 
 How: every `drain` puts the cells whose state changed since the last one into a new layer, and
 gives back that layer plus every older layer that lost a cell (drawn again without it). A map that
 grows by a few hundred cells a second then costs a few hundred cells a second, whatever its size,
 and every layer is exact at every mission time. When more than `max_layers` hold cells, all of
-them fold into one new layer (one full redraw), so a long mission keeps a bounded entity count.
-Pure numpy.
+them fold into one layer (one full redraw). Layer numbers of emptied layers are used again, so a
+mission of any length draws into at most `max_layers` + 1 entities per kind. Pure numpy.
 """
 from __future__ import annotations
 
@@ -30,6 +30,12 @@ _SHOWN[voxels.STATE_OCCUPIED] = OCCUPIED
 
 
 @dataclass(frozen=True)
+class MapUpdate:
+    accepted: bool  # False: a delta of another geometry than ours (wait for a snapshot)
+    void: list[int]  # layers drawn before the geometry changed: to be cleared
+
+
+@dataclass(frozen=True)
 class Layer:
     layer: int
     occupied: np.ndarray  # (N, 3) cell centres at least tentatively occupied
@@ -38,7 +44,7 @@ class Layer:
 
 
 class MapView:
-    def __init__(self, cell: int = 2, max_layers: int = 64) -> None:
+    def __init__(self, cell: int, max_layers: int) -> None:
         self.cell = cell
         self.max_layers = max_layers
         self.replica: MapReplica | None = None
@@ -48,34 +54,34 @@ class MapView:
         self._cells_shape = (0, 0, 0)
         self._changed: list[np.ndarray] = []  # flat voxel indices whose shown state changed
         self._layers: dict[int, int] = {}  # layer -> cells in it
-        self._next_layer = 0
 
     @property
     def layers(self) -> int:
         return len(self._layers)
 
     def apply(self, snapshot: bool, origin, shape, voxel_size: float, default_value: float,
-              indices: np.ndarray, values: np.ndarray) -> list[int]:
-        """Apply one VoxelMap (a delta of another geometry waits for the next snapshot). Returns the
-        layers to clear when the geometry changed (everything drawn so far is void)."""
+              indices: np.ndarray, values: np.ndarray) -> MapUpdate:
+        """Apply one VoxelMap."""
         indices = np.asarray(indices, dtype=np.int64).reshape(-1)
-        cleared: list[int] = []
+        void: list[int] = []
         replica = self.replica
         if replica is None or (snapshot and not replica.same_geometry(origin, shape, voxel_size)):
-            cleared = sorted(self._layers)
+            void = sorted(self._layers)
             replica = self.replica = MapReplica(origin, shape, voxel_size, default_value)
             self._reset_cells(replica.shape)
-        flat = replica.grid.reshape(-1)
         # A snapshot may also return voxels to the default value: look at those it no longer lists.
-        before = np.flatnonzero(flat != np.float32(replica.default_value)) if snapshot else indices[:0]
-        if replica.apply(snapshot, origin, shape, voxel_size, default_value, indices, values):
-            candidates = np.concatenate([before, indices])  # repeats are harmless: same value twice
-            candidates = candidates[(candidates >= 0) & (candidates < flat.size)]
-            shown = _SHOWN[voxels.map_states(flat[candidates])]
-            moved = shown != self._voxel_shown[candidates]
-            self._voxel_shown[candidates[moved]] = shown[moved]
-            self._changed.append(candidates[moved])
-        return cleared
+        old = replica.grid.reshape(-1)
+        before = np.flatnonzero(old != np.float32(replica.default_value)) if snapshot else indices[:0]
+        if not replica.apply(snapshot, origin, shape, voxel_size, default_value, indices, values):
+            return MapUpdate(accepted=False, void=void)
+        flat = replica.grid.reshape(-1)  # a snapshot with another default value makes a new grid
+        candidates = np.concatenate([before, indices])  # repeats are harmless: same value twice
+        candidates = candidates[(candidates >= 0) & (candidates < flat.size)]
+        shown = _SHOWN[voxels.map_states(flat[candidates])]
+        moved = shown != self._voxel_shown[candidates]
+        self._voxel_shown[candidates[moved]] = shown[moved]
+        self._changed.append(candidates[moved])
+        return MapUpdate(accepted=True, void=void)
 
     def _reset_cells(self, shape: tuple[int, int, int]) -> None:
         c = self.cell
@@ -106,8 +112,7 @@ class MapView:
         self._cell_layer[cells] = -1
         drawn = cells[state != NOTHING]
         live = sum(1 for n in self._layers.values() if n)
-        new = self._next_layer
-        self._next_layer += 1
+        new = self._free_layer()
         self._cell_layer[drawn] = new
         if live + (len(drawn) > 0) > self.max_layers:
             return self._fold(new)
@@ -117,9 +122,13 @@ class MapView:
         self._layers = {layer: n for layer, n in self._layers.items() if n}
         return out
 
+    def _free_layer(self) -> int:
+        """The lowest layer number holding no cell (an emptied layer's number is used again)."""
+        return next(i for i in range(len(self._layers) + 1) if not self._layers.get(i))
+
     def _fold(self, layer: int) -> list[Layer]:
-        """Every drawn cell into `layer`; all the older layers cleared."""
-        old = sorted(self._layers)
+        """Every drawn cell into `layer`; all the other layers cleared."""
+        old = sorted(set(self._layers) - {layer})
         drawn = self._cell_layer >= 0
         self._cell_layer[drawn] = layer
         self._layers = {layer: int(np.count_nonzero(drawn))}

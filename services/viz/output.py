@@ -9,15 +9,16 @@ pipeline lag, distance to the nearest partner and the real-time factor.
 """
 from __future__ import annotations
 
+import socket
+import subprocess
 import time
-from urllib.parse import quote
 
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
 from services.viz import draw
-from services.viz.settings import GRPC_PORT, WEB_PORT, check_viewer, viewer_executable
+from services.viz.settings import GRPC_PORT, WEB_PORT, check_viewer, grpc_address, viewer_executable, web_address
 
 APPLICATION_ID = "falconry"
 FILL_SOLID, FILL_WIRES = rr.components.FillMode.Solid, rr.components.FillMode.MajorWireframe
@@ -103,10 +104,11 @@ def archetype(item: draw.Drawable):
 
 class RerunOutput:
     """One rerun recording of the fleet, written to `rrd` and/or streamed to a viewer:
-    `viewer` is "spawn" (a native viewer on this machine), "web" (a web viewer served on
-    http://127.0.0.1:9090) or the address of a running viewer (rerun+http://HOST:PORT/proxy)."""
+    `viewer` is "spawn" (a native viewer on this machine), "web" (a web viewer served on WEB_PORT;
+    the page to open is `web_address`) or the address of a running viewer (rerun+http://HOST:PORT/proxy)."""
 
-    def __init__(self, rrd: str | None = None, viewer: str | None = None, recording_name: str = "falconry") -> None:
+    def __init__(self, rrd: str | None = None, viewer: str | None = None, recording_name: str = "falconry",
+                 port: int = GRPC_PORT) -> None:
         if viewer is not None:
             check_viewer(viewer)
         # Chunks of up to a second: each chunk carries its own schema, so rerun's default 200 ms
@@ -121,14 +123,13 @@ class RerunOutput:
         if rrd:
             sinks.append(rr.FileSink(rrd))
         if viewer == "spawn":
-            rr.spawn(port=GRPC_PORT, connect=False, hide_welcome_screen=True, executable_path=viewer_executable())
-            sinks.append(rr.GrpcSink(f"rerun+http://127.0.0.1:{GRPC_PORT}/proxy"))
+            spawn_viewer(port)
+            sinks.append(rr.GrpcSink(grpc_address(port)))
         elif viewer == "web":
-            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=GRPC_PORT)
+            server = rr.GrpcServerSink(bind_ip="127.0.0.1", port=port)
             sinks.append(server)
             rr.serve_web_viewer(web_port=WEB_PORT, open_browser=False, connect_to=server.uri)
-            # the page connects to the recording's server only when told where it is
-            self.web_address = f"http://127.0.0.1:{WEB_PORT}/?url={quote(server.uri, safe='')}"
+            self.web_address = web_address(port)
         elif viewer:
             sinks.append(rr.GrpcSink(viewer))
         self.rec.set_sinks(*sinks)
@@ -149,13 +150,48 @@ class RerunOutput:
             if log.stamp is not None and log.stamp != self._time:  # a message's logs share one time
                 self._time = log.stamp
                 rec.set_time("mission_time", duration=np.timedelta64(log.stamp, "ns"))
-                rec.set_time("tick", sequence=log.tick)
+                if log.tick is not None:
+                    rec.set_time("tick", sequence=log.tick)
             rec.log(log.entity, archetype(log.item), static=log.stamp is None)
             self.logged += 1
 
     def flush(self) -> None:
         self.rec.flush()
 
-    def close(self) -> None:
-        self.rec.flush()
-        self.rec.disconnect()
+    def close(self, timeout: float = 10.0) -> str | None:
+        """Finish every sink (the file's footer); returns why a viewer did not take everything, or None.
+        A viewer that went away must not cost the file: the file sink is finished regardless."""
+        problem = None
+        try:
+            self.rec.flush(timeout_sec=timeout)
+        except Exception as exc:  # rerun reports a vanished viewer as a RuntimeError
+            problem = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        finally:
+            self.rec.disconnect()
+        return problem
+
+
+def spawn_viewer(port: int, wait_s: float = 10.0) -> None:
+    """A native rerun viewer listening on `port`, unless one already does (it is used then).
+
+    Started in a session of its own with no terminal attached: it outlives the run (the user is
+    still looking at it) and never writes into a pipe that closed with the run. (rerun's own
+    `spawn` leaves the viewer on the caller's output, which a supervisor stops reading.)"""
+    if _listening(port):
+        return
+    subprocess.Popen([viewer_executable(), f"--port={port}", "--memory-limit=75%", "--expect-data-soon",
+                      "--hide-welcome-screen"], stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                     stderr=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + wait_s
+    while not _listening(port):
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the rerun viewer did not start listening on port {port} within {wait_s:g} s")
+        time.sleep(0.1)
+
+
+def _listening(port: int) -> bool:
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+        return True
+    except OSError:
+        return False

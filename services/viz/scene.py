@@ -45,6 +45,8 @@ from schemas.messages import (
     VoxelMap,
     WorldModel,
 )
+from services.geometry import pairwise_gaps
+from services.runtime.clock import NS, StampOrigin
 from services.viz import draw
 from services.viz.geometry import (
     TERRAIN,
@@ -62,9 +64,6 @@ from services.viz.geometry import (
 from services.viz.mapview import MapView
 from services.viz.settings import ViewParams
 from services.viz.style import LABEL_COLORS, STATE_COLORS, TRUTH_COLOR, uav_color
-
-NS = 1_000_000_000
-EPOCH_NS = 10**18  # stamps beyond this are wall-clock (onboard --clock wall), not mission time
 
 UAV_FAMILIES = (
     "pose", "trail", "scan", "map/occupied", "map/unknown", "detections", "tracks/confirmed",
@@ -87,10 +86,17 @@ class _Uav:
     state: str = ""
     status_view: tuple = ()
     command_id: int = -1
+    track_set: tuple = ()  # (id, confirmed) of the tracks last drawn
     map: MapView | None = None
     map_seq: int = -1  # header.seq of the last map message
     map_exact: bool = False  # a snapshot and then every message in sequence: snapshots add nothing
     due: dict[str, int] = field(default_factory=dict)  # what -> next mission ns it may be drawn
+
+
+@dataclass
+class _Window:
+    start: int  # mission ns of the second's start
+    value: float  # what the second has so far
 
 
 @dataclass
@@ -103,20 +109,20 @@ class _Cpu:
 class SceneBuilder:
     def __init__(self, params: ViewParams | None = None) -> None:
         self.params = params or ViewParams()
-        self.tick_ns = NS // 20
+        self.tick_ns: int | None = None  # the mission clock's step, once a SimClock said it
         self.uavs: dict[str, _Uav] = {}
         self.layout_changed = False  # a new UAV appeared: the output should lay out the views again
         self.decode_errors = 0
         self.messages = 0
         self.mission_ns = 0  # the latest mission time seen
         self.duration = 0.0  # s, from the world model (0: unknown)
-        self._epoch_origin: int | None = None
+        self._origin = StampOrigin()
         self._world_key = b""
         self._target_paths: dict[str, deque] = {}
         self._target_last: dict[str, tuple[float, float, float]] = {}
         self._destroyed: list[tuple[np.ndarray, str]] = []
         self._cpu: dict[str, _Cpu] = {}
-        self._windows: dict[str, tuple[int, float]] = {}  # plot entity -> (second's start, value so far)
+        self._windows: dict[str, _Window] = {}  # plot entity -> the second being folded
         self._due: dict[str, int] = {}
         self._decoders: dict[type, msgspec.msgpack.Decoder] = {}
         self._out: list[draw.Log] = []  # what the message being fed draws
@@ -150,7 +156,7 @@ class SceneBuilder:
         self.messages += 1
         self._out = []
         self._received = received
-        self._stamp = self._mission(msg.header.stamp)
+        self._stamp = self._origin.mission_ns(msg.header.stamp)
         self.mission_ns = max(self.mission_ns, self._stamp)
         try:
             handler(key.split("/")[1], msg)
@@ -158,18 +164,18 @@ class SceneBuilder:
             self.decode_errors += 1  # well-formed msgpack, impossible content (wrong shapes, …)
         return self._out
 
-    def _mission(self, stamp: int) -> int:
-        """Mission ns of a stamp; wall-clock stamps count from the first one seen."""
-        if stamp < EPOCH_NS:
-            return max(stamp, 0)
-        if self._epoch_origin is None:
-            self._epoch_origin = stamp
-        return max(stamp - self._epoch_origin, 0)
+    def finish(self) -> list[draw.Log]:
+        """What is still held back: the last second of each per-second plot."""
+        self._out = []
+        for entity, window in sorted(self._windows.items()):
+            self._log(entity, draw.Scalar(window.value), stamp=window.start)
+        self._windows.clear()
+        return self._out
 
     # ---------------------------------------------------------------- helpers
     def _log(self, entity: str, item, static: bool = False, stamp: int | None = None) -> None:
         at = None if static else (self._stamp if stamp is None else stamp)
-        tick = 0 if at is None else int(round(at / self.tick_ns))
+        tick = None if at is None or self.tick_ns is None else int(round(at / self.tick_ns))
         self._out.append(draw.Log(entity, item, at, tick, self._received))
 
     def _due_now(self, table: dict[str, int], what: str, period: float) -> bool:
@@ -270,9 +276,8 @@ class SceneBuilder:
         flying = [v for v in truth.uavs if v.airborne and v.alive]
         if len(flying) < 2:
             return
-        where = np.array([v.position for v in flying])
-        gaps = np.linalg.norm(where[:, None] - where[None], axis=2) + np.diag(np.full(len(flying), np.inf))
-        for v, gap in zip(flying, gaps.min(axis=1)):
+        nearest = pairwise_gaps(np.array([v.position for v in flying])).min(axis=1)
+        for v, gap in zip(flying, nearest):
             self._uav(v.name)
             self._log(f"plots/nearest_partner/{v.name}", draw.Scalar(float(gap)))
 
@@ -355,12 +360,12 @@ class SceneBuilder:
         the next second begins (a plot point per scan would cost more than it shows)."""
         second = self._stamp // NS * NS
         window = self._windows.get(entity)
-        if window is None or window[0] != second:
-            if window is not None:
-                self._log(entity, draw.Scalar(window[1]), stamp=window[0])
-            self._windows[entity] = (second, value)
-        else:
-            self._windows[entity] = (second, combine(window[1], value))
+        if window is not None and window.start == second:
+            window.value = combine(window.value, value)
+            return
+        if window is not None:
+            self._log(entity, draw.Scalar(window.value), stamp=window.start)
+        self._windows[entity] = _Window(second, value)
 
     def _on_detections(self, name: str, detections: Detections) -> None:
         uav = self._uav(name)
@@ -385,9 +390,10 @@ class SceneBuilder:
         if voxel_map.snapshot and uav.map_exact and in_sequence:
             pass  # every delta since the last applied snapshot arrived: this one repeats them
         else:
-            uav.map_exact = (uav.map_exact and in_sequence) or voxel_map.snapshot
-            void = uav.map.apply(voxel_map.snapshot, voxel_map.origin, voxel_map.shape, voxel_map.voxel_size,
-                                 voxel_map.default_value, to_numpy(voxel_map.indices), to_numpy(voxel_map.values))
+            update = uav.map.apply(voxel_map.snapshot, voxel_map.origin, voxel_map.shape, voxel_map.voxel_size,
+                                   voxel_map.default_value, to_numpy(voxel_map.indices), to_numpy(voxel_map.values))
+            uav.map_exact = update.accepted and ((uav.map_exact and in_sequence) or voxel_map.snapshot)
+            void = update.void
         for layer in void:  # the map changed its geometry: what was drawn is no longer it
             self._log(f"{name}/map/occupied/{layer:04d}", draw.Boxes(np.zeros((0, 3)), np.zeros(3), (0, 0, 0, 0)))
             self._log(f"{name}/map/unknown/{layer:04d}", draw.Points(np.zeros((0, 3)), (0, 0, 0, 0), 0.0))
@@ -404,8 +410,11 @@ class SceneBuilder:
 
     def _on_tracks(self, name: str, tracks: Tracks) -> None:
         uav, p = self._uav(name), self.params
-        if not self._due_now(uav.due, "tracks", p.track_period):
-            return
+        track_set = tuple((t.id, t.confirmed) for t in tracks.tracks)
+        due = self._due_now(uav.due, "tracks", p.track_period)
+        if not due and track_set == uav.track_set:
+            return  # between draws, only a track that appears, goes or is confirmed is drawn at once
+        uav.track_set = track_set
         for confirmed in (True, False):
             chosen = [t for t in tracks.tracks if t.confirmed == confirmed]
             states = np.array([to_numpy(t.state)[:9] for t in chosen]).reshape(-1, 9)
@@ -449,21 +458,23 @@ class SceneBuilder:
         if not due and view == uav.status_view:
             return
         uav.status_view = view
-        self._log(f"{name}/status", draw.Document(status_markdown(name, status, self._stamp)))
+        self._log(f"{name}/status", draw.Document(status_markdown(name, status)))
         self._log(f"{name}/working_area", draw.Lines([closed_polygon(status.working_area, 0.15)], uav.color, 0.12,
                                                       [f"{name} working area"] if status.working_area else None, show_labels=False))
         zones = status.forbidden_zones
         self._log(f"{name}/forbidden_zones", draw.Ellipsoids(
             np.array([z.center for z in zones]).reshape(-1, 3), np.array([[z.radius] * 3 for z in zones]).reshape(-1, 3),
             None, (255, 60, 60, 90),
-            [f"forbidden r={z.radius:g} m, {max(z.expires - self._stamp, 0) / NS:.0f} s left ({z.reason})" for z in zones]))
+            [f"forbidden r={z.radius:g} m, {max(z.expires - status.header.stamp, 0) / NS:.0f} s left ({z.reason})"
+             for z in zones]))
 
 
-def status_markdown(name: str, status: UavStatus, now: int) -> str:
+def status_markdown(name: str, status: UavStatus) -> str:
     """The job manager's status as a short markdown document."""
     xs = [x for x, _ in status.working_area]
     area = f"x {min(xs):.0f}..{max(xs):.0f} m" if xs else "none"
     target = "none" if status.target is None else "(%.1f, %.1f, %.1f)" % status.target
+    now = status.header.stamp  # zones expire on the job manager's clock, whatever the viewer counts from
     zones = ", ".join(f"({z.center[0]:.0f}, {z.center[1]:.0f}) {max(z.expires - now, 0) / NS:.0f} s left"
                       for z in status.forbidden_zones) or "none"
     return "\n".join([

@@ -6,14 +6,26 @@ from __future__ import annotations
 
 import os
 import shutil
+import socket
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import quote, urlparse
 
 from services.runtime.errors import UsageError
 
 VIEWER_MODES = ("spawn", "web")  # or a rerun+http://HOST:PORT/proxy address
-WEB_PORT = 9090
-GRPC_PORT = 9876
+WEB_PORT = 9090  # the web viewer's page
+GRPC_PORT = 9876  # rerun's own default: a spawned viewer, or the server behind the web viewer
+VIEWER_SCHEMES = ("rerun://", "rerun+http://", "rerun+https://")
+
+
+def grpc_address(port: int = GRPC_PORT) -> str:
+    return f"rerun+http://127.0.0.1:{port}/proxy"
+
+
+def web_address(port: int = GRPC_PORT) -> str:
+    """The web viewer's page, told where the recording is (the bare page shows rerun's welcome)."""
+    return f"http://127.0.0.1:{WEB_PORT}/?url={quote(grpc_address(port), safe='')}"
 
 
 @dataclass
@@ -41,13 +53,18 @@ def check_viewer(viewer: str) -> None:
     if viewer == "spawn":
         if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) and os.name == "posix" \
                 and not _is_macos():
-            raise UsageError("no display for a native viewer here: use --viz web (then open http://127.0.0.1:9090 "
-                             "in a browser), --viz rerun+http://HOST:PORT/proxy for a viewer elsewhere, or --rrd FILE")
+            raise UsageError(f"no display for a native viewer here: use --viz web (a browser on port {WEB_PORT}), "
+                             f"--viz rerun+http://HOST:PORT/proxy for a viewer elsewhere, or --rrd FILE")
         if viewer_executable() is None:
             raise UsageError("the rerun viewer is not installed (pip install rerun-sdk)")
-    elif viewer not in VIEWER_MODES and not viewer.startswith(("rerun://", "rerun+http://", "rerun+https://")):
-        raise UsageError(f"--viz takes spawn, web or a viewer address such as rerun+http://127.0.0.1:9876/proxy, "
-                         f"not {viewer!r}")
+    elif viewer != "web":
+        if not viewer.startswith(VIEWER_SCHEMES):
+            raise UsageError(f"--viz takes spawn, web or a viewer address such as {grpc_address()}, not {viewer!r}")
+        where = urlparse(viewer.split("+", 1)[-1])
+        try:
+            socket.create_connection((where.hostname or "127.0.0.1", where.port or GRPC_PORT), timeout=2.0).close()
+        except OSError:
+            raise UsageError(f"no rerun viewer answers at {viewer} (start one there with `rerun`)") from None
 
 
 def _is_macos() -> bool:

@@ -21,6 +21,7 @@ class ViewStats:
     logged: int  # rerun log calls
     undecodable: int  # payloads (or contents) the builder could not use
     mission_s: float  # the latest mission time drawn
+    viewer_problem: str | None = None  # why a live viewer did not take everything (None: it did)
 
 
 class Viewer:
@@ -45,8 +46,11 @@ class Viewer:
         return ViewStats(b.messages, self.output.logged, b.decode_errors, b.mission_ns / NS)
 
     def close(self) -> ViewStats:
-        self.output.close()
-        return self.stats
+        """Draw what the builder still holds back, then finish the outputs."""
+        self.output.write(self.builder.finish())
+        stats = self.stats
+        stats.viewer_problem = self.output.close()
+        return stats
 
 
 def convert_recording(viewer: Viewer, path: str, progress: Callable[[ViewStats, float], None] | None = None,

@@ -1,0 +1,59 @@
+"""The run timeline PNG and the run monitor behind it, for a simulated run and a real flight."""
+from __future__ import annotations
+
+import msgspec
+import numpy as np
+import pytest
+
+from schemas.arrays import from_numpy
+from schemas.messages import Detections, GroundTruth, Header, SimEvent, UavStatus, VehicleTruth
+from services.launcher.monitor import RunMonitor
+from services.launcher.plot import plot_timeline
+from services.runtime.errors import UsageError
+
+S = 1_000_000_000
+encode = msgspec.msgpack.encode
+
+
+def feed_run(monitor: RunMonitor, start: int) -> None:
+    """Two UAVs for 10 s: states, detections, a destroyed target, and their true positions."""
+    for k in range(0, 101):
+        stamp = start + k * S // 10
+        state = "TAKING_OFF" if k < 10 else "GOING_AROUND" if k < 60 else "DESTROYING"
+        for i, uav in enumerate(("uav1", "uav2")):
+            monitor.handle(f"falconry/{uav}/status", encode(UavStatus(
+                header=Header(stamp=stamp), uav=uav, state=state, flying_normally=True, airborne=k >= 10,
+                position=(0.0, 0.0, 5.0))))
+            monitor.handle(f"falconry/{uav}/detections", encode(Detections(
+                header=Header(stamp=stamp), detector="classifier", positions=from_numpy(np.zeros((k % 3, 3))),
+                covariances=from_numpy(np.zeros((k % 3, 3, 3))), point_counts=from_numpy(np.zeros(k % 3, np.int32)),
+                extents=from_numpy(np.zeros(k % 3, np.float32)))))
+        monitor.handle("falconry/sim/truth", encode(GroundTruth(header=Header(stamp=stamp), step=k, uavs=[
+            VehicleTruth(name="uav1", position=(0.0, 0.0, 5.0), velocity=(0, 0, 0), heading=0, airborne=k >= 10),
+            VehicleTruth(name="uav2", position=(3.0 + (k - 10) / 10, 4.0, 5.0), velocity=(0, 0, 0), heading=0,
+                         airborne=k >= 10)])))
+    monitor.handle("falconry/sim/events", encode(SimEvent(header=Header(stamp=start + 8 * S), kind="target_destroyed",
+                                                          subject="balloon1", detail="uav2")))
+
+
+@pytest.mark.parametrize("start", [0, 1_790_000_000 * S], ids=["simulated", "flight (wall-clock stamps)"])
+def test_the_timeline_reads_from_mission_time_zero_and_is_drawn(tmp_path, start):
+    monitor = RunMonitor()
+    feed_run(monitor, start)
+    uav1 = monitor.uavs["uav1"]
+    assert [state for _, state in uav1.states] == ["TAKING_OFF", "GOING_AROUND", "DESTROYING"]
+    assert uav1.states[1][0] == pytest.approx(1.0)
+    assert uav1.nearest_partner[0].value == pytest.approx(5.0)  # 3-4-5 at take-off
+    assert all(b.t - a.t >= 0.25 - 1e-9 for a, b in zip(uav1.nearest_partner, uav1.nearest_partner[1:]))
+    assert monitor.destroyed[0][:2] == (pytest.approx(8.0), "balloon1")
+    assert monitor.latest == pytest.approx(10.0)
+    path = tmp_path / "run.png"
+    plot_timeline(monitor, path, "test run")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 20_000
+
+
+def test_an_unwritable_plot_is_one_clear_error(tmp_path):
+    monitor = RunMonitor()
+    feed_run(monitor, 0)
+    with pytest.raises(UsageError, match="cannot write the plot"):
+        plot_timeline(monitor, tmp_path / "missing" / "run.png", "test run")
