@@ -103,6 +103,7 @@ def _activity(ax, name: str, index: int, monitor: RunMonitor, end: float) -> Non
         seconds = sorted(per_second)
         ax.bar(seconds, [per_second[s] for s in seconds], width=1.0, align="edge", color=color, alpha=0.45)
     ax.set_ylabel("detections/s", fontsize=8)
+    ax.set_ylim(bottom=0, top=max(per_second.values(), default=0) * 1.1 + 1)
     ax.grid(axis="x", alpha=0.3)
     partner = ax.twinx()
     if u.nearest_partner:

@@ -123,6 +123,18 @@ Drawable = (Points | Lines | Ellipsoids | Boxes | Cylinders | Mesh | Pose | Axes
             | StateStyle | Scalar | SeriesStyle | ZUp)
 
 
+def count(item: Drawable) -> int:
+    """How many things a record draws (1 for records that are not batches)."""
+    match item:
+        case Points():
+            return len(item.positions)
+        case Lines():
+            return len(item.strips)
+        case Ellipsoids() | Boxes() | Cylinders():
+            return len(item.centers)
+    return 1
+
+
 @dataclass(frozen=True)
 class Log:
     entity: str  # e.g. "uav1/detections"

@@ -73,6 +73,7 @@ UAV_FAMILIES = (
 WORLD_FAMILIES = ("world/arena", "world/ground", "world/obstacles", "truth/targets", "truth/target_paths",
                   "truth/uavs", "events")
 
+MEMORY_PERIOD = 5.0  # s of mission time between memory points of one service (it changes slowly)
 EVENT_LEVELS = {"fault_injected": "WARN", "fault_started": "WARN", "fault_failed": "ERROR",
                 "service_restarted": "WARN", "fault_ended": "INFO"}
 
@@ -124,6 +125,7 @@ class SceneBuilder:
         self._cpu: dict[str, _Cpu] = {}
         self._windows: dict[str, _Window] = {}  # plot entity -> the second being folded
         self._due: dict[str, int] = {}
+        self._empty: set[str] = set()  # entities whose last drawing was empty
         self._decoders: dict[type, msgspec.msgpack.Decoder] = {}
         self._out: list[draw.Log] = []  # what the message being fed draws
         self._received = 0  # its wall-clock arrival, ns
@@ -174,6 +176,14 @@ class SceneBuilder:
 
     # ---------------------------------------------------------------- helpers
     def _log(self, entity: str, item, static: bool = False, stamp: int | None = None) -> None:
+        """Draw `item` on `entity`; an empty batch after an empty batch is left out (most scans detect
+        nothing: saying so once is enough, and each log call costs the viewer's CPU)."""
+        if draw.count(item) == 0:
+            if entity in self._empty:
+                return
+            self._empty.add(entity)
+        else:
+            self._empty.discard(entity)
         at = None if static else (self._stamp if stamp is None else stamp)
         tick = None if at is None or self.tick_ns is None else int(round(at / self.tick_ns))
         self._out.append(draw.Log(entity, item, at, tick, self._received))
@@ -302,7 +312,7 @@ class SceneBuilder:
         if last is not None and last.pid == health.pid and health.uptime > last.uptime:
             share = 100.0 * (health.cpu_time - last.cpu_time) / (health.uptime - last.uptime)
             self._log(f"plots/cpu/{name}", draw.Scalar(share))
-        if health.memory:
+        if health.memory and self._due_now(self._due, f"memory/{name}", MEMORY_PERIOD):
             self._log(f"plots/memory_mb/{name}", draw.Scalar(health.memory / 1e6))
 
     # ---------------------------------------------------------------- per UAV
