@@ -38,7 +38,7 @@ import numpy as np  # noqa: E402
 
 from schemas.messages import Obstacle  # noqa: E402
 from services.sensor_driver import core, numpy_caster  # noqa: E402
-from services.sensor_driver.models import lidar_model  # noqa: E402
+from services.lidar.models import lidar_model  # noqa: E402
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.sensor_driver.models import MODEL_NAMES, lidar_model, mid360_directions
+from services.lidar.models import MODEL_NAMES, lidar_model, mid360_directions
 
 
 def elevation_azimuth_deg(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

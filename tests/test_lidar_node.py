@@ -10,6 +10,7 @@ import time
 
 import msgspec
 import numpy as np
+import pytest
 
 from schemas import keys
 from schemas.arrays import to_numpy
@@ -26,6 +27,7 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
+from services.sensor_driver.core import DEFAULT_MOUNT
 from tests.conftest import REPO
 from tests.tools.health import wait_healthy
 
@@ -122,7 +124,8 @@ def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes,
         assert np.linalg.norm(positions[0] - [10.0, 0.0, 5.0]) < 0.5
         assert np.linalg.norm(positions[1] - [0.0, -12.0, 6.0]) < 0.6
         assert np.allclose(to_numpy(msg.covariances)[0], 0.05 ** 2 * np.eye(3))
-        assert (to_numpy(msg.point_counts) >= 2).all() and msg.sensor_position == (0.0, 0.0, 5.0)
+        mounted = (0.0, 0.0, 5.0 + DEFAULT_MOUNT[2])  # the sensor sits on top of the carrier
+        assert (to_numpy(msg.point_counts) >= 2).all() and msg.sensor_position == pytest.approx(mounted)
 
     uav2 = got["uav2"]
     assert uav2 and all(m.sensor_model == "mid360" and to_numpy(m.points).shape == (4, 5000, 3) for m in uav2)

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from schemas.messages import Obstacle, TargetTruth
+from services.lidar.models import lidar_model
 from services.oracle.core import MAX_PENDING, OracleParams, ScanPairs, detect, scan_rng
 from services.sensor_driver.core import primitives_from_obstacles, scan
-from services.sensor_driver.models import lidar_model
 
 NAN = np.nan
 

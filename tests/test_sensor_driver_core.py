@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 
 from schemas.messages import Obstacle, TargetTruth
+from services.lidar.models import beam_directions
 from services.sensor_driver import core
 from services.sensor_driver import numpy_caster as reference
-from services.sensor_driver.faults import LidarFaults, faulty_scan
-from services.sensor_driver.models import beam_directions
 from services.sensor_driver.core import (
     Primitives,
     cast,
@@ -20,6 +19,7 @@ from services.sensor_driver.core import (
     scan,
     target_spheres,
 )
+from services.sensor_driver.faults import LidarFaults, faulty_scan
 
 MM = 1e-3
 
@@ -283,7 +283,7 @@ def test_faulty_scans_hide_the_world():
 
 
 def test_mid360_scan_sees_a_balloon_with_a_few_points():
-    from services.sensor_driver.models import lidar_model
+    from services.lidar.models import lidar_model
 
     model = lidar_model("mid360")
     balloon = [TargetTruth(id="b", kind="balloon", position=(15.0, 0.0, 8.0), velocity=(0, 0, 0), radius=0.3)]

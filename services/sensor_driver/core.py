@@ -1,6 +1,6 @@
 """Simulated LiDAR: the world as primitives, and whole scans with noise, body mask and truth.
 
-Second version (issue 3): sensor models (models.py: Ouster OS0/OS1, Livox Mid-360), a
+Second version (issue 3): sensor models (services/lidar/models.py: Ouster OS0/OS1, Livox Mid-360), a
 numba-compiled caster (raycast.py, checked against the numpy reference numpy_caster.py), the id
 of what every ray hit (for evaluation and the oracle detector, never in the cloud), sensor pose
 noise, a body mask and an optional intensity. Still ideal in time: every ray of a frame is cast
@@ -26,19 +26,20 @@ import msgspec
 import numpy as np
 
 from schemas.messages import Obstacle, TargetTruth
+from services.lidar.models import lidar_model
 from services.sensor_driver import numpy_caster
-from services.sensor_driver.models import lidar_model
 from services.sensor_driver.raycast import BOX, CONE, CYLINDER, PLANE, SPHERE, Packed, cast_kernel, scan_kernel
 
 DRONE_BODY_HEIGHT = 0.3  # m: an intruder multirotor is a flat disk of its radius, this thick
 REFLECTIVITY = {"ground": 0.2, "static": 0.3, "target": 0.6}
 INTENSITY_FULL_RANGE = 5.0  # m: intensity falls as 1/r² beyond this
 DEFAULT_BODY_BOX = (-0.4, -0.4, -0.4, 0.4, 0.4, 0.4)
+DEFAULT_MOUNT = (0.0, 0.0, 0.4)
 FALLBACK_MODEL = "os0-32-512"  # when neither the parameters nor the scenario name one
 
 
 class SensorDriverParams(msgspec.Struct, forbid_unknown_fields=True):
-    # LiDAR model (models.py): os0-/os1- 32/64/128 [-512/-1024/-2048], mid360. "" = the one the
+    # LiDAR model (services/lidar/models.py): os0-/os1- 32/64/128 [-512/-1024/-2048], mid360. "" = the one the
     # scenario names for this UAV (falconry/sim/world `sensors`), FALLBACK_MODEL if it names none.
     model: str = ""
     rate_hz: float = 10.0  # frames per second of mission time
@@ -51,6 +52,9 @@ class SensorDriverParams(msgspec.Struct, forbid_unknown_fields=True):
     # A box in front of the sensor (e.g. the frame below it) blocks rays; a box around the sensor
     # crops returns inside it. Either way those rays return nothing. [] = no body.
     body_box: list[float] = msgspec.field(default_factory=lambda: list(DEFAULT_BODY_BOX))
+    # Where the sensor sits on the carrier (x fwd, y left, z up), m from the carrier's reference
+    # point, which rests on the ground when landed: on top of the frame, not in the grass.
+    mount: list[float] = msgspec.field(default_factory=lambda: list(DEFAULT_MOUNT))
     intensity: bool = False  # publish a per-point intensity (reflectivity · |cos incidence| / range²)
 
     def __post_init__(self) -> None:  # msgspec reports these as validation errors naming the table
@@ -61,6 +65,8 @@ class SensorDriverParams(msgspec.Struct, forbid_unknown_fields=True):
         for name in ("min_range", "max_range", "range_noise", "position_noise", "attitude_noise"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if len(self.mount) != 3 or not all(np.isfinite(self.mount)):
+            raise ValueError(f"mount must be [x, y, z] in metres, got {self.mount}")
         box = self.body_box
         if len(box) not in (0, 6) or (len(box) == 6 and not all(box[k] < box[k + 3] for k in range(3))):
             raise ValueError(f"body_box must be [] or [x_min, y_min, z_min, x_max, y_max, z_max] "

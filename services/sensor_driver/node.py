@@ -4,7 +4,7 @@ evaluation only the id of what every ray hit on falconry/<uav>/points_truth.
 Ray-casts the simulator's world (static obstacles from falconry/sim/world, standing targets and
 the own pose from falconry/sim/truth) at `rate_hz` of mission time with the LiDAR model the
 parameters name, or else the one the scenario names for this UAV in the world model
-(core.SensorDriverParams, models.py). Both messages of a scan carry the same stamp; the
+(core.SensorDriverParams, services/lidar/models.py). Both messages of a scan carry the same stamp; the
 PointTruth never enters the PointCloud, so perception cannot see it. LiDAR faults scheduled on
 falconry/sim/faults for this UAV are acted on here: `lidar_silent` publishes nothing,
 `lidar_nan` an all-NaN cloud, `lidar_garbage` random ranges on every beam (truth -1 for both).
@@ -21,6 +21,8 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import FaultCommand, GroundTruth, Header, PointCloud, PointTruth, Pose, WorldModel
+from services.lidar.models import lidar_model
+from services.lidar.rays import body_mask, pack_mask
 from services.runtime.node import Node
 from services.sensor_driver.core import (
     FALLBACK_MODEL,
@@ -31,7 +33,6 @@ from services.sensor_driver.core import (
     yaw_rotation,
 )
 from services.sensor_driver.faults import LIDAR_FAULTS, LidarFaults, faulty_scan
-from services.sensor_driver.models import lidar_model
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
 
@@ -67,6 +68,19 @@ class SensorDriverNode(Node):
         self.model = lidar_model(name, p.rate_hz)
         self.min_range = p.min_range or self.model.min_range
         self.max_range = p.max_range or self.model.max_range
+        self._masks: dict[int, np.ndarray] = {}
+        # What the scan's pose noise is (one draw per scan of position and attitude, core.scan).
+        self._pose_covariance = np.diag([p.position_noise ** 2] * 3 + [p.attitude_noise ** 2] * 3)
+
+    def _mask(self, frame: int) -> np.ndarray:
+        """The packed body mask of a frame (a repeating pattern's once for all)."""
+        key = 0 if self.model.repeats else frame
+        mask = self._masks.get(key)
+        if mask is None:
+            mask = pack_mask(body_mask(self.model.directions(frame), self.params.body_box))
+            if self.model.repeats:
+                self._masks[key] = mask
+        return mask
 
     def on_world(self, world: WorldModel, key: str) -> None:
         wanted = world.sensors.get(self.uav, "")
@@ -113,7 +127,7 @@ class SensorDriverNode(Node):
         fault = self.faults.active(now_ns)
         if fault == "lidar_silent":
             return
-        origin = np.asarray(me.position, dtype=float)
+        origin = np.asarray(me.position, dtype=float) + yaw_rotation(me.heading) @ np.asarray(self.params.mount)
         world = self.static.with_targets(self.truth.targets)
         result = self._scan(origin, me.heading, world, self.rng, frame=int(slot))
         if fault is not None:
@@ -125,12 +139,15 @@ class SensorDriverNode(Node):
             header=Header(stamp=now_ns),
             width=cols,
             height=rows,
-            sensor_pose=Pose(position=me.position, orientation=(math.cos(half), 0.0, 0.0, math.sin(half))),
+            sensor_pose=Pose(position=tuple(origin.tolist()), orientation=(math.cos(half), 0.0, 0.0, math.sin(half))),
             points=from_numpy(result.points),
             intensity=None if result.intensity is None else from_numpy(result.intensity),
             sensor_model=self.model.name,
             min_range=self.min_range,
             max_range=self.max_range,
+            frame=int(slot),
+            mask=from_numpy(self._mask(int(slot))),
+            pose_covariance=from_numpy(self._pose_covariance),
         ))
         self.truth_pub.put(PointTruth(
             header=Header(stamp=now_ns),

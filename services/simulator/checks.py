@@ -12,6 +12,7 @@ import numpy as np
 
 from schemas import keys
 from services.geometry import deepest_point, point_in_polygon, polygon_self_intersection, signed_area
+from services.lidar.models import lidar_model
 from services.simulator import paths
 from services.simulator.specs import (
     MAX_UAVS,
@@ -245,8 +246,6 @@ def _check_profile(p: ProfileSpec, where: str) -> None:
 
 def _check_uav_settings(u, where: str) -> None:
     if u.sensor is not None:
-        from services.sensor_driver.models import lidar_model  # the one list of models there is
-
         try:
             lidar_model(u.sensor)
         except ValueError as exc:

@@ -1,0 +1,92 @@
+"""How uncertain a LiDAR point is, given the sensor's pose and range noise (seed 000 sec. IV).
+
+A point p = l·R·d + t (eq. 34) with R = Rz(γ)·Ry(β)·Rx(α); the noise w = (t_n, α_n, β_n, γ_n, l_n)
+(eq. 35) maps through the Jacobian J of eq. 42 to the point's covariance Σ = J·Σ_w·Jᵀ (eq. 41).
+The probability that the measured voxel is the true one, p_hit (eq. 45–46), is the integral of
+that Gaussian over the measured voxel's cube: scipy's multivariate normal CDF over the box.
+Pure numpy and scipy.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+from scipy.stats import multivariate_normal
+
+
+def _rx(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _ry(b: float) -> np.ndarray:
+    c, s = math.cos(b), math.sin(b)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def _rz(g: float) -> np.ndarray:
+    c, s = math.cos(g), math.sin(g)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _drx(a: float) -> np.ndarray:
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[0.0, 0.0, 0.0], [0.0, -s, -c], [0.0, c, -s]])
+
+
+def _dry(b: float) -> np.ndarray:
+    c, s = math.cos(b), math.sin(b)
+    return np.array([[-s, 0.0, c], [0.0, 0.0, 0.0], [-c, 0.0, -s]])
+
+
+def _drz(g: float) -> np.ndarray:
+    c, s = math.cos(g), math.sin(g)
+    return np.array([[-s, -c, 0.0], [c, -s, 0.0], [0.0, 0.0, 0.0]])
+
+
+def roll_pitch_yaw(rotation: np.ndarray) -> tuple[float, float, float]:
+    """(α, β, γ) of R = Rz(γ)·Ry(β)·Rx(α) (intrinsic z-y-x, as ROS and MAVLink report attitude)."""
+    yaw, pitch, roll = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_euler("ZYX")
+    return float(roll), float(pitch), float(yaw)
+
+
+def point_jacobian(roll: float, pitch: float, yaw: float, direction: np.ndarray, length: float) -> np.ndarray:
+    """J (3, 7) of eq. 42: ∂p/∂(t_n, α_n, β_n, γ_n, l_n) for a ray of sensor-frame unit `direction`
+    and range `length`."""
+    d = np.asarray(direction, dtype=np.float64).reshape(3)
+    rx, ry, rz = _rx(roll), _ry(pitch), _rz(yaw)
+    return np.column_stack([
+        np.eye(3),
+        length * rz @ ry @ _drx(roll) @ d,
+        length * rz @ _dry(pitch) @ rx @ d,
+        length * _drz(yaw) @ ry @ rx @ d,
+        rz @ ry @ rx @ d,
+    ])
+
+
+def point_covariance(point: np.ndarray, sensor_position: np.ndarray, rotation: np.ndarray,
+                     pose_covariance: np.ndarray | None, range_sigma: float) -> np.ndarray:
+    """Σ (3, 3) of eq. 41 for a measured point: pose covariance 6×6 over (x, y, z, roll, pitch, yaw)
+    (None: a perfectly known pose) and range standard deviation."""
+    offset = np.asarray(point, dtype=np.float64) - np.asarray(sensor_position, dtype=np.float64)
+    length = float(np.linalg.norm(offset))
+    if length == 0.0:
+        return np.zeros((3, 3))
+    rotation = np.asarray(rotation, dtype=np.float64)
+    direction = rotation.T @ (offset / length)
+    noise = np.zeros((7, 7))
+    if pose_covariance is not None:
+        noise[:6, :6] = np.asarray(pose_covariance, dtype=np.float64).reshape(6, 6)
+    noise[6, 6] = range_sigma ** 2
+    jacobian = point_jacobian(*roll_pitch_yaw(rotation), direction, length)
+    return jacobian @ noise @ jacobian.T
+
+
+def hit_probability(point: np.ndarray, covariance: np.ndarray, voxel_low: np.ndarray, voxel_size: float) -> float:
+    """p_hit of eq. 45–46: the probability that the true point lies in the measured voxel, the cube
+    [voxel_low, voxel_low + voxel_size) holding the measured `point`, Σ the point's covariance."""
+    cov = np.asarray(covariance, dtype=np.float64) + 1e-12 * np.eye(3)  # a perfect pose is a degenerate Gaussian
+    low = np.asarray(voxel_low, dtype=np.float64)
+    dist = multivariate_normal(mean=np.asarray(point, dtype=np.float64), cov=cov, allow_singular=True)
+    return float(np.clip(dist.cdf(low + voxel_size, lower_limit=low), 0.0, 1.0))
