@@ -46,6 +46,11 @@ class PointCloud(msgspec.Struct, kw_only=True):
     sensor_model: str = ""
     min_range: float = 0.0
     max_range: float = 0.0
+    frame: int = 0  # the model's beam pattern of this scan (n-th frame since mission time 0; services/lidar)
+    # uint8 (height, ceil(width / 8)), each row's bits packed (numpy.packbits): 1 where the ray meets the
+    # carrier's own body, so its missing return says nothing about the world (the mapper skips it)
+    mask: Array | None = None
+    pose_covariance: Array | None = None  # float64 6×6 over (x, y, z, roll, pitch, yaw) of sensor_pose
 
 
 class PointTruth(msgspec.Struct, kw_only=True):
@@ -80,6 +85,9 @@ class Detections(msgspec.Struct, kw_only=True):
     point_counts: Array  # int32 (N,)
     extents: Array  # float32 (N,) largest cluster dimension, m
     sensor_position: Vec3 = (0.0, 0.0, 0.0)
+    # float32 (N,): probability that the centroid's voxel is the true one given the sensor's pose and
+    # range uncertainty (seed 000 sec. IV-B); None from a detector that does not say
+    confidences: Array | None = None
 
 
 class LabelSet(msgspec.Struct, kw_only=True):
@@ -93,20 +101,24 @@ class LabelSet(msgspec.Struct, kw_only=True):
     voxel_size: float
     voxels: Array  # int32 (M, 3) voxel indices relative to map origin
     voxel_labels: Array  # uint8 (M,)
-    voxel_weights: Array  # float32 (M,)
+    voxel_weights: Array  # float32 (M,) update weight n of each voxel (eq. 16–18; inf for flying objects)
+    map_stamp: int = 0  # stamp of the last map message the classification used: the map's lag behind the scan
 
 
 class VoxelMap(msgspec.Struct, kw_only=True):
     """The occupancy map G(v): a snapshot lists every voxel whose value differs from
-    `default_value`; a delta lists the voxels changed since the previous message."""
+    `default_value`; a delta lists the voxels whose state (schemas/voxels.py, seed 000 eq. 7)
+    changed since the previous message, with their value then. Between two state changes a
+    voxel's value moves without a message: a replica knows every state exactly, values only as
+    of their last state change."""
 
     header: Header
     snapshot: bool
     voxel_size: float
     origin: Vec3  # world position of voxel (0, 0, 0)'s minimum corner
     shape: tuple[int, int, int]
-    indices: Array  # int64 (N,) flat indices, C order over `shape`
-    values: Array  # float32 (N,) G values
+    indices: Array  # int32 or int64 (N,) flat indices, C order over `shape`
+    values: Array  # float32 (N,) G values (±inf: pinned by the a-priori map, seed 000 sec. III-E)
     default_value: float = -740.0
 
 

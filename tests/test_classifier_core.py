@@ -1,165 +1,158 @@
-"""Classifier core (first version): clustering and background / flying / unknown rules."""
+"""Classifier core (seed 000 sec. III-B, IV-A): clusters, rules A / B / unknown on constructed maps,
+label sets with weights, detections with centroid, covariance and confidence, bad input."""
 from __future__ import annotations
 
+import msgspec
 import numpy as np
 import pytest
 
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
-from services.classifier.core import ClassifierCore, ClassifierParams, cluster_voxels
-from services.mapper.core import MapperParams
+from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose
 
-SENSOR = (0.0, 0.0, 5.0)
-BALL_CENTRE = np.array([8.0, 3.0, 6.0])
-
-
-def ground_grid(half: float = 15.0, step: float = 0.5) -> np.ndarray:
-    xs = np.arange(-half, half + 1e-9, step)
-    gx, gy = np.meshgrid(xs, xs, indexing="ij")
-    return np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], axis=1)
+ORIGIN, SHAPE, VOXEL = (0.0, 0.0, 0.0), (80, 60, 30), 0.5  # 40 × 30 × 15 m
+PARAMS = ClassifierParams(map_origin=ORIGIN, map_shape=SHAPE)
+SENSOR = SensorPose(np.array([5.0, 15.0, 5.0]), np.eye(3))
+BALL_CENTRE = np.array([15.0, 15.0, 6.0])
 
 
-def ball(centre, radius: float = 0.3, count: int = 200) -> np.ndarray:
-    """Evenly spread points on a sphere (Fibonacci lattice): their centroid is the centre."""
-    i = np.arange(count) + 0.5
-    polar = np.arccos(1 - 2 * i / count)
-    azimuth = np.pi * (1 + 5**0.5) * i
-    unit = np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)], axis=1)
-    return np.asarray(centre) + radius * unit
+def ball(centre=BALL_CENTRE, radius=0.3, count=60, seed=0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(count, 3))
+    return np.asarray(centre) + radius * directions / np.linalg.norm(directions, axis=1, keepdims=True)
 
 
-def organised(*clouds: np.ndarray, width: int = 128, nan_every: int = 0) -> np.ndarray:
-    """Pack clouds into an (H, W, 3) float32 scan padded with NaN (no return)."""
-    pts = np.concatenate(clouds).astype(np.float32)
-    if nan_every:
-        pts = np.insert(pts, np.arange(0, len(pts), nan_every), np.nan, axis=0)
-    height = -(-len(pts) // width)
-    scan = np.full((height * width, 3), np.nan, dtype=np.float32)
-    scan[: len(pts)] = pts
-    return scan.reshape(height, width, 3)
+def classifier(free=(), occupied=()) -> ClassifierCore:
+    """A classifier whose map replica has confident free boxes and tentatively occupied voxels."""
+    core = ClassifierCore(PARAMS)
+    indices, values = [], []
+    for low, high in free:
+        ijk = np.stack(np.meshgrid(*[np.arange(int(a / VOXEL), int(b / VOXEL)) for a, b in zip(low, high)],
+                                   indexing="ij"), axis=-1).reshape(-1, 3)
+        indices.append(np.ravel_multi_index(tuple(ijk.T), SHAPE))
+        values.append(np.full(len(ijk), -1000.0))
+    for point in occupied:
+        ijk = np.floor(np.asarray(point) / VOXEL).astype(int)
+        indices.append([np.ravel_multi_index(tuple(ijk), SHAPE)])
+        values.append([-100.0])
+    core.apply_map(True, ORIGIN, SHAPE, VOXEL, -740.0, np.concatenate(indices or [[]]).astype(np.int64),
+                   np.concatenate(values or [[]]).astype(np.float32))
+    return core
 
 
-def test_ball_above_ground_is_the_only_detection():
-    core = ClassifierCore()
-    ground = ground_grid()
-    scan = core.classify(organised(ground, ball(BALL_CENTRE)), SENSOR)
+FREE_AROUND_BALL = [((11.0, 11.0, 2.0), (19.0, 19.0, 10.0))]
+
+
+def test_a_ball_walled_off_by_free_space_is_a_flying_object():
+    scan = classifier(free=FREE_AROUND_BALL).classify(ball(), SENSOR)
+    assert (scan.point_labels == FLYING).all()
     assert len(scan.positions) == 1
-    assert np.linalg.norm(scan.positions[0] - BALL_CENTRE) < 0.1
-    assert scan.point_counts[0] == 200
-    assert 0.5 < scan.extents[0] < 0.65
-    cov = scan.covariances[0]
-    assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) >= 0.01 - 1e-9)
-    on_ground = scan.points[:, 2] < 0.1
-    assert on_ground.sum() == len(ground)
-    assert np.all(scan.point_labels[on_ground] == BACKGROUND)
-    assert np.all(scan.point_labels[~on_ground] == FLYING)
-    # Voxel label sets: weights count points, labels follow the points'.
-    assert scan.voxel_weights.sum() == len(scan.points)
-    assert set(scan.voxel_labels.tolist()) == {BACKGROUND, FLYING}
-    assert scan.voxels.dtype == np.int32
+    assert np.allclose(scan.positions[0], ball().mean(axis=0))  # eq. 19: the centroid of its returns
+    assert scan.point_counts.tolist() == [60] and 0.5 < scan.extents[0] <= 0.6
 
 
-def test_voxels_are_relative_to_the_map_origin():
-    core = ClassifierCore()
-    scan = core.classify(np.array([[[0.1, 0.1, 0.1]]], dtype=np.float32), SENSOR)
-    # origin (-10, -10, -1) at 0.5 m: x = 0.1 lies in voxel 20, z = 0.1 in voxel 2
-    assert scan.voxels.tolist() == [[20, 20, 2]]
+def test_the_same_ball_in_unknown_space_is_unknown_rule_b_needs_the_map():
+    scan = classifier().classify(ball(), SENSOR)
+    assert (scan.point_labels == UNKNOWN).all() and len(scan.positions) == 0
 
 
-def test_pole_from_the_ground_is_background():
-    core = ClassifierCore()
-    pole = np.stack([np.full(51, 6.0), np.full(51, -4.0), np.linspace(0.0, 5.0, 51)], axis=1)
-    scan = core.classify(organised(pole), SENSOR)
-    assert len(scan.positions) == 0
-    assert np.all(scan.point_labels == BACKGROUND)
+def test_a_gap_in_the_free_space_leading_to_the_search_cube_keeps_it_unknown():
+    gapped = [((11.0, 11.0, 2.0), (15.0, 19.0, 10.0)), ((15.5, 11.0, 2.0), (19.0, 19.0, 10.0)),
+              ((15.0, 11.0, 2.0), (15.5, 14.5, 10.0)), ((15.0, 15.5, 2.0), (15.5, 19.0, 10.0))]  # a tunnel at y 15
+    assert (classifier(free=gapped).classify(ball(), SENSOR).point_labels == UNKNOWN).all()
 
 
-def test_balloon_touching_its_pole_is_background_in_the_first_version():
-    """Known first-version limit: a pole within 1.5 m joins the balloon's cluster, which then
-    touches the ground. The flood-fill rule and cluster splitting of later issues address it."""
-    core = ClassifierCore()
-    pole = np.stack([np.full(41, 8.0), np.full(41, 3.0), np.linspace(0.0, 5.6, 41)], axis=1)
-    scan = core.classify(organised(pole, ball(BALL_CENTRE)), SENSOR)
-    assert len(scan.positions) == 0
-    assert np.all(scan.point_labels == BACKGROUND)
+def test_rule_a_a_point_within_d_close_of_a_tentative_voxel_makes_the_cluster_background():
+    near = classifier(free=FREE_AROUND_BALL, occupied=[BALL_CENTRE + [1.4, 0, 0]]).classify(ball(), SENSOR)
+    assert (near.point_labels == BACKGROUND).all() and len(near.positions) == 0
+    # 2.5 m away is beyond d_close; reachable through non-free space it would still stop rule B,
+    # but here it sits inside the free box, walled off from the ball
+    far = classifier(free=FREE_AROUND_BALL, occupied=[BALL_CENTRE + [2.5, 0, 0]]).classify(ball(), SENSOR)
+    assert (far.point_labels == BACKGROUND).sum() == 0
 
 
-def test_cluster_touching_a_map_occupied_voxel_is_background():
-    core = ClassifierCore()
-    origin = np.asarray(core.map.origin)
-    shape = core.map.shape
-    occupied = np.floor((BALL_CENTRE + [0.0, 0.0, 0.6] - origin) / 0.5).astype(int)  # just above the ball
-    flat = np.ravel_multi_index(tuple(occupied), shape)
-    assert core.apply_map(True, tuple(origin), shape, 0.5, -740.0, np.array([flat]), np.array([0.0], np.float32))
-    scan = core.classify(organised(ball(BALL_CENTRE)), SENSOR)
-    assert len(scan.positions) == 0
-    assert np.all(scan.point_labels == BACKGROUND)
-    # A delta freeing that voxel (G = -1000) makes the ball a flying object again.
-    assert core.apply_map(False, tuple(origin), shape, 0.5, -740.0, np.array([flat]), np.array([-1000.0], np.float32))
-    assert len(core.classify(organised(ball(BALL_CENTRE)), SENSOR).positions) == 1
+def test_a_cluster_too_big_to_be_a_target_is_background_even_on_an_empty_map():
+    xs, zs = np.meshgrid(np.arange(20.0, 25.0, 0.2), np.arange(1.0, 6.0, 0.2))
+    wall = np.stack([xs.ravel(), np.full(xs.size, 10.0), zs.ravel()], axis=1)
+    scan = classifier().classify(np.vstack([wall, ball()]), SENSOR)
+    assert (scan.point_labels[:len(wall)] == BACKGROUND).all()
+    assert (scan.point_labels[len(wall):] == UNKNOWN).all()  # the ball is 5 m away: its own cluster
 
 
-def test_delta_for_another_geometry_is_ignored_and_snapshot_replaces():
-    core = ClassifierCore()
-    assert not core.apply_map(False, (0.0, 0.0, 0.0), (10, 10, 10), 0.5, -740.0, np.array([5]), np.array([0.0]))
-    assert core.apply_map(True, (0.0, 0.0, 0.0), (10, 10, 10), 0.5, -740.0, np.array([5]), np.array([0.0]))
-    assert core.map.shape == (10, 10, 10) and core.map.grid.reshape(-1)[5] == 0.0
-    assert core.apply_map(True, (0.0, 0.0, 0.0), (10, 10, 10), 0.5, -740.0, np.array([7]), np.array([0.0]))
-    assert core.map.grid.reshape(-1)[5] == -740.0  # a snapshot replaces, it does not add
-
-
-def test_unknown_rules():
-    core = ClassifierCore()
-    low = ball((5.0, -5.0, 1.0), radius=0.2)  # lowest point 0.8 m: not ground, not high enough
-    lone = np.array([[-5.0, 5.0, 8.0]])  # a single point
-    far = ball((60.0, 0.0, 10.0))  # beyond 50 m
-    scan = core.classify(organised(low, lone, far), SENSOR)
-    assert len(scan.positions) == 0
-    assert np.all(scan.point_labels == UNKNOWN)
-
-
-def test_large_cluster_in_the_air_is_background():
-    core = ClassifierCore()
-    xs = np.arange(0.0, 4.01, 0.25)
-    wire = np.stack([xs, np.zeros_like(xs), np.full_like(xs, 7.0)], axis=1)  # 4 m long
-    scan = core.classify(organised(wire), SENSOR)
-    assert np.all(scan.point_labels == BACKGROUND)
-
-
-def test_nan_points_are_ignored():
-    core = ClassifierCore()
-    clean = core.classify(organised(ground_grid(), ball(BALL_CENTRE)), SENSOR)
-    noisy = core.classify(organised(ground_grid(), ball(BALL_CENTRE), nan_every=7), SENSOR)
-    assert len(noisy.points) == len(clean.points)
-    assert np.isfinite(noisy.points).all()
-    assert np.allclose(noisy.positions, clean.positions)
-    empty = core.classify(np.full((4, 8, 3), np.nan, np.float32), SENSOR)
-    assert len(empty.points) == 0 and len(empty.positions) == 0
+def test_too_few_returns_or_too_far_stays_unknown():
+    core = classifier(free=FREE_AROUND_BALL)
+    assert core.classify(ball(count=1), SENSOR).point_labels.tolist() == [UNKNOWN]
+    far_sensor = SensorPose(np.array([-60.0, 15.0, 6.0]), np.eye(3))
+    assert (core.classify(ball(), far_sensor).point_labels == UNKNOWN).all()
 
 
 def test_clustering_distance_is_1_5_m():
-    voxels = np.array([[0, 0, 0], [3, 0, 0], [7, 0, 0], [9, 2, 1]])  # gaps 1.5 m, 2.0 m, 1.5 m
-    count, labels = cluster_voxels(voxels, 1.5 / 0.5)
-    assert count == 2
-    assert labels[0] == labels[1] != labels[2] == labels[3]
+    """Eq. 13–15 on (nearly) undownsampled returns: two balls whose surfaces are 1.3 m apart are one
+    cluster, 1.7 m apart two."""
+    fine = msgspec.structs.replace(PARAMS, downsample=0.02)
+    core = ClassifierCore(fine)
+    core.map = classifier(free=[((11.0, 11.0, 2.0), (21.0, 19.0, 10.0))]).map
+    near, touching = ball(BALL_CENTRE, count=400), ball(BALL_CENTRE + [1.9, 0, 0], count=400, seed=1)
+    assert len(core.classify(np.vstack([near, touching]), SENSOR).positions) == 1
+    apart = ball(BALL_CENTRE + [2.3, 0, 0], count=400, seed=1)
+    assert len(core.classify(np.vstack([near, apart]), SENSOR).positions) == 2
 
 
-def test_two_balls_two_detections():
-    core = ClassifierCore()
-    other = BALL_CENTRE + [0.0, 3.0, 0.0]  # surfaces 2.4 m apart, more than the 1.5 m clustering distance
-    scan = core.classify(organised(ball(BALL_CENTRE), ball(other)), SENSOR)
-    assert len(scan.positions) == 2
+def test_label_sets_count_returns_per_voxel_with_infinite_weight_for_flying_objects():
+    core = classifier(free=FREE_AROUND_BALL)
+    xs, ys = np.meshgrid(np.arange(20.0, 26.0, 0.1), np.arange(20.0, 26.0, 0.1))
+    ground = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 0.1)], axis=1)  # 6 × 6 m: background
+    scan = core.classify(np.vstack([ground, ball()]), SENSOR)
+    flying = scan.voxel_labels == FLYING
+    assert np.isinf(scan.voxel_weights[flying]).all() and flying.any()
+    background = scan.voxel_labels == BACKGROUND
+    assert scan.voxel_weights[background].sum() == len(ground)  # eq. 16: n = returns in the voxel
+    assert len(np.unique(scan.voxels, axis=0)) == len(scan.voxels)  # one class per voxel
+    assert scan.voxels.dtype == np.int32 and scan.voxel_weights.dtype == np.float32
 
 
-def test_default_map_geometry_matches_the_mapper():
-    c, m = ClassifierParams(), MapperParams()
-    assert (c.map_origin, c.map_shape) == (m.origin, m.shape)
-    assert (c.voxel_size, c.map_default) == (m.voxel_size, m.unknown_value)
+def test_a_voxel_with_returns_of_several_classes_takes_the_most_cautious():
+    from services.classifier.kernels import label_sets
+    slot = np.full(80 * 60 * 30, -1, np.int32)
+    voxels, labels, weights, outside = label_sets(
+        np.array([[1.1, 1.1, 1.1], [1.2, 1.2, 1.2], [1.3, 1.3, 1.3], [5.1, 1.1, 1.1], [5.2, 1.1, 1.1]]),
+        np.array([BACKGROUND, FLYING, UNKNOWN, BACKGROUND, UNKNOWN], np.uint8), np.zeros(3), VOXEL,
+        np.array(SHAPE), slot, BACKGROUND, FLYING, UNKNOWN)
+    assert labels.tolist() == [FLYING, UNKNOWN] and np.isinf(weights[0]) and weights[1] == 1.0
+    assert voxels.tolist() == [[2, 2, 2], [10, 2, 2]] and outside == 0 and (slot == -1).all()
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+def test_detection_covariance_and_confidence_follow_the_pose_uncertainty():
+    core = classifier(free=FREE_AROUND_BALL)
+    certain = core.classify(ball(), SENSOR)
+    uncertain_pose = SensorPose(SENSOR.position, SENSOR.rotation, np.diag([0.2 ** 2] * 3 + [np.radians(2) ** 2] * 3))
+    uncertain = core.classify(ball(), uncertain_pose)
+    spread = np.cov(ball().T)
+    assert np.allclose(certain.covariances[0], spread + 0.01 * np.eye(3), atol=1e-4)  # perfect pose, 2 cm ranges/√60
+    extra = uncertain.covariances[0] - certain.covariances[0]
+    assert np.all(np.linalg.eigvalsh(extra) > 0.03)  # at least the position noise, 0.04 m², on every axis
+    assert 0.9 < certain.confidences[0] <= 1.0 and uncertain.confidences[0] < 0.6
+
+
+def test_bad_input_is_dropped_and_counted():
+    core = classifier(free=FREE_AROUND_BALL)
+    points = np.vstack([ball(), [[np.inf, 1.0, 1.0], [np.nan, np.nan, np.nan], [1.0, -np.inf, 2.0]]])
+    scan = core.classify(points, SENSOR)
+    assert len(scan.points) == 60 and core.counters.invalid_points == 2
+    assert len(core.classify(np.zeros((5, 2)), SENSOR).points) == 0  # not (…, 3)
+    assert len(core.classify(ball(), SensorPose(np.array([np.nan, 0, 0]), np.eye(3))).points) == 0
+    assert core.counters.rejected_scans == 2
+    outside = core.classify(ball(np.array([-30.0, 15.0, 6.0])), SENSOR)
+    assert core.counters.points_outside_map == 60 and len(outside.voxels) == 0 and len(outside.positions) == 0
+    organised = np.full((4, 16, 3), np.nan, np.float32)
+    organised.reshape(-1, 3)[:60 // 2] = ball(count=30)
+    assert len(core.classify(organised, SENSOR).points) == 30
+
+
+@pytest.mark.parametrize("seed", [1, 2])
 def test_result_is_deterministic(seed):
     rng = np.random.default_rng(seed)
-    pts = np.concatenate([ground_grid(), ball(BALL_CENTRE) + rng.normal(0, 0.02, (200, 3))])
-    a = ClassifierCore().classify(organised(pts), SENSOR)
-    b = ClassifierCore().classify(organised(pts), SENSOR)
-    assert np.array_equal(a.voxels, b.voxels) and np.array_equal(a.positions, b.positions)
+    points = np.vstack([ball(seed=seed), rng.uniform((0, 0, 0), (40, 30, 1), (3000, 3))])
+    first = classifier(free=FREE_AROUND_BALL).classify(points, SENSOR)
+    second = classifier(free=FREE_AROUND_BALL).classify(points, SENSOR)
+    for a, b in zip(vars(first).values(), vars(second).values()):
+        assert np.array_equal(a, b)

@@ -1,20 +1,34 @@
-"""Mapper core (first version): label assignments, sampled free-space rays, deltas, snapshots."""
+"""Mapper core (seed 000 sec. III-A, C, D, E): the exponential update, label sets, exact ray
+casting with per-voxel lengths, class-quantised deltas, the separate-cluster reset, pinned voxels
+and bad input."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from schemas import voxels
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
-from services.mapper.core import MapperCore, MapperParams
+from services.lidar.rays import ScanRays
+from services.mapper.core import MapperCore, MapperParams, exponential_update
 
-SMALL = MapperParams(origin=(0.0, 0.0, 0.0), shape=(40, 20, 20))  # 20 x 10 x 10 m
+SMALL = MapperParams(origin=(0.0, 0.0, 0.0), shape=(40, 20, 20), separation_period=1e9)  # 20 × 10 × 10 m
+NO_LABELS = (np.zeros((0, 3), np.int32), np.zeros(0, np.uint8), np.zeros(0, np.float32))
+
+
+def rays(origin, points, beams=None, masked=None) -> ScanRays:
+    """Rays from `origin` ending at `points` (a return: the ray ends there, or at d_max if farther)."""
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    return ScanRays(np.asarray(origin, dtype=np.float64), np.eye(3), pts, beams, masked)
 
 
 def voxel_of(core: MapperCore, point) -> tuple[int, int, int]:
     return tuple(np.floor((np.asarray(point) - core.origin) / core.voxel_size).astype(int))
 
 
-def flat_of(core: MapperCore, voxels) -> np.ndarray:
-    return np.ravel_multi_index(tuple(np.asarray(voxels).T), core.shape)
+def labels(*rows):
+    """Label sets from (voxel, label, weight) rows."""
+    return (np.array([r[0] for r in rows], np.int32).reshape(-1, 3), np.array([r[1] for r in rows], np.uint8),
+            np.array([r[2] for r in rows], np.float32))
 
 
 def test_default_area_fits_120_by_100_by_25_m():
@@ -24,108 +38,147 @@ def test_default_area_fits_120_by_100_by_25_m():
     assert MapperCore().grid.dtype == np.float32 and np.all(MapperCore(SMALL).grid == -740.0)
 
 
-def test_background_labels_set_occupied():
+@pytest.mark.parametrize("g", [0.0, -740.0, -1000.0])
+@pytest.mark.parametrize("start", [-740.0, -3.0, -999.0])
+def test_eq_12_is_n_applications_of_eq_8(g, start):
+    value = np.float64(start)
+    for n in range(1, 7):
+        value = (value + g) / 2.0  # eq. 8
+        assert exponential_update(np.array([start]), np.array([float(n)]), g)[0] == pytest.approx(value, rel=1e-6)
+    # real n lies between its integer neighbours; n = inf sets the target; 0 leaves it; pinned stays
+    half = exponential_update(np.array([start]), np.array([2.5]), g)[0]
+    assert min(exponential_update(np.array([start]), np.array([2.0]), g)[0],
+               exponential_update(np.array([start]), np.array([3.0]), g)[0]) <= half + 1e-3
+    assert exponential_update(np.array([start]), np.array([np.inf]), g)[0] == g
+    assert exponential_update(np.array([start]), np.array([0.0]), g)[0] == np.float32(start)
+    assert exponential_update(np.array([np.inf, -np.inf]), np.array([5.0, 5.0]), g).tolist() == [np.inf, -np.inf]
+
+
+def test_label_sets_move_voxels_by_their_weights():
     core = MapperCore(SMALL)
-    voxels = np.array([[4, 4, 0], [5, 4, 0], [6, 4, 0]], dtype=np.int32)
-    indices, values = core.apply_labels((0.0, 0.0, 5.0), np.zeros((0, 3)), voxels, np.zeros(3, np.uint8))
-    assert np.all(core.grid[4:7, 4, 0] == 0.0)
-    assert indices.tolist() == sorted(flat_of(core, voxels).tolist())
-    assert np.all(values == 0.0)
-    # Voxels outside the map are dropped, not wrapped.
-    outside = np.array([[-1, 0, 0], [40, 0, 0]], dtype=np.int32)
-    indices, _ = core.apply_labels((0.0, 0.0, 5.0), np.zeros((0, 3)), outside, np.zeros(2, np.uint8))
-    assert len(indices) == 0
+    sensor = (5.0, 5.0, 5.0)
+    core.integrate(0, rays(sensor, np.zeros((0, 3))), *labels(((4, 4, 0), BACKGROUND, 3.0), ((6, 4, 0), UNKNOWN, 2.0),
+                                                         ((8, 4, 0), FLYING, 1.0)))
+    assert core.grid[4, 4, 0] == pytest.approx(-740.0 / 8)  # 2^-3 · -740 + (1 - 2^-3) · 0
+    assert core.grid[6, 4, 0] == -740.0  # towards g_unk, which it already is
+    core.grid[8, 4, 1] = -1000.0
+    delta = core.integrate(1, rays(sensor, np.zeros((0, 3))), *labels(((8, 4, 1), FLYING, 1.0)))
+    assert core.grid[8, 4, 1] == -740.0  # n_det = ∞: set to g_unk at once, whatever the weight said
+    assert delta.indices.tolist() == [np.ravel_multi_index((8, 4, 1), core.shape)]  # free -> uncertain
 
 
-def test_ray_marks_traversed_voxels_free_but_not_the_end_voxel():
+def test_ray_lengths_are_the_free_weights_and_point_voxels_are_not_cleared():
     core = MapperCore(SMALL)
     sensor = np.array([1.25, 5.25, 5.25])  # voxel centres: the ray runs along x through voxels 2..17
     end = np.array([8.75, 5.25, 5.25])
     end_voxel = voxel_of(core, end)
-    core.apply_labels(sensor, end[None], np.array([end_voxel], np.int32), np.array([UNKNOWN], np.uint8))
+    core.integrate(0, rays(sensor, end[None]), *labels((end_voxel, UNKNOWN, 1.0)))
     row = core.grid[:, 10, 10]
-    assert np.all(row[2:17] == -1000.0)
-    assert row[17] == -740.0  # the end voxel holds a point: not free
+    crossing = exponential_update(np.array([-740.0]), np.array([0.5]), -1000.0)[0]  # 0.5 m inside each voxel
+    start = exponential_update(np.array([-740.0]), np.array([0.25]), -1000.0)[0]  # the sensor's own half voxel
+    assert row[2] == pytest.approx(start) and np.allclose(row[3:17], crossing)
+    assert row[17] == -740.0  # the end voxel holds the point: not cleared
     assert row[1] == -740.0 and row[18] == -740.0
-    assert np.count_nonzero(core.grid == -1000.0) == 15
+    assert np.count_nonzero(core.grid != -740.0) == 15
 
 
-def test_ray_is_cut_at_the_raycast_max_distance():
-    core = MapperCore(MapperParams(origin=(0.0, 0.0, 0.0), shape=(80, 4, 4), raycast_max_distance=20.0))
+def test_rays_are_cut_at_d_max_and_rays_without_return_reach_it():
+    params = MapperParams(origin=(0.0, 0.0, 0.0), shape=(80, 4, 4), raycast_max_distance=20.0, separation_period=1e9)
     sensor = np.array([0.25, 1.25, 1.25])
-    end = np.array([35.25, 1.25, 1.25])
-    core.apply_labels(sensor, end[None], np.zeros((0, 3), np.int32), np.zeros(0, np.uint8))
-    free = np.flatnonzero(core.grid[:, 2, 2] == -1000.0)
-    assert free.min() == 0 and free.max() == 40  # 0.25 m + 20 m lies in voxel 40
+    far_return = rays(sensor, [sensor + [35.0, 0.0, 0.0]])
+    no_return = rays(sensor, [[np.nan] * 3], beams=np.array([[1.0, 0.0, 0.0]]))  # eq. 20: cast along its beam
+    for scan in (far_return, no_return):
+        core = MapperCore(params)
+        core.integrate(0, scan, *NO_LABELS)
+        changed = np.flatnonzero(core.grid[:, 2, 2] != -740.0)
+        assert changed.min() == 0 and changed.max() == 40  # 0.25 m + 20 m lies in voxel 40
+    core = MapperCore(params)
+    core.integrate(0, rays(sensor, [[np.nan] * 3]), *NO_LABELS)  # no return and no known beam: no ray
+    assert (core.grid == -740.0).all()
 
 
-def test_rays_do_not_clear_confident_occupied_voxels():
+def test_masked_rays_are_skipped_and_beams_turn_with_the_sensor():
     core = MapperCore(SMALL)
-    wall = (10, 10, 10)
-    core.apply_labels((0, 0, 0), np.zeros((0, 3)), np.array([wall], np.int32), np.array([BACKGROUND], np.uint8))
-    sensor, end = np.array([1.25, 5.25, 5.25]), np.array([8.75, 5.25, 5.25])
-    indices, _ = core.apply_labels(sensor, end[None], np.zeros((0, 3), np.int32), np.zeros(0, np.uint8))
-    assert core.grid[wall] == 0.0
-    assert flat_of(core, [wall])[0] not in indices
+    sensor = np.array([5.25, 5.25, 5.25])
+    beams = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    heading = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90°: sensor x is world y
+    scan = ScanRays(sensor, heading, np.full((2, 3), np.nan, np.float32), beams, np.array([True, False]))
+    core.integrate(0, scan, *NO_LABELS)
+    changed = np.argwhere(core.grid != -740.0)
+    assert set(changed[:, 0]) == {10} and set(changed[:, 2]) == {10}  # along world +y only, nothing below
+    assert changed[:, 1].min() == 10 and changed[:, 1].max() == 19
 
 
-def test_delta_contains_exactly_the_changed_voxels():
+def test_deltas_list_state_changes_only():
     core = MapperCore(SMALL)
     sensor = np.array([1.25, 5.25, 5.25])
-    points = np.array([[8.75, 5.25, 5.25], [1.25, 5.25, 1.25]])
-    voxels = np.array([voxel_of(core, pt) for pt in points], np.int32)
-    labels = np.array([BACKGROUND, FLYING], np.uint8)
+    first = core.integrate(0, rays(sensor, np.array([[8.75, 5.25, 5.25]])), *NO_LABELS)
+    assert len(first.indices) == 16 and np.all(first.values < voxels.UNCERTAIN)  # unknown -> free at once
+    second = core.integrate(1, rays(sensor, np.array([[8.75, 5.25, 5.25]])), *NO_LABELS)
+    assert len(second.indices) == 0  # values moved further towards free, no state changed
+    assert first.indices.dtype == np.int32 and first.values.dtype == np.float32
+    snapshot = core.snapshot()
+    assert len(snapshot.indices) == 16
+
+
+def test_pinned_voxels_never_change():
+    core = MapperCore(SMALL)
+    wall = np.ravel_multi_index(([10, 10], [10, 11], [10, 10]), core.shape)
+    core.pin(wall[:1], np.inf)
+    core.pin(wall[1:], -np.inf)
+    sensor = np.array([1.25, 5.25, 5.25])
+    for step in range(3):
+        core.integrate(step, rays(sensor, np.array([[9.75, 5.25, 5.25], [9.75, 5.75, 5.25]])),
+                       *labels(((10, 10, 10), UNKNOWN, 5.0), ((10, 11, 10), BACKGROUND, 5.0)))
+    assert core.grid[10, 10, 10] == np.inf and core.grid[10, 11, 10] == -np.inf
+    assert voxels.map_states(core.grid[10, 10:12, 10]).tolist() == [voxels.STATE_OCCUPIED, voxels.STATE_FREE]
+
+
+def test_separate_cluster_reset_frees_what_a_drone_left_beside_a_wall():
+    """Fig. 4: a drone standing against a wall was mapped as background with it; once it has left,
+    its voxels form a small occupied cluster apart from the wall (eq. 23)."""
+    p = MapperParams(origin=(0.0, 0.0, 0.0), shape=(40, 20, 20), separation_period=0.0, separation_min_confident=24)
+    core = MapperCore(p)
+    wall = [(x, 15, z) for x in range(5, 15) for z in range(0, 8)]  # 80 confident voxels
+    drone = [(9, 12, 4), (10, 12, 4), (9, 12, 5)]  # 3 voxels, 1.5 m from the wall: a cluster of its own
+    touching = [(12, 14, 3)]  # next to the wall: part of the wall's cluster
+    for v in wall + drone + touching:
+        core.grid[v] = 0.0
+    sensor = np.array([10.0, 2.0, 5.0])
+    assert len(core.integrate(0, rays(sensor, np.zeros((0, 3))), *NO_LABELS).indices) == 0  # the first scan: not yet
+    delta = core.integrate(1, rays(sensor, np.zeros((0, 3))), *NO_LABELS)
+    assert all(core.grid[v] < voxels.TENTATIVE_OCCUPIED for v in drone)  # 2^-1·0 + ½·-1000 = -500: uncertain
+    assert all(core.grid[v] == 0.0 for v in wall + touching)
+    assert set(delta.indices.tolist()) == {np.ravel_multi_index(v, core.shape) for v in drone}
+    assert core.counters.resets == 3
+
+
+def test_bad_label_sets_are_refused_whole_and_the_map_is_never_corrupted():
+    core = MapperCore(SMALL)
     before = core.grid.copy()
-    indices, values = core.apply_labels(sensor, points, voxels, labels)
-    changed = np.flatnonzero(core.grid.reshape(-1) != before.reshape(-1))
-    assert indices.tolist() == changed.tolist()
-    assert np.array_equal(values, core.grid.reshape(-1)[changed])
-    # The flying object's voxel takes g_unk = -740 (unchanged from the initial value, so not in the delta).
-    assert flat_of(core, voxels[1:])[0] not in indices
-    # Replaying the same scan changes nothing.
-    again, _ = core.apply_labels(sensor, points, voxels, labels)
-    assert len(again) == 0
+    sensor = (5.0, 5.0, 5.0)
+    for bad in (labels(((4, 4, 0), 7, 1.0)),  # no such label
+                labels(((4, 4, 0), BACKGROUND, np.nan)),  # NaN weight
+                labels(((4, 4, 0), BACKGROUND, -2.0)),  # negative weight
+                (np.zeros((2, 3), np.int32), np.zeros(1, np.uint8), np.ones(2, np.float32))):  # lengths differ
+        core.integrate(0, rays(sensor, np.zeros((0, 3))), *bad)
+    assert core.counters.rejected_label_sets == 4 and np.array_equal(core.grid, before)
+    core.integrate(0, rays(sensor, np.zeros((0, 3))), *labels(((-1, 0, 0), BACKGROUND, 1.0), ((40, 0, 0), BACKGROUND, 1.0)))
+    assert core.counters.voxels_outside == 2 and np.array_equal(core.grid, before)
+    # rays: NaN or infinite ends are dropped, a NaN sensor position casts nothing
+    core.integrate(0, rays(sensor, np.array([[np.nan, 1, 1], [np.inf, 1, 1]])), *NO_LABELS)
+    core.integrate(0, rays((np.nan, 0.0, 0.0), np.array([[9.0, 5.0, 5.0]])), *NO_LABELS)
+    assert np.array_equal(core.grid, before)
+    assert np.isfinite(core.grid).all()
 
 
-def test_flying_voxel_previously_free_becomes_unknown():
-    core = MapperCore(SMALL)
-    sensor, end = np.array([1.25, 5.25, 5.25]), np.array([8.75, 5.25, 5.25])
-    core.apply_labels(sensor, end[None], np.zeros((0, 3), np.int32), np.zeros(0, np.uint8))
-    target = (8, 10, 10)
-    assert core.grid[target] == -1000.0
-    no_points = np.zeros((0, 3))
-    indices, values = core.apply_labels(sensor, no_points, np.array([target], np.int32), np.array([FLYING], np.uint8))
-    assert core.grid[target] == -740.0 and values.tolist() == [-740.0]
-
-
-def test_snapshot_lists_the_non_default_voxels():
-    core = MapperCore(SMALL)
-    assert len(core.snapshot()[0]) == 0
-    sensor = np.array([1.25, 5.25, 5.25])
-    points = np.array([[8.75, 5.25, 5.25]])
-    core.apply_labels(sensor, points, np.array([voxel_of(core, points[0])], np.int32), np.array([BACKGROUND], np.uint8))
-    indices, values = core.snapshot()
-    expected = np.flatnonzero(core.grid.reshape(-1) != -740.0)
-    assert indices.tolist() == expected.tolist() and len(indices) == 16
-    assert indices.dtype == np.int64 and values.dtype == np.float32
-    rebuilt = np.full(core.grid.size, -740.0, np.float32)
-    rebuilt[indices] = values
-    assert np.array_equal(rebuilt.reshape(core.shape), core.grid)
-
-
-def test_many_rays_at_once():
-    core = MapperCore()
-    rng = np.random.default_rng(3)
-    sensor = np.array([50.0, 40.0, 5.0])
-    points = sensor + rng.uniform(-15.0, 15.0, (1000, 3))
-    points[:, 2] = np.clip(points[:, 2], 0.1, 20.0)
-    free = core.traversed_voxels(sensor, points)
-    assert len(free) > 1000
-    # Batching changes nothing: the set is the union of the rays taken one at a time.
-    expected = set()
-    for point in points[:50]:
-        expected |= set(core.traversed_voxels(sensor, point[None]).tolist())
-    assert expected == set(core.traversed_voxels(sensor, points[:50]).tolist())
-    assert np.all(np.diff(free) > 0)
-    centres = (np.stack(np.unravel_index(free, core.shape), axis=1) + 0.5) * core.voxel_size + core.origin
-    assert np.linalg.norm(centres - sensor, axis=1).max() < 15.0 * 3**0.5 + core.voxel_size
+def test_many_rays_are_deterministic():
+    rng = np.random.default_rng(11)
+    sensor = np.array([10.0, 5.0, 5.0])
+    ends = sensor + rng.normal(0, 6.0, (5000, 3))
+    results = []
+    for _ in range(2):
+        core = MapperCore(SMALL)
+        core.integrate(0, rays(sensor, ends), *NO_LABELS)
+        results.append(core.grid.copy())
+    assert np.array_equal(results[0], results[1])

@@ -24,7 +24,8 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
-from schemas.messages import Detections, Header, SimClock, StepAck
+from schemas.messages import Detections, Header, LabelSet, SimClock, StepAck
+from schemas.voxels import BACKGROUND, UNKNOWN
 from services.recorder.mcap_io import McapRecordWriter, ReadReport, RecordedMessage, read_recording
 from services.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Tick
 from services.runtime import shm
@@ -32,6 +33,7 @@ from services.runtime.zenoh_config import free_port
 from tests.conftest import REPO, falconry_argv
 
 UAV1_DETECTIONS = "falconry/uav1/detections"
+UAV1_LABELS = "falconry/uav1/labels"
 encode = msgspec.msgpack.encode
 
 
@@ -239,10 +241,13 @@ def test_recording_opens_with_the_mcap_reader_and_holds_the_whole_run(recording)
     assert report.complete
 
 
-def _replay_detections(recording: Recording, processes, hub, services: list[str], extra: list[str]) -> list[bytes]:
+def _replay_detections(recording: Recording, processes, hub, services: list[str], extra: list[str]
+                       ) -> dict[str, list[bytes]]:
+    """What the replayed classifier published, per key: detections and label sets."""
     session, endpoint = hub
     got: queue.SimpleQueue = queue.SimpleQueue()
-    sub = session.declare_subscriber(UAV1_DETECTIONS, lambda s: got.put(s.payload.to_bytes()))
+    subs = [session.declare_subscriber(key, lambda s: got.put((str(s.key_expr), s.payload.to_bytes())))
+            for key in (UAV1_DETECTIONS, UAV1_LABELS)]
     try:
         for service in services:
             processes.start("run", service, "--uav", "uav1", "--connect", endpoint)
@@ -252,33 +257,40 @@ def _replay_detections(recording: Recording, processes, hub, services: list[str]
         assert replay.returncode == 0, output
         assert "acknowledgement timeouts" not in output, output
         assert "standing in for sim/simulator" in output and "uav1/sensor_driver" in output
-        replayed: list[bytes] = []
+        replayed: dict[str, list[bytes]] = {UAV1_DETECTIONS: [], UAV1_LABELS: []}
         deadline = time.monotonic() + 3
         while time.monotonic() < deadline:
             try:
-                replayed.append(got.get(timeout=0.3))
+                key, payload = got.get(timeout=0.3)
+                replayed[key].append(payload)
             except queue.Empty:
-                if replayed:
+                if replayed[UAV1_DETECTIONS]:
                     break
         return replayed
     finally:
-        sub.undeclare()
+        for sub in subs:
+            sub.undeclare()
 
 
-def _assert_identical(recording: Recording, replayed: list[bytes]) -> None:
-    live = _payloads(recording.path, UAV1_DETECTIONS)
+def _assert_identical(recording: Recording, replayed: dict[str, list[bytes]]) -> None:
+    """Detections and label sets bit for bit: the classification of every point of every scan, made
+    against a map that is itself built from the scans, is a function of the recorded sensor stream."""
     acks = [msgspec.msgpack.decode(p, type=StepAck) for p in _payloads(recording.path, "falconry/uav1/ack/classifier")]
-    decode = msgspec.msgpack.Decoder(Detections).decode
-    # The launcher stops the services once the last tick is out: a scan the live classifier
-    # did not finish is not in the recording, so compare what it acknowledged.
-    last = max([decode(p).header.stamp for p in live] + [a.header.stamp for a in acks])
-    replayed = [p for p in replayed if decode(p).header.stamp <= last]
-    rows = sum(len(to_numpy(decode(p).point_counts)) for p in live)
-    print(f"{len(live)} detection messages ({rows} detections) live, {len(replayed)} replayed")
-    assert len(live) >= 70 and rows > 0
-    for i, (a, b) in enumerate(zip(live, replayed)):  # same stamps, seqs, positions, bit for bit
-        assert a == b, f"detection message {i} differs: live {decode(a)} replayed {decode(b)}"
-    assert len(replayed) == len(live)
+    for key, message in ((UAV1_DETECTIONS, Detections), (UAV1_LABELS, LabelSet)):
+        live = _payloads(recording.path, key)
+        decode = msgspec.msgpack.Decoder(message).decode
+        # The launcher stops the services once the last tick is out: a scan the live classifier
+        # did not finish is not in the recording, so compare what it acknowledged.
+        last = max([decode(p).header.stamp for p in live] + [a.header.stamp for a in acks])
+        mine = [p for p in replayed[key] if decode(p).header.stamp <= last]
+        print(f"{key}: {len(live)} messages live, {len(mine)} replayed")
+        assert len(live) >= 70
+        for i, (a, b) in enumerate(zip(live, mine)):  # same stamps, seqs, contents, bit for bit
+            assert a == b, f"{key} message {i} differs: live {decode(a)} replayed {decode(b)}"
+        assert len(mine) == len(live)
+    labels = [msgspec.msgpack.decode(p, type=LabelSet) for p in _payloads(recording.path, UAV1_LABELS)]
+    classes = set(np.concatenate([to_numpy(s.voxel_labels) for s in labels]).tolist())
+    assert {BACKGROUND, UNKNOWN} <= classes, classes  # a scan's worth of real decisions, not empty messages
 
 
 def test_sensor_stream_replayed_in_lockstep_into_classifier_and_mapper_gives_identical_detections(

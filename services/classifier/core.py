@@ -1,15 +1,29 @@
-"""Classifier core: Euclidean clustering of one LiDAR scan and classification of every
-cluster as background / flying object / unknown (seed 000, sec. III-B).
+"""Classifier core: VoFOD's flying-object detection of one LiDAR scan (seed 000, sec. III-B, IV-A).
 
-FIRST VERSION (walking skeleton). Simplifications that later issues replace with the
-full method of seed 000:
-- clustering joins occupied 0.5 m voxels whose centres are within the clustering distance
-  (not the exact point-to-point rule of eq. 13-15);
-- rule A (closeness to tentative-occupied voxels within d_close) is approximated by "a
-  confident-occupied voxel (G >= -0.1) in or next to the cluster's voxels", plus explicit
-  ground contact and size limits;
-- rule B (BFS flood fill through confident-free voxels, Alg. 1) is replaced by geometric
-  tests (at least 1 m above ground, small, within range). The flood fill comes later.
+1. The scan's returns are downsampled on a voxel grid (`downsample`, aligned with the map), and
+   the cells are split into Euclidean clusters with d_cluster (eq. 13–15).
+2. Every cluster is classified against the classifier's replica of the map:
+   - background if it is larger than `cluster_max_extent` (nothing that big is a target; this is
+     also how an empty map learns the ground and the buildings), or by rule A: one of its points
+     lies within d_close of a voxel at least tentatively occupied (the cube search);
+   - a flying object by rule B: too small for the background's rules, within `max_distance`, with
+     at least `cluster_min_points` returns, and walled off from every tentatively occupied voxel
+     by confidently free ones (Alg. 1: the BFS flood fill through non-free voxels, stopped at the
+     search cube d_search beyond the cluster);
+   - unknown otherwise.
+3. The label sets for the mapper (eq. 16–18): every map voxel holding returns, with its class and
+   the number of returns in it (∞ for a flying object). A voxel holding returns of several classes
+   takes the most cautious one: flying object over unknown over background.
+4. A detection per flying object: the centroid of its returns (eq. 19); a covariance made of the
+   returns' spread (which stands for the one-sided sampling bias, up to the target's radius,
+   sec. V-A), the pose and range uncertainty of sec. IV-A at the centroid (J·Σ_w·Jᵀ, eq. 41–42)
+   and a floor; the number of returns, the largest dimension, and a confidence: p_hit of the
+   centroid's voxel (eq. 45–46).
+
+Where the seed is silent: clusters exceeding the size limit are background, and too few returns
+or too far keeps a cluster unknown (VoFOD's implementation does the same); the text of rule A
+says "at least tentative occupied" where the next paragraph says G ≥ G_conf — tentative it is,
+as the text of the rule and Alg. 2's background set O both say.
 
 Pure: numpy in, numpy out; the map replica is plain state updated by the node.
 """
@@ -19,30 +33,36 @@ from dataclasses import dataclass
 
 import msgspec
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
+from services.classifier.kernels import cluster_stats, downsample, group_by, label_sets
+from services.lidar.uncertainty import hit_probability, point_covariance
+from services.voxels.grid import GridGeometry
+from services.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
 from services.voxels.replica import MapReplica
 
 
 class ClassifierParams(msgspec.Struct, forbid_unknown_fields=True):
-    voxel_size: float = 0.5  # m; also the map voxel size until the mapper's map arrives
+    voxel_size: float = 0.5  # m; the map's voxel size until the mapper's map arrives
+    downsample: float = 0.5  # m, leaf of the voxel-grid downsampling before clustering
     cluster_distance: float = 1.5  # m, d_cluster
+    close_distance: float = 1.5  # m, d_close (rule A)
+    search_distance: float = 3.0  # m, d_search: how far beyond the cluster the flood fill looks (rule B)
     cluster_min_points: int = 2
     cluster_max_extent: float = 3.0  # m; larger clusters are background
     max_distance: float = 50.0  # m from the sensor for a flying object
-    ground_z: float = 0.0  # m
-    ground_contact: float = 0.5  # m; a cluster reaching below ground_z + this is background
-    min_height: float = 1.0  # m above ground for every point of a flying object
-    confident_occupied: float = -0.1  # G threshold
-    touch_voxels: int = 1  # map-occupied voxels this many voxels away still "touch"
-    covariance_floor: float = 0.01  # m², added to each detection's sample covariance
+    range_noise: float = 0.02  # m, σ of one range, for the detection covariance (sec. IV-A)
+    covariance_floor: float = 0.01  # m², added to each detection's covariance
     # The map replica's geometry before the first VoxelMap arrives (same as the mapper's defaults).
     map_origin: tuple[float, float, float] = (-10.0, -10.0, -1.0)
     map_shape: tuple[int, int, int] = (240, 200, 52)
     map_default: float = -740.0
+
+    def __post_init__(self) -> None:
+        for name in ("voxel_size", "downsample", "cluster_distance", "close_distance", "search_distance",
+                     "cluster_max_extent", "max_distance"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive")
 
 
 @dataclass
@@ -51,22 +71,27 @@ class ClassifiedScan:
     point_labels: np.ndarray  # uint8 (N,)
     voxels: np.ndarray  # int32 (M, 3) relative to the map origin
     voxel_labels: np.ndarray  # uint8 (M,)
-    voxel_weights: np.ndarray  # float32 (M,) points per voxel
+    voxel_weights: np.ndarray  # float32 (M,) returns per voxel, inf for flying objects
     positions: np.ndarray  # float64 (D, 3) flying-object centroids
     covariances: np.ndarray  # float64 (D, 3, 3)
     point_counts: np.ndarray  # int32 (D,)
     extents: np.ndarray  # float32 (D,)
+    confidences: np.ndarray  # float32 (D,)
 
 
-def cluster_voxels(voxels: np.ndarray, radius_voxels: float) -> tuple[int, np.ndarray]:
-    """Connected components of voxels whose centres are within radius_voxels of each other."""
-    count = len(voxels)
-    if count == 0:
-        return 0, np.zeros(0, dtype=np.int64)
-    pairs = cKDTree(voxels.astype(np.float64)).query_pairs(r=radius_voxels + 1e-9, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(count, count))
-    n_clusters, labels = connected_components(graph, directed=False)
-    return int(n_clusters), labels.astype(np.int64)
+@dataclass
+class ClassifierCounters:
+    scans: int = 0
+    invalid_points: int = 0  # infinite coordinates: dropped
+    points_outside_map: int = 0  # returns outside the map: clustered, never in a label set
+    rejected_scans: int = 0  # scans of impossible shape or sensor pose
+
+
+@dataclass(frozen=True)
+class SensorPose:
+    position: np.ndarray  # (3,)
+    rotation: np.ndarray  # (3, 3) sensor frame to world
+    covariance: np.ndarray | None = None  # 6×6 over (x, y, z, roll, pitch, yaw); None: perfectly known
 
 
 class ClassifierCore:
@@ -74,95 +99,107 @@ class ClassifierCore:
         self.params = params or ClassifierParams()
         p = self.params
         self.map = MapReplica(p.map_origin, p.map_shape, p.voxel_size, p.map_default)
+        self.counters = ClassifierCounters()
+        self._visited = np.zeros(self.map.geometry.size, dtype=np.uint8)  # flood-fill scratch
+        self._map_slot = np.full(self.map.geometry.size, -1, dtype=np.int32)  # label-set scratch
+        self._leaf_slot = np.zeros(0, dtype=np.int32)  # downsampling scratch, sized by _leaf_grid
 
     def apply_map(self, snapshot: bool, origin, shape, voxel_size: float, default_value: float,
                   indices: np.ndarray, values: np.ndarray) -> bool:
-        return self.map.apply(snapshot, origin, shape, voxel_size, default_value, indices, values)
+        applied = self.map.apply(snapshot, origin, shape, voxel_size, default_value, indices, values)
+        if len(self._visited) != self.map.geometry.size:  # a snapshot of another geometry
+            self._visited = np.zeros(self.map.geometry.size, dtype=np.uint8)
+            self._map_slot = np.full(self.map.geometry.size, -1, dtype=np.int32)
+        return applied
 
-    def classify(self, points: np.ndarray, sensor_position) -> ClassifiedScan:
-        """Cluster and classify one scan: points (H, W, 3) or (N, 3), world frame, NaN = no return."""
-        p = self.params
-        flat_points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
-        valid_points = flat_points[np.isfinite(flat_points).all(axis=1)]
-        if len(valid_points) == 0:
+    # ----------------------------------------------------------------- scan
+    def classify(self, points: np.ndarray, pose: SensorPose) -> ClassifiedScan:
+        """Cluster and classify one scan: points (H, W, 3) or (N, 3), world frame, NaN = no return.
+        Infinite coordinates are dropped and counted; a scan that is not (…, 3) is refused."""
+        self.counters.scans += 1
+        pts = np.asarray(points)
+        if pts.ndim < 2 or pts.shape[-1] != 3 or not np.all(np.isfinite(pose.position)):
+            self.counters.rejected_scans += 1
             return _empty_scan()
-        pts = valid_points.astype(np.float64)
-        voxel_size = self.map.voxel_size
-        point_voxels = np.floor((pts - self.map.origin) / voxel_size).astype(np.int64)
+        leaf_grid = self._leaf_grid()
+        xyz, cell_of_point, cells, _, invalid = downsample(
+            np.ascontiguousarray(pts.reshape(-1, 3), dtype=np.float32), leaf_grid.corner, leaf_grid.voxel_size,
+            np.asarray(leaf_grid.shape), self._leaf_slot)
+        self.counters.invalid_points += int(invalid)
+        if len(xyz) == 0:
+            return _empty_scan()
+        cell_cluster, n_clusters = euclidean_clusters(cells, self.params.cluster_distance)
+        cluster = cell_cluster[cell_of_point]
+        labels = self._classify_clusters(xyz, cluster, n_clusters, np.asarray(pose.position, dtype=np.float64))
+        point_labels = labels[cluster]
+        geometry = self.map.geometry
+        voxels, voxel_labels, voxel_weights, outside = label_sets(
+            xyz, point_labels, geometry.corner, geometry.voxel_size, np.asarray(geometry.shape), self._map_slot,
+            BACKGROUND, FLYING, UNKNOWN)
+        self.counters.points_outside_map += int(outside)
+        detections = self._detections(xyz, cluster, np.flatnonzero(labels == FLYING), pose)
+        return ClassifiedScan(xyz.astype(np.float32), point_labels, voxels, voxel_labels, voxel_weights, *detections)
 
-        # Unique voxels via a key over the scan's own bounding box (no map-size assumption).
-        low = point_voxels.min(axis=0)
-        span = point_voxels.max(axis=0) - low + 1
-        keys = np.ravel_multi_index(tuple((point_voxels - low).T), tuple(span))
-        unique_keys, point_voxel, voxel_counts = np.unique(keys, return_inverse=True, return_counts=True)
-        voxels = np.stack(np.unravel_index(unique_keys, tuple(span)), axis=1) + low
+    def _leaf_grid(self) -> GridGeometry:
+        """The downsampling grid: cells of `downsample` aligned with the map and covering it."""
+        g, leaf = self.map.geometry, self.params.downsample
+        shape = tuple(int(np.ceil(n * g.voxel_size / leaf)) for n in g.shape)
+        grid = GridGeometry(g.origin, shape, leaf)
+        if len(self._leaf_slot) != grid.size:
+            self._leaf_slot = np.full(grid.size, -1, dtype=np.int32)
+        return grid
 
-        n_clusters, voxel_cluster = cluster_voxels(voxels, p.cluster_distance / voxel_size)
-        point_cluster = voxel_cluster[point_voxel]
+    def _classify_clusters(self, xyz: np.ndarray, cluster: np.ndarray, n_clusters: int, sensor) -> np.ndarray:
+        p, replica = self.params, self.map
+        sizes, lowest, highest, farthest = cluster_stats(xyz, cluster, n_clusters, sensor)
+        background = (highest - lowest).max(axis=1) > p.cluster_max_extent
+        background |= clusters_near_occupied(xyz, cluster, n_clusters, ~background, replica.states,
+                                             replica.origin, replica.voxel_size, np.asarray(replica.shape),
+                                             p.close_distance)
+        labels = np.full(n_clusters, UNKNOWN, dtype=np.uint8)
+        labels[background] = BACKGROUND
+        candidates = np.flatnonzero(~background & (sizes >= p.cluster_min_points) & (farthest <= p.max_distance))
+        if len(candidates):
+            order, starts = group_by(cluster, n_clusters)
+            for c in candidates:
+                if self._enclosed(xyz[order[starts[c]:starts[c + 1]]]):
+                    labels[c] = FLYING
+        return labels
 
-        # Per-cluster statistics over contiguous runs of points sorted by cluster.
-        order = np.argsort(point_cluster, kind="stable")
-        sorted_pts = pts[order]
-        sizes = np.bincount(point_cluster, minlength=n_clusters)
-        starts = np.concatenate(([0], np.cumsum(sizes)[:-1]))
-        lowest = np.minimum.reduceat(sorted_pts, starts, axis=0)
-        highest = np.maximum.reduceat(sorted_pts, starts, axis=0)
-        ranges = np.linalg.norm(sorted_pts - np.asarray(sensor_position, dtype=np.float64), axis=1)
-        farthest = np.maximum.reduceat(ranges, starts)
-        extent = (highest - lowest).max(axis=1)
+    def _enclosed(self, cluster_points: np.ndarray) -> bool:
+        """Rule B for one cluster: its voxels walled off by confident free space within the search cube."""
+        geometry = self.map.geometry
+        voxels = geometry.voxel_of(cluster_points)
+        if not geometry.inside(voxels).all():
+            return False  # part of it lies off the map: nothing can be verified there
+        reach = int(np.ceil(self.params.search_distance / geometry.voxel_size))
+        low, high = voxels.min(axis=0) - reach, voxels.max(axis=0) + reach + 1
+        queue = np.empty(int(np.prod(high - low)), dtype=np.int64)
+        seeds = np.unique(geometry.flat(voxels))
+        return bool(enclosed_by_free(self.map.states, np.asarray(geometry.shape), seeds, low, high,
+                                     self._visited, queue))
 
-        ground = lowest[:, 2] < p.ground_z + p.ground_contact
-        too_big = extent > p.cluster_max_extent
-        background = ground | too_big
-        # Only clusters still in question pay for the map look-up.
-        candidate_voxels = ~background[voxel_cluster]
-        touching = np.zeros(n_clusters, dtype=bool)
-        if candidate_voxels.any():
-            near = self.map.occupied_near(voxels[candidate_voxels], p.touch_voxels, p.confident_occupied)
-            touching[np.unique(voxel_cluster[candidate_voxels][near])] = True
-        background |= touching
-        flying = (
-            ~background
-            & (sizes >= p.cluster_min_points)
-            & (lowest[:, 2] >= p.ground_z + p.min_height)
-            & (farthest <= p.max_distance)
-        )
-        cluster_label = np.full(n_clusters, UNKNOWN, dtype=np.uint8)
-        cluster_label[background] = BACKGROUND
-        cluster_label[flying] = FLYING
-
-        detected = np.flatnonzero(flying)
-        positions, covariances = _centroids_and_covariances(pts, point_cluster, sizes, detected, p.covariance_floor)
-        return ClassifiedScan(
-            points=valid_points,
-            point_labels=cluster_label[point_cluster],
-            voxels=voxels.astype(np.int32),
-            voxel_labels=cluster_label[voxel_cluster],
-            voxel_weights=voxel_counts.astype(np.float32),
-            positions=positions,
-            covariances=covariances,
-            point_counts=sizes[detected].astype(np.int32),
-            extents=extent[detected].astype(np.float32),
-        )
-
-
-def _centroids_and_covariances(pts, point_cluster, sizes, clusters, floor: float):
-    """Centroid (eq. 19) and sample covariance + floor·I of the chosen clusters."""
-    if len(clusters) == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3, 3))
-    slot = np.full(len(sizes), -1)
-    slot[clusters] = np.arange(len(clusters))
-    mine = slot[point_cluster] >= 0
-    which = slot[point_cluster[mine]]
-    chosen = pts[mine]
-    counts = sizes[clusters].astype(np.float64)
-    centroids = np.stack([np.bincount(which, chosen[:, a], len(clusters)) for a in range(3)], axis=1) / counts[:, None]
-    centred = chosen - centroids[which]
-    products = centred[:, :, None] * centred[:, None, :]  # (n, 3, 3)
-    sums = np.stack([np.bincount(which, products[:, i, j], len(clusters)) for i in range(3) for j in range(3)], axis=1)
-    covariances = sums.reshape(-1, 3, 3) / np.maximum(counts - 1.0, 1.0)[:, None, None]
-    covariances += floor * np.eye(3)
-    return centroids, covariances
+    def _detections(self, xyz: np.ndarray, cluster: np.ndarray, flying: np.ndarray, pose: SensorPose):
+        p = self.params
+        count = len(flying)
+        positions, covariances = np.zeros((count, 3)), np.zeros((count, 3, 3))
+        point_counts, extents = np.zeros(count, np.int32), np.zeros(count, np.float32)
+        confidences = np.zeros(count, np.float32)
+        geometry = self.map.geometry
+        for k, c in enumerate(flying):
+            members = xyz[cluster == c]
+            centroid = members.mean(axis=0)  # eq. 19
+            spread = np.cov(members.T, ddof=1) if len(members) > 1 else np.zeros((3, 3))
+            measurement = point_covariance(centroid, pose.position, pose.rotation, pose.covariance,
+                                           p.range_noise / np.sqrt(len(members)))
+            positions[k] = centroid
+            covariances[k] = spread + measurement + p.covariance_floor * np.eye(3)
+            point_counts[k] = len(members)
+            extents[k] = float((members.max(axis=0) - members.min(axis=0)).max())
+            voxel = geometry.voxel_of(centroid[None])[0]
+            confidences[k] = hit_probability(centroid, measurement, geometry.corner + voxel * geometry.voxel_size,
+                                             geometry.voxel_size)
+        return positions, covariances, point_counts, extents, confidences
 
 
 def _empty_scan() -> ClassifiedScan:
@@ -176,4 +213,5 @@ def _empty_scan() -> ClassifiedScan:
         covariances=np.zeros((0, 3, 3)),
         point_counts=np.zeros(0, np.int32),
         extents=np.zeros(0, np.float32),
+        confidences=np.zeros(0, np.float32),
     )

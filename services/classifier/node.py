@@ -1,16 +1,20 @@
-"""classifier node: scans in, detections and label sets out (first version, see core.py).
+"""classifier node: scans in, detections and label sets out (seed 000 sec. III-B; see core.py).
 
-Subscribes falconry/<uav>/points (PointCloud) and falconry/<uav>/map (VoxelMap, for its
-map replica). Publishes, for every scan and stamped with the scan's stamp,
+Subscribes falconry/<uav>/points (PointCloud) and falconry/<uav>/map (VoxelMap, for its map
+replica). Publishes, for every scan and stamped with the scan's stamp,
 falconry/<uav>/detections (Detections, detector "classifier") and falconry/<uav>/labels
-(LabelSet, for the mapper). The map arrives one tick late (the mapper is downstream of
-us), which the seed's method tolerates: the map changes slowly.
+(LabelSet, for the mapper, with the stamp of the map the classification used). In lockstep the
+map update made from scan k arrives one tick later, before scan k+1 (scans come every other
+tick): every scan is classified against the map that integrated the scan before it, as in VoFOD.
 """
 from __future__ import annotations
 
+import numpy as np
+from scipy.spatial.transform import Rotation
+
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, VoxelMap
-from services.classifier.core import ClassifierCore, ClassifierParams
+from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose
 from services.runtime.node import Node
 
 
@@ -28,21 +32,30 @@ class ClassifierNode(Node):
         self.subscribe(self.topic("map"), VoxelMap, self.on_map)
         self.subscribe(self.topic("points"), PointCloud, self.on_points)
         self._ignored_deltas = 0
+        self._map_stamp = 0
+        self._reported: dict[str, int] = {}  # what was reported -> the count of the next report
 
     def on_map(self, msg: VoxelMap, key: str) -> None:
         applied = self.core.apply_map(
             msg.snapshot, msg.origin, msg.shape, msg.voxel_size, msg.default_value,
             to_numpy(msg.indices), to_numpy(msg.values),
         )
-        if not applied:
+        if applied:
+            self._map_stamp = msg.header.stamp
+        else:
             self._ignored_deltas += 1
             if self._ignored_deltas in (1, 100):
                 self.log.info("map delta with another geometry ignored until the next snapshot")
 
     def on_points(self, msg: PointCloud, key: str) -> None:
-        sensor = msg.sensor_pose.position
-        scan = self.core.classify(to_numpy(msg.points), sensor)
+        w, x, y, z = msg.sensor_pose.orientation
+        covariance = None if msg.pose_covariance is None else to_numpy(msg.pose_covariance).reshape(6, 6)
+        pose = SensorPose(np.asarray(msg.sensor_pose.position, dtype=np.float64),
+                          Rotation.from_quat([x, y, z, w]).as_matrix(), covariance)
+        scan = self.core.classify(to_numpy(msg.points), pose)
+        self._report_bad_input()
         stamp = msg.header.stamp
+        sensor = tuple(msg.sensor_pose.position)
         self.detections_pub.put(Detections(
             header=Header(stamp=stamp),
             detector="classifier",
@@ -50,18 +63,34 @@ class ClassifierNode(Node):
             covariances=from_numpy(scan.covariances),
             point_counts=from_numpy(scan.point_counts),
             extents=from_numpy(scan.extents),
-            sensor_position=tuple(sensor),
+            sensor_position=sensor,
+            confidences=from_numpy(scan.confidences),
         ))
         self.labels_pub.put(LabelSet(
             header=Header(stamp=stamp),
-            sensor_origin=tuple(sensor),
+            sensor_origin=sensor,
             points=from_numpy(scan.points),
             point_labels=from_numpy(scan.point_labels),
             voxel_size=self.core.map.voxel_size,
             voxels=from_numpy(scan.voxels),
             voxel_labels=from_numpy(scan.voxel_labels),
             voxel_weights=from_numpy(scan.voxel_weights),
+            map_stamp=self._map_stamp,
         ))
+
+    def _report_bad_input(self) -> None:
+        """A warning when refused input first appears and each time its count passes a power of ten
+        (bad input on every scan must not flood the log); returns outside the map are normal at the
+        arena's edge: said once."""
+        c = self.core.counters
+        for name, count in (("points with infinite coordinates dropped", c.invalid_points),
+                            ("scans refused (shape or sensor pose)", c.rejected_scans)):
+            if count and count >= self._reported.get(name, 1):
+                self.log.warning("%s so far: %d", name, count)
+                self._reported[name] = 10 ** len(str(count))
+        if c.points_outside_map and "outside" not in self._reported:
+            self._reported["outside"] = 1
+            self.log.info("returns outside the map are clustered but never update it")
 
 
 NODE = ClassifierNode

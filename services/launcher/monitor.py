@@ -15,7 +15,8 @@ import numpy as np
 
 from schemas import keys
 from schemas.arrays import to_numpy
-from schemas.messages import Detections, GroundTruth, SimClock, SimEvent, Tracks, UavStatus
+from schemas.messages import Detections, GroundTruth, PointTruth, SimClock, SimEvent, Tracks, UavStatus
+from services import evaluation
 from services.geometry import pairwise_gaps
 from services.runtime.clock import StampOrigin, seconds
 
@@ -62,6 +63,7 @@ class UavSummary:
     states: list[tuple[float, str]] = field(default_factory=list)  # (mission time, job manager state) changes
     detection_counts: list[Sample] = field(default_factory=list)  # detections per scan
     nearest_partner: list[Sample] = field(default_factory=list)  # m to the nearest flying partner (truth), 4 Hz
+    perception: evaluation.PerceptionScore = field(default_factory=evaluation.PerceptionScore)
     team_view: tuple | None = None  # (working area x-range, fallen partners) last reported
 
 
@@ -95,6 +97,9 @@ class RunMonitor:
         self.latest = 0.0  # the latest mission time any message carried, s
         self._status = msgspec.msgpack.Decoder(UavStatus)
         self._tracks = msgspec.msgpack.Decoder(Tracks)
+        self._points_truth = msgspec.msgpack.Decoder(PointTruth)
+        self._truth_history: dict[int, dict[str, tuple[float, float, float]]] = {}  # stamp -> standing targets
+        self._sight_pending: dict[str, dict[int, list]] = {}  # uav -> scan stamp -> [detections, in sight]
         self._detections = msgspec.msgpack.Decoder(Detections)
 
     def handle(self, key: str, payload: bytes) -> None:
@@ -115,17 +120,60 @@ class RunMonitor:
             if topic == "status":
                 self._on_status(uav, self._status.decode(payload))
             elif topic == "tracks":
-                for track in self._tracks.decode(payload).tracks:
-                    if track.confirmed:
-                        self._uav(uav).confirmed_tracks.add(track.id)
+                self._on_tracks(uav, self._tracks.decode(payload))
             elif topic == "detections":
-                det = self._detections.decode(payload)
-                count = det.positions.shape[0] if det.positions.shape else 0
-                self._uav(uav).detections += count
-                self._uav(uav).detection_counts.append(Sample(self._seconds(det.header.stamp), count))
-                self._note_first_detections(uav, det)
+                self._on_detections(uav, self._detections.decode(payload))
+            elif topic == "points_truth":
+                self._on_points_truth(uav, self._points_truth.decode(payload))
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
             pass  # not ours to police: the services count their own decode errors
+
+    # ------------------------------------------------------------ perception (evaluation)
+    def _targets_at(self, stamp: int) -> dict[str, tuple[float, float, float]]:
+        """The standing targets' true positions at a stamp (the latest known if that tick's truth is gone)."""
+        return self._truth_history.get(stamp, self._target_positions)
+
+    def _on_detections(self, uav: str, det: Detections) -> None:
+        positions = to_numpy(det.positions).reshape(-1, 3)
+        u, t = self._uav(uav), self._seconds(det.header.stamp)
+        u.detections += len(positions)
+        u.detection_counts.append(Sample(t, len(positions)))
+        self._note_first_detections(uav, det)
+        targets = np.array(list(self._targets_at(det.header.stamp).values())).reshape(-1, 3)
+        u.perception.add_detections(t, positions, targets)
+        self._pair_sight(uav, det.header.stamp, detections=positions)
+
+    def _on_points_truth(self, uav: str, truth: PointTruth) -> None:
+        where = self._targets_at(truth.header.stamp)
+        hit = evaluation.in_sight(to_numpy(truth.hits), len(truth.targets))
+        seen = [tid for tid, ok in zip(truth.targets, hit.tolist()) if ok and tid in where]
+        self._pair_sight(uav, truth.header.stamp, seen=(np.array([where[tid] for tid in seen]).reshape(-1, 3),
+                                                         [self.targets.get(tid, ("?",))[0] for tid in seen]))
+
+    def _pair_sight(self, uav: str, stamp: int, detections: np.ndarray | None = None,
+                    seen: tuple[np.ndarray, list[str]] | None = None) -> None:
+        """A scan's targets in sight meet its detections (they travel on different keys)."""
+        pending = self._sight_pending.setdefault(uav, {})
+        entry = pending.setdefault(stamp, [None, None])
+        if detections is not None:
+            entry[0] = detections
+        if seen is not None:
+            entry[1] = seen
+        if entry[0] is not None and entry[1] is not None:
+            self._uav(uav).perception.add_sight(*entry[1], entry[0])
+            del pending[stamp]
+        while len(pending) > 64:  # a scan whose other half never came
+            pending.pop(min(pending))
+
+    def _on_tracks(self, uav: str, tracks: Tracks) -> None:
+        u = self._uav(uav)
+        confirmed = [track for track in tracks.tracks if track.confirmed]
+        u.confirmed_tracks.update(track.id for track in confirmed)
+        if confirmed:
+            positions = np.array([to_numpy(track.state)[:3] for track in confirmed])
+            targets = np.array(list(self._targets_at(tracks.header.stamp).values())).reshape(-1, 3)
+            u.perception.add_tracks(self._seconds(tracks.header.stamp), [track.id for track in confirmed],
+                                    positions, targets)
 
     def _seconds(self, stamp: int) -> float:
         """Mission time of a stamp (a flight's wall-clock stamps count from the first one)."""
@@ -178,6 +226,9 @@ class RunMonitor:
                 self._target_positions[target.id] = target.position
             else:
                 self._target_positions.pop(target.id, None)
+        self._truth_history[truth.header.stamp] = dict(self._target_positions)
+        while len(self._truth_history) > 64:
+            self._truth_history.pop(min(self._truth_history))
         flying = [v for v in truth.uavs if v.airborne and v.alive]
         if len(flying) < 2:
             return
@@ -243,7 +294,8 @@ class RunMonitor:
                 name: {"distance_m": round(u.distance, 1), "max_height_m": round(u.max_height, 2),
                        "takeoff_s": u.takeoff, "landed_s": u.landed, "final_state": u.state,
                        "detections": u.detections, "confirmed_tracks": len(u.confirmed_tracks),
-                       "states": [[round(t, 2), state] for t, state in u.states]}
+                       "states": [[round(t, 2), state] for t, state in u.states],
+                       "perception": u.perception.summary()}
                 for name, u in sorted(self.uavs.items())
             },
             "events": [f"{seconds(self._origin.mission_ns(e.header.stamp)):.2f} {e.kind} {e.subject} {e.detail}".rstrip()

@@ -35,7 +35,8 @@ from services.simulator.scenario import ScenarioError, load_scenario
 from services.viz.settings import web_address
 
 VIEWER = "sim/viewer"
-WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, "falconry/*/status", "falconry/*/tracks", "falconry/*/detections")
+WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS) + tuple(
+    keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth"))
 
 
 def add_parser(commands) -> None:
@@ -302,6 +303,14 @@ def _completion_lines(s: dict) -> list[str]:
     return lines
 
 
+def perception_line(p: dict) -> str:
+    sight = "; ".join(f"{kind}s in sight in {n} scans, missed in {p['missed'][kind]} (recall "
+                      f"{100 * p['recall'][kind]:.0f} %)" for kind, n in p["in_sight"].items()) or "no target in sight"
+    return (f"{p['matched']} detections matched a target (within 1 m), {p['false']} false "
+            f"({p['false_per_minute']:.1f} per minute); {sight}; {p['false_tracks']} of {p['confirmed_tracks']} "
+            f"confirmed tracks never matched a target ({p['false_tracks_after_10s']} confirmed after 10 s)")
+
+
 def print_summary(s: dict, uav_count: int, duration: float) -> None:
     lines = [
         "",
@@ -318,6 +327,7 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         landed = f", landed t={u['landed_s']:.1f} s" if u["landed_s"] is not None else ""
         lines.append(f"{name}: {u['final_state']}; {took}{landed}; flew {u['distance_m']:.0f} m, max height "
                      f"{u['max_height_m']:.1f} m; {u['detections']} detections, {u['confirmed_tracks']} confirmed tracks")
+        lines.append(f"  perception: {perception_line(u['perception'])}")
     lines.append("restarts: " + (", ".join(s["restarts"]) if s["restarts"] else "none"))
     injected = [f for f in s["faults"] if "fault_injected" in f]
     lines.append(f"faults injected: {len(injected)}" + "".join(f"\n  {f}" for f in s["faults"]))

@@ -1,25 +1,45 @@
-"""Mapper core: the occupancy voxel map G(v) (seed 000, sec. III-A and III-C).
+"""Mapper core: the occupancy voxel map G(v) of seed 000 (sec. III-A, III-C, III-D, III-E).
 
-FIRST VERSION (walking skeleton). Every label set is applied as hard assignments:
-- voxels with background points: G = g_occ (0, "occupied point");
-- voxels with flying-object points: G = g_unk (eq. 17, n = infinity);
-- voxels that a ray from the sensor to a point passes through (the point's own voxel
-  excluded, up to the ray-cast max distance), that hold no point of this scan and are not
-  confident occupied: G = g_free (-1000).
-The ray traversal samples every ray each half voxel and takes the unique voxels (the
-voxel a ray merely clips at a corner can be missed). Later issues deepen this to the seed's method: the
-exponential update with weights (eq. 8-12, 16-18), exact per-voxel ray lengths n_int
-(eq. 20-22, rays without return included), separate-cluster reset (eq. 23) and a-priori
-initialisation from the world model (sec. III-E).
+One scan updates the map in three ways:
+- the classifier's label sets (eq. 16–18): background voxels towards g_occ with weight n_bg (points
+  in the voxel), unknown voxels towards g_unk with n_unk, flying-object voxels set to g_unk
+  (n = ∞, so a false detection never biases the map towards free);
+- ray casting (eq. 20–22): every ray of the scan that the carrier's body does not block, from the
+  sensor to its return or to d_max (rays without a return too, along their beam), traversed
+  exactly; each voxel it crosses moves towards g_free with weight n_int = the ray length inside it
+  (m), except voxels that hold a point of this scan (they take their point's update, eq. 9);
+- every `separation_period`, the separate-cluster reset (sec. III-D, eq. 23): voxels at least
+  tentatively occupied are grouped by d_sep around the sensor; groups with fewer than
+  n_conf,min confidently occupied voxels (what a drone that took off leaves beside a wall) are
+  updated with g_free, n = 1.
+Every update is the exponential filter of eq. 12, G ← 2⁻ⁿ G + (1 − 2⁻ⁿ) g, with real n. Voxels the
+a-priori map pins (sec. III-E) hold ±∞ and never change.
 
-Pure: numpy in, numpy out.
+What the map publishes is class-quantised: a delta lists the voxels whose state (eq. 7) changed,
+which is all a classifier needs; values drift between state changes without a message.
+
+Where the seed is vague: the ray weight is in metres, as the text says ("the length of r within
+every intersected voxel"), so with 0.5 m voxels one ray through a voxel weighs up to 0.87; the
+separate-cluster grouping uses voxel adjacency within d_sep (up to the 26-neighbourhood), and
+only around the sensor (within d_max + d_search), where the scan can have changed anything.
+
+Pure: numpy in, numpy out (plus the compiled kernels of services/voxels).
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from pathlib import Path
+
 import msgspec
 import numpy as np
+from scipy import ndimage
 
-from schemas.voxels import BACKGROUND, FLYING
+from schemas import voxels
+from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
+from services.lidar.rays import ScanRays
+from services.mapper.update import THRESHOLDS, apply_ray_lengths
+from services.voxels.grid import GridGeometry
+from services.voxels.kernels import cast_scan
 
 
 class MapperParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -30,98 +50,207 @@ class MapperParams(msgspec.Struct, forbid_unknown_fields=True):
     unknown_value: float = -740.0  # g_unk, also every voxel's initial value
     occupied_value: float = 0.0  # g_occ
     free_value: float = -1000.0  # g_free
-    confident_occupied: float = -0.1  # G_conf: rays never clear such voxels
     raycast_max_distance: float = 20.0  # m, d_max
-    snapshot_period: float = 1.0  # s of mission time between snapshots
+    separation_distance: float = 0.8  # m, d_sep
+    separation_min_confident: int = 24  # n_conf,min
+    separation_period: float = 0.5  # s of mission time between separate-cluster resets
+    separation_reach: float = 23.0  # m around the sensor that the reset looks at (d_max + d_search)
+    snapshot_period: float = 5.0  # s of mission time between snapshots
+    # The a-priori map (sec. III-E): "world": the world model's static obstacles pinned occupied,
+    # the simulation's stand-in for the surveyed site of the seed's experiments (nothing is pinned
+    # where no world model is published); "": learn everything; or an .npz file
+    # (services/voxels/apriori.py)
+    apriori: str = "world"
+
+    def __post_init__(self) -> None:
+        if not self.voxel_size > 0 or min(self.shape) <= 0:
+            raise ValueError("voxel_size and every dimension of shape must be positive")
+        if not self.free_value < self.unknown_value < self.occupied_value:
+            raise ValueError("the update values must satisfy free_value < unknown_value < occupied_value")
+        for name in ("raycast_max_distance", "separation_distance", "separation_reach"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive")
+        if self.apriori not in ("", "world") and not Path(self.apriori).is_file():
+            raise ValueError(f"apriori must be '', 'world' or an existing .npz map file, not {self.apriori!r}")
+
+
+@dataclass(frozen=True)
+class MapDelta:
+    indices: np.ndarray  # int32 flat indices of the voxels whose state changed, sorted
+    values: np.ndarray  # float32 their values now
+
+
+@dataclass
+class MapperCounters:
+    scans: int = 0
+    rays: int = 0
+    voxels_outside: int = 0  # label voxels outside the map, dropped
+    rejected_label_sets: int = 0  # label sets with impossible contents, not applied
+    resets: int = 0  # voxels reset by the separate-cluster rule
+
+
+def exponential_update(values: np.ndarray, weights: np.ndarray, target: float | np.ndarray) -> np.ndarray:
+    """Eq. 12: n applications of eq. 8 at once, n real (one target for all, or one per voxel);
+    n = ∞ sets the target; ±∞ values (pinned) stay."""
+    g = np.asarray(values, dtype=np.float64)
+    keep = 2.0 ** -np.asarray(weights, dtype=np.float64)
+    with np.errstate(invalid="ignore"):  # 0 · ±∞ of a pinned voxel: replaced by its pinned value below
+        out = keep * g + (1.0 - keep) * np.asarray(target, dtype=np.float64)
+    return np.where(np.isfinite(g), out, g).astype(np.float32)
 
 
 class MapperCore:
     def __init__(self, params: MapperParams | None = None) -> None:
         self.params = params or MapperParams()
         p = self.params
-        self.origin = np.asarray(p.origin, dtype=np.float64)
-        self.shape = tuple(int(s) for s in p.shape)
-        self.voxel_size = float(p.voxel_size)
+        self.geometry = GridGeometry(tuple(p.origin), tuple(int(s) for s in p.shape), float(p.voxel_size))
+        self.origin = self.geometry.corner
+        self.shape = self.geometry.shape
+        self.voxel_size = self.geometry.voxel_size
         self.grid = np.full(self.shape, p.unknown_value, dtype=np.float32)
         self._flat = self.grid.reshape(-1)  # a view: writes land in grid
-        self._marks = np.zeros(self.grid.size, dtype=bool)  # scratch, always left all False
+        self._window = np.zeros(0, dtype=np.float32)  # ray lengths around the sensor: scratch, left all 0
+        self._marks = np.zeros(self.geometry.size, dtype=bool)  # scratch, always left all False
+        self._next_separation: int | None = None
+        self.counters = MapperCounters()
+
+    # ------------------------------------------------------------- a priori
+    def pin(self, indices: np.ndarray, values: np.ndarray | float = np.inf) -> MapDelta:
+        """Set voxels to given values (±∞ pins them: occupied or free for good, sec. III-E)."""
+        flat = np.asarray(indices, dtype=np.int64).reshape(-1)
+        flat = flat[(flat >= 0) & (flat < self.geometry.size)]
+        before = voxels.map_states(self._flat[flat])
+        self._flat[flat] = np.broadcast_to(np.asarray(values, dtype=np.float32), flat.shape)
+        return self._delta(flat[voxels.map_states(self._flat[flat]) != before])
 
     # ------------------------------------------------------------- queries
-    def flat_index(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Flat indices of the (M, 3) voxels inside the map, and which rows were inside."""
-        voxels = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
-        inside = np.all((voxels >= 0) & (voxels < np.asarray(self.shape)), axis=1)
-        return np.ravel_multi_index(tuple(voxels[inside].T), self.shape), inside
-
-    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
-        """Every voxel that differs from the initial value: (int64 flat indices, float32 values)."""
+    def snapshot(self) -> MapDelta:
+        """Every voxel that differs from the initial value."""
         indices = np.flatnonzero(self._flat != np.float32(self.params.unknown_value))
-        return indices.astype(np.int64), self._flat[indices].copy()
+        return MapDelta(indices.astype(np.int32), self._flat[indices].copy())
 
-    def traversed_voxels(self, sensor_origin, points: np.ndarray) -> np.ndarray:
-        """Sorted flat indices of in-map voxels the rays sensor -> point pass through,
-        each ray's end voxel excluded and every ray cut at the ray-cast max distance.
-
-        Samples every half voxel along each ray. The loop runs over sample steps (about
-        2 * d_max / voxel of them), each step handling every ray still long enough at once,
-        so the work is the number of samples with no (rays x samples) temporaries."""
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        start = (np.asarray(sensor_origin, dtype=np.float64) - self.origin) / self.voxel_size  # voxel units
-        ends = (points - self.origin) / self.voxel_size
-        offsets = ends - start
-        lengths = np.linalg.norm(offsets, axis=1)
-        keep = lengths > 1e-9
-        if not keep.any():
-            return np.zeros(0, dtype=np.int64)
-        ends, offsets, lengths = ends[keep], offsets[keep], lengths[keep]
-        reach = np.minimum(lengths, self.params.raycast_max_distance / self.voxel_size)
-        longest_first = np.argsort(-reach, kind="stable")
-        reach = reach[longest_first]
-        directions = (offsets / lengths[:, None])[longest_first]
-        size_y, size_z = self.shape[1], self.shape[2]
-        end_voxels = np.floor(ends[longest_first]).astype(np.int64)
-        end_inside = np.all((end_voxels >= 0) & (end_voxels < np.asarray(self.shape)), axis=1)
-        end_flat = (end_voxels[:, 0] * size_y + end_voxels[:, 1]) * size_z + end_voxels[:, 2]
-        end_flat[~end_inside] = -1
-
-        # One contiguous float32 array per axis: several times faster than (rays, 3) rows.
-        axes = [np.ascontiguousarray(directions[:, a], dtype=np.float32) for a in range(3)]
-        steps = np.arange(0.0, reach[0], 0.5)
-        active = np.searchsorted(-reach, -steps, side="left")  # rays with reach > step
-        for step, count in zip(steps, active):
-            x, y, z = (np.floor(np.float32(start[a]) + axes[a][:count] * np.float32(step)).astype(np.int32)
-                       for a in range(3))
-            # Negative indices wrap to huge unsigned values, so one compare per axis checks both ends.
-            inside = ((x.view(np.uint32) < self.shape[0]) & (y.view(np.uint32) < size_y)
-                      & (z.view(np.uint32) < size_z))
-            flat = (x.astype(np.int64) * size_y + y) * size_z + z
-            self._marks[flat[inside & (flat != end_flat[:count])]] = True
-        traversed = np.flatnonzero(self._marks)
-        self._marks[traversed] = False
-        return traversed
+    def states(self) -> np.ndarray:
+        return voxels.map_states(self._flat)
 
     # ------------------------------------------------------------- update
-    def apply_labels(self, sensor_origin, points: np.ndarray, voxels: np.ndarray,
-                     voxel_labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Apply one LabelSet; returns the delta: (sorted int64 flat indices, float32 new values)
-        of exactly the voxels whose value changed."""
+    def integrate(self, stamp: int, rays: ScanRays, label_voxels: np.ndarray, voxel_labels: np.ndarray,
+                  voxel_weights: np.ndarray) -> MapDelta:
+        """One scan: the label sets (voxel indices relative to the map origin, labels, weights n),
+        then the scan's rays, then, when due, the separate-cluster reset. Returns the voxels whose
+        state changed."""
         p = self.params
-        labelled, inside = self.flat_index(voxels)
-        labels = np.asarray(voxel_labels).reshape(-1)[inside]
-        background = labelled[labels == BACKGROUND]
-        flying = labelled[labels == FLYING]
-
-        rayed = self.traversed_voxels(sensor_origin, points)
-        # Voxels holding a point of this scan take the point's update, not the ray's (eq. 9).
-        self._marks[labelled] = True
-        rayed = rayed[~self._marks[rayed]]
+        self.counters.scans += 1
+        labelled, labels, weights = self._label_sets(label_voxels, voxel_labels, voxel_weights)
+        self._marks[labelled] = True  # voxels holding a point of this scan take the point's update (eq. 9)
+        changed_by_rays = self._cast(rays)
         self._marks[labelled] = False
-        rayed = rayed[self._flat[rayed] < p.confident_occupied]
+        before = voxels.map_states(self._flat[labelled])
+        targets = np.where(labels == BACKGROUND, p.occupied_value, p.unknown_value)
+        self._flat[labelled] = exponential_update(self._flat[labelled], weights, targets)
+        changed = [changed_by_rays, labelled[voxels.map_states(self._flat[labelled]) != before]]
+        if self._separation_due(stamp):
+            changed.append(self._separate(np.asarray(rays.origin, dtype=np.float64)))
+        return self._delta(np.concatenate(changed))
 
-        touched = np.unique(np.concatenate([rayed, flying, background]))
-        before = self._flat[touched].copy()
-        self._flat[rayed] = p.free_value
-        self._flat[flying] = p.unknown_value
-        self._flat[background] = p.occupied_value
-        changed = touched[self._flat[touched] != before]
-        return changed.astype(np.int64), self._flat[changed].copy()
+    def _cast(self, rays: ScanRays) -> np.ndarray:
+        """Ray casting: every voxel the scan's rays cross moves towards free by its summed ray length,
+        except voxels marked in `_marks`; returns the flat indices whose state changed. The rays are
+        traversed in a window of the grid around the sensor (every ray ends within d_max of it), a
+        grid small enough to stay in the processor's cache."""
+        nothing = np.zeros(0, dtype=np.int64)
+        origin = np.asarray(rays.origin, dtype=np.float64).reshape(3)
+        pts = np.ascontiguousarray(np.asarray(rays.points, dtype=np.float32).reshape(-1, 3))
+        beams = np.full(pts.shape, np.nan) if rays.beams is None else \
+            np.ascontiguousarray(np.asarray(rays.beams, dtype=np.float64).reshape(-1, 3))
+        blocked = np.zeros(len(pts), dtype=bool) if rays.masked is None else \
+            np.asarray(rays.masked, dtype=bool).reshape(-1)
+        rotation = np.ascontiguousarray(np.asarray(rays.rotation, dtype=np.float64).reshape(3, 3))
+        if not (np.all(np.isfinite(origin)) and np.all(np.isfinite(rotation))) or len(beams) != len(pts) \
+                or len(blocked) != len(pts):
+            return nothing
+        self.counters.rays += int(np.count_nonzero(~blocked))
+        reach = self.params.raycast_max_distance / self.voxel_size + 1.0
+        centre = (origin - self.origin) / self.voxel_size
+        low = np.clip(np.floor(centre - reach).astype(np.int64), 0, self.shape)
+        high = np.clip(np.ceil(centre + reach).astype(np.int64) + 1, 0, self.shape)
+        window = high - low
+        if np.any(window <= 0):
+            return nothing
+        size = int(np.prod(window))
+        if len(self._window) < size:
+            self._window = np.zeros(size, dtype=np.float32)
+        cast_scan(origin, rotation, pts, beams, blocked, self.params.raycast_max_distance,
+                  self.origin + low * self.voxel_size, self.voxel_size, window, self._window)
+        crossed = np.flatnonzero(self._window[:size])
+        n_changed, _ = apply_ray_lengths(self._flat, self._window, crossed, len(crossed), low, window,
+                                         np.asarray(self.shape), self._marks, self.params.free_value, THRESHOLDS,
+                                         crossed)
+        return crossed[:n_changed].copy()
+
+    def _label_sets(self, label_voxels, voxel_labels, voxel_weights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(flat indices, labels, weights) of the label sets inside the map; a set with impossible
+        contents (lengths, label codes, weights) is refused whole: the map is never corrupted."""
+        v = np.asarray(label_voxels).reshape(-1, 3)
+        labels = np.asarray(voxel_labels).reshape(-1)
+        weights = np.asarray(voxel_weights, dtype=np.float64).reshape(-1)
+        sane = (len(v) == len(labels) == len(weights) and np.isin(labels, (BACKGROUND, FLYING, UNKNOWN)).all()
+                and not np.isnan(weights).any() and (weights >= 0).all())
+        if not sane:
+            self.counters.rejected_label_sets += 1
+            return np.zeros(0, np.int64), np.zeros(0, np.uint8), np.zeros(0)
+        inside = self.geometry.inside(v)
+        self.counters.voxels_outside += int(np.count_nonzero(~inside))
+        flat = self.geometry.flat(v[inside])
+        labels, weights = labels[inside], weights[inside]
+        weights = np.where(labels == FLYING, np.inf, weights)  # eq. 17: n_det = ∞
+        flat, first = np.unique(flat, return_index=True)  # one update per voxel (the classifier sends one)
+        return flat, labels[first], weights[first]
+
+    def _separation_due(self, stamp: int) -> bool:
+        """Every `separation_period` of mission time, the first one a period after the first scan."""
+        period = int(self.params.separation_period * 1e9)
+        if self._next_separation is None:
+            self._next_separation = stamp + period
+            return False
+        if stamp < self._next_separation:
+            return False
+        self._next_separation = stamp + period
+        return True
+
+    def _separate(self, origin: np.ndarray) -> np.ndarray:
+        """Eq. 23 around the sensor: groups of at least tentatively occupied voxels with fewer than
+        n_conf,min confident ones are moved towards free. Returns the voxels whose state changed."""
+        p = self.params
+        if not np.all(np.isfinite(origin)):
+            return np.zeros(0, dtype=np.int64)
+        reach = p.separation_reach / self.voxel_size
+        centre = (origin - self.origin) / self.voxel_size
+        low = np.clip(np.floor(centre - reach).astype(int), 0, self.shape)
+        high = np.clip(np.ceil(centre + reach).astype(int) + 1, 0, self.shape)
+        if np.any(high <= low):
+            return np.zeros(0, dtype=np.int64)
+        box = self.grid[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
+        occupied = box >= np.float32(voxels.TENTATIVE_OCCUPIED)
+        groups, count = ndimage.label(occupied, structure=_adjacency(p.separation_distance / self.voxel_size))
+        if count == 0:
+            return np.zeros(0, dtype=np.int64)
+        confident = np.bincount(groups[box >= np.float32(voxels.CONFIDENT_OCCUPIED)], minlength=count + 1)
+        small = confident < p.separation_min_confident
+        small[0] = False  # 0: not occupied at all
+        where = np.argwhere(small[groups]) + low
+        flat = np.ravel_multi_index(tuple(where.T), self.shape)
+        flat = flat[np.isfinite(self._flat[flat])]  # pinned voxels stay
+        before = voxels.map_states(self._flat[flat])
+        self._flat[flat] = exponential_update(self._flat[flat], np.ones(len(flat)), p.free_value)
+        self.counters.resets += len(flat)
+        return flat[voxels.map_states(self._flat[flat]) != before]
+
+    def _delta(self, changed: np.ndarray) -> MapDelta:
+        changed = np.unique(changed)
+        return MapDelta(changed.astype(np.int32), self._flat[changed].copy())
+
+
+def _adjacency(reach_voxels: float) -> np.ndarray:
+    """3×3×3 structuring element: neighbours whose centres are within `reach_voxels` voxel edges."""
+    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1)
+    return np.linalg.norm(offsets, axis=-1) <= max(reach_voxels, 1.0) + 1e-9

@@ -1,48 +1,104 @@
-"""mapper node: label sets in, the map out (first version, see core.py).
+"""mapper node: scans and label sets in, the map out (seed 000 sec. III-A, C, D, E; see core.py).
 
-Subscribes falconry/<uav>/labels (LabelSet). Publishes falconry/<uav>/map (VoxelMap): a delta
-(snapshot=False, the voxels this label set changed, stamped with the label set's stamp)
-after every label set, and a snapshot (snapshot=True, every voxel != default) on the first
-tick and then once per second of mission time.
+Subscribes falconry/<uav>/points (PointCloud: the rays, empty ones and the body mask included)
+and falconry/<uav>/labels (LabelSet: the classifier's voxel label sets of the same scan), and
+falconry/sim/world when the a-priori map is the world model's static obstacles. A scan is
+integrated once both halves with its stamp are there (in lockstep, in the same tick). Publishes
+falconry/<uav>/map (VoxelMap): after every scan a delta of the voxels whose state changed,
+stamped with the scan's stamp, and a snapshot on the first tick and every `snapshot_period`.
 """
 from __future__ import annotations
 
+from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
-from schemas.messages import Header, LabelSet, VoxelMap
-from services.mapper.core import MapperCore, MapperParams
+from schemas.messages import Header, LabelSet, PointCloud, VoxelMap, WorldModel
+from services.lidar.rays import ScanRays, scan_rays
+from services.mapper.core import MapDelta, MapperCore, MapperParams
 from services.runtime.clock import to_ns
+from services.runtime.errors import UsageError
 from services.runtime.node import Node
+from services.voxels.apriori import load_map_file, obstacle_voxels
+
+PENDING = 8  # scans waiting for their other half; older ones are dropped (counted)
 
 
 class MapperNode(Node):
     service = "mapper"
-    upstream = ("classifier",)
+    upstream = ("sensor_driver", "classifier")
     params_type = MapperParams
 
     def setup(self) -> None:
         self.core = MapperCore(self.params)
         self.map_pub = self.publisher(self.topic("map"), VoxelMap)
+        self.subscribe(self.topic("points"), PointCloud, self.on_points)
         self.subscribe(self.topic("labels"), LabelSet, self.on_labels)
+        self._rays: dict[int, ScanRays] = {}  # scan stamp -> its rays
+        self._labels: dict[int, LabelSet] = {}
         self._snapshot_period_ns = to_ns(self.params.snapshot_period)
         self._last_snapshot_ns: int | None = None
         self._warned_voxel_size = False
+        self._unpaired = 0
+        self._warned_model = False
+        self._apriori_done = False
+        apriori = self.params.apriori
+        if apriori == "world":
+            self.subscribe(keys.WORLD, WorldModel, self.on_world)
+        elif apriori:
+            try:
+                indices, values = load_map_file(apriori, self.core.geometry)
+            except ValueError as exc:
+                raise UsageError(str(exc)) from None
+            self.core.pin(indices, values)
+            self._apriori_done = True
+            self.log.info("a-priori map %s: %d voxels", apriori, len(indices))
+
+    def on_world(self, msg: WorldModel, key: str) -> None:
+        if self._apriori_done:
+            return
+        pinned = obstacle_voxels(msg.obstacles, self.core.geometry)
+        self.core.pin(pinned)
+        self._apriori_done = True
+        self._last_snapshot_ns = None  # the next tick publishes the pinned map whole
+        self.log.info("a-priori map from the world model: %d voxels of %d static obstacles pinned occupied",
+                      len(pinned), len(msg.obstacles))
+
+    def on_points(self, msg: PointCloud, key: str) -> None:
+        rays = scan_rays(to_numpy(msg.points), msg.width, msg.sensor_model, msg.frame, msg.sensor_pose.position,
+                         msg.sensor_pose.orientation, None if msg.mask is None else to_numpy(msg.mask))
+        if rays.beams is None and not self._warned_model:
+            self._warned_model = True
+            self.log.warning("LiDAR model %r unknown or not matching its scans: rays without a return are not "
+                             "cast (free space only up to returns)", msg.sensor_model)
+        self._rays[msg.header.stamp] = rays
+        self._integrate_ready()
 
     def on_labels(self, msg: LabelSet, key: str) -> None:
         if msg.voxel_size != self.core.voxel_size and not self._warned_voxel_size:
             self._warned_voxel_size = True
             self.log.warning("label sets use %.3f m voxels, the map %.3f m", msg.voxel_size, self.core.voxel_size)
-        indices, values = self.core.apply_labels(
-            msg.sensor_origin, to_numpy(msg.points), to_numpy(msg.voxels), to_numpy(msg.voxel_labels)
-        )
-        self._publish(msg.header.stamp, snapshot=False, indices=indices, values=values)
+        self._labels[msg.header.stamp] = msg
+        self._integrate_ready()
+
+    def _integrate_ready(self) -> None:
+        for stamp in sorted(set(self._rays) & set(self._labels)):
+            rays = self._rays.pop(stamp)
+            labels = self._labels.pop(stamp)
+            delta = self.core.integrate(stamp, rays, to_numpy(labels.voxels), to_numpy(labels.voxel_labels),
+                                        to_numpy(labels.voxel_weights))
+            self._publish(stamp, snapshot=False, delta=delta)
+        for waiting in (self._rays, self._labels):
+            while len(waiting) > PENDING:
+                waiting.pop(min(waiting))
+                self._unpaired += 1
+                if self._unpaired in (1, 10, 100, 1000):
+                    self.log.warning("%d scans never got their other half (points or labels): dropped", self._unpaired)
 
     def on_tick(self, now_ns: int) -> None:
         if self._last_snapshot_ns is None or now_ns - self._last_snapshot_ns >= self._snapshot_period_ns:
             self._last_snapshot_ns = now_ns
-            indices, values = self.core.snapshot()
-            self._publish(now_ns, snapshot=True, indices=indices, values=values)
+            self._publish(now_ns, snapshot=True, delta=self.core.snapshot())
 
-    def _publish(self, stamp: int, snapshot: bool, indices, values) -> None:
+    def _publish(self, stamp: int, snapshot: bool, delta: MapDelta) -> None:
         core = self.core
         self.map_pub.put(VoxelMap(
             header=Header(stamp=stamp),
@@ -50,8 +106,8 @@ class MapperNode(Node):
             voxel_size=core.voxel_size,
             origin=tuple(float(v) for v in core.origin),
             shape=core.shape,
-            indices=from_numpy(indices),
-            values=from_numpy(values),
+            indices=from_numpy(delta.indices),
+            values=from_numpy(delta.values),
             default_value=self.params.unknown_value,
         ))
 

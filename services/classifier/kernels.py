@@ -1,0 +1,154 @@
+"""The classifier's per-point passes, compiled (numba, `cache=True`; deterministic): a scan's valid
+returns onto a grid (downsampling), per-cluster statistics, grouping points by cluster, and the
+voxel label sets of eq. 16–18. Each is one pass over the points; `slot` arrays (int32 over a
+grid, all -1) are scratch that every pass leaves as it found it.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+INF = math.inf
+
+
+@njit(cache=True)
+def _cell(px, py, pz, corner, edge, shape):
+    """Flat index of the grid cell holding a point, -1 outside the grid."""
+    ix = int(math.floor((px - corner[0]) / edge))
+    iy = int(math.floor((py - corner[1]) / edge))
+    iz = int(math.floor((pz - corner[2]) / edge))
+    if ix < 0 or iy < 0 or iz < 0 or ix >= shape[0] or iy >= shape[1] or iz >= shape[2]:
+        return -1
+    return (ix * shape[1] + iy) * shape[2] + iz
+
+
+@njit(cache=True)
+def downsample(points, corner, edge, shape, slot):
+    """The scan's returns (N, 3) float32 (NaN: none) onto a grid of `edge` cells.
+
+    Returns (valid returns (M, 3) float64, cell of each (M,), cell centroids (C, 3), points per
+    cell (C,), invalid count): a return with an infinite coordinate is invalid and dropped; a
+    return outside the grid is a cell of its own."""
+    n = points.shape[0]
+    valid = np.empty((n, 3), dtype=np.float64)
+    m, invalid = 0, 0
+    for i in range(n):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        if math.isnan(x) or math.isnan(y) or math.isnan(z):
+            continue
+        if math.isinf(x) or math.isinf(y) or math.isinf(z):
+            invalid += 1
+            continue
+        valid[m, 0], valid[m, 1], valid[m, 2] = x, y, z
+        m += 1
+    valid = valid[:m]
+    cell_of = np.empty(m, dtype=np.int64)
+    sums = np.zeros((m, 3), dtype=np.float64)
+    counts = np.zeros(m, dtype=np.int64)
+    flats = np.empty(m, dtype=np.int64)
+    cells = 0
+    for i in range(m):
+        flat = _cell(valid[i, 0], valid[i, 1], valid[i, 2], corner, edge, shape)
+        c = slot[flat] if flat >= 0 else -1
+        if c < 0:
+            c = cells
+            cells += 1
+            flats[c] = flat
+            if flat >= 0:
+                slot[flat] = c
+        cell_of[i] = c
+        sums[c, 0] += valid[i, 0]
+        sums[c, 1] += valid[i, 1]
+        sums[c, 2] += valid[i, 2]
+        counts[c] += 1
+    for c in range(cells):
+        if flats[c] >= 0:
+            slot[flats[c]] = -1
+        sums[c, 0] /= counts[c]
+        sums[c, 1] /= counts[c]
+        sums[c, 2] /= counts[c]
+    return valid, cell_of, sums[:cells], counts[:cells], invalid
+
+
+@njit(cache=True)
+def cluster_stats(points, cluster, clusters, sensor):
+    """Per cluster: returns in it, lowest and highest corner of its box, farthest range from `sensor`."""
+    sizes = np.zeros(clusters, dtype=np.int64)
+    low = np.full((clusters, 3), INF)
+    high = np.full((clusters, 3), -INF)
+    far = np.zeros(clusters)
+    for i in range(points.shape[0]):
+        c = cluster[i]
+        sizes[c] += 1
+        for a in range(3):
+            v = points[i, a]
+            if v < low[c, a]:
+                low[c, a] = v
+            if v > high[c, a]:
+                high[c, a] = v
+        dx, dy, dz = points[i, 0] - sensor[0], points[i, 1] - sensor[1], points[i, 2] - sensor[2]
+        r = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if r > far[c]:
+            far[c] = r
+    return sizes, low, high, far
+
+
+@njit(cache=True)
+def group_by(cluster, clusters):
+    """Point indices ordered by cluster (stable), and where each cluster's run starts (counting sort)."""
+    starts = np.zeros(clusters + 1, dtype=np.int64)
+    for c in cluster:
+        starts[c + 1] += 1
+    for c in range(clusters):
+        starts[c + 1] += starts[c]
+    fill = starts[:-1].copy()
+    order = np.empty(len(cluster), dtype=np.int64)
+    for i in range(len(cluster)):
+        order[fill[cluster[i]]] = i
+        fill[cluster[i]] += 1
+    return order, starts
+
+
+@njit(cache=True)
+def label_sets(points, labels, corner, edge, shape, slot, background, flying, unknown):
+    """Eq. 16–18: the map voxels holding returns, each with one class and its update weight n.
+    A voxel with returns of several classes takes the most cautious (flying object over unknown over
+    background): weight ∞ for a flying object, else the number of returns of its class.
+    Returns (voxel indices (V, 3) int32 in first-seen order, labels (V,) uint8, weights (V,)
+    float32, returns outside the map)."""
+    n = points.shape[0]
+    flats = np.empty(n, dtype=np.int64)
+    counts = np.zeros((n, 3), dtype=np.int64)  # background, unknown, flying
+    voxels = 0
+    outside = 0
+    for i in range(n):
+        flat = _cell(points[i, 0], points[i, 1], points[i, 2], corner, edge, shape)
+        if flat < 0:
+            outside += 1
+            continue
+        v = slot[flat]
+        if v < 0:
+            v = voxels
+            voxels += 1
+            slot[flat] = v
+            flats[v] = flat
+        label = labels[i]
+        counts[v, 0 if label == background else (2 if label == flying else 1)] += 1
+    ijk = np.empty((voxels, 3), dtype=np.int32)
+    out_labels = np.empty(voxels, dtype=np.uint8)
+    weights = np.empty(voxels, dtype=np.float32)
+    for v in range(voxels):
+        flat = flats[v]
+        slot[flat] = -1
+        ijk[v, 0] = flat // (shape[1] * shape[2])
+        ijk[v, 1] = (flat // shape[2]) % shape[1]
+        ijk[v, 2] = flat % shape[2]
+        if counts[v, 2] > 0:
+            out_labels[v], weights[v] = flying, INF
+        elif counts[v, 1] > 0:
+            out_labels[v], weights[v] = unknown, counts[v, 1]
+        else:
+            out_labels[v], weights[v] = background, counts[v, 0]
+    return ijk, out_labels, weights, outside

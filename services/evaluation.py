@@ -1,0 +1,99 @@
+"""How well the fleet saw, against ground truth: for the run summary, --summary-json and the viewer.
+
+Evaluation only: the launcher and the viewer read truth, no flying service does. Per UAV:
+- a detection matched a target when it lies within MATCH_DISTANCE of the target's true position at
+  the scan's stamp; otherwise it is false;
+- a target was in sight in a scan when at least MIN_HITS of the scan's rays hit it (points_truth),
+  and missed when no detection of that scan matched it;
+- a confirmed track is false when it never came within MATCH_DISTANCE of any target.
+Pure numpy.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+MATCH_DISTANCE = 1.0  # m
+MIN_HITS = 3  # rays of one scan on a target for it to count as in sight
+NS = 1_000_000_000
+
+
+def matched(positions: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(N,) bool: which of the (N, 3) positions lie within MATCH_DISTANCE of one of the (K, 3) targets."""
+    p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    t = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+    if not len(p) or not len(t):
+        return np.zeros(len(p), dtype=bool)
+    return (np.linalg.norm(p[:, None] - t[None], axis=2) <= MATCH_DISTANCE).any(axis=1)
+
+
+def found(targets: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """(K,) bool: which targets have a detection within MATCH_DISTANCE."""
+    return matched(targets, positions)
+
+
+@dataclass
+class TrackRecord:
+    confirmed_at: float  # mission time it was first seen confirmed, s
+    matched: bool = False
+
+
+@dataclass
+class PerceptionScore:
+    """One UAV's perception over a run."""
+
+    detections: int = 0
+    matched: int = 0
+    false: int = 0
+    in_sight: dict[str, int] = field(default_factory=dict)  # target kind -> (scan, target) pairs in sight
+    missed: dict[str, int] = field(default_factory=dict)  # ... of which no detection matched the target
+    first_t: float | None = None
+    last_t: float = 0.0
+    tracks: dict[int, TrackRecord] = field(default_factory=dict)
+
+    def add_detections(self, t: float, positions: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """Count one scan's detections; returns which matched a target."""
+        hit = matched(positions, targets)
+        self.detections += len(hit)
+        self.matched += int(hit.sum())
+        self.false += int((~hit).sum())
+        self.first_t = t if self.first_t is None else min(self.first_t, t)
+        self.last_t = max(self.last_t, t)
+        return hit
+
+    def add_sight(self, seen: np.ndarray, kinds: list[str], positions: np.ndarray) -> None:
+        """One scan's targets in sight (K, 3) and their kinds against its detections."""
+        seen = np.asarray(seen, dtype=np.float64).reshape(-1, 3)
+        for kind, hit in zip(kinds, found(seen, positions).tolist()):
+            self.in_sight[kind] = self.in_sight.get(kind, 0) + 1
+            self.missed[kind] = self.missed.get(kind, 0) + (not hit)
+
+    def add_tracks(self, t: float, ids: list[int], positions: np.ndarray, targets: np.ndarray) -> None:
+        """Confirmed tracks of one Tracks message."""
+        hit = matched(positions, targets)
+        for track_id, ok in zip(ids, hit.tolist()):
+            record = self.tracks.setdefault(track_id, TrackRecord(t))
+            record.matched = record.matched or ok
+
+    def false_tracks(self, after: float = 0.0) -> int:
+        return sum(1 for r in self.tracks.values() if not r.matched and r.confirmed_at >= after)
+
+    def summary(self) -> dict:
+        minutes = max((self.last_t - (self.first_t or 0.0)) / 60.0, 1e-9)
+        return {
+            "detections": self.detections, "matched": self.matched, "false": self.false,
+            "false_per_minute": round(self.false / minutes, 2) if self.detections else 0.0,
+            "in_sight": dict(sorted(self.in_sight.items())), "missed": dict(sorted(self.missed.items())),
+            "recall": {kind: round(1.0 - self.missed[kind] / n, 3) for kind, n in sorted(self.in_sight.items())},
+            "confirmed_tracks": len(self.tracks), "false_tracks": self.false_tracks(),
+            "false_tracks_after_10s": self.false_tracks(after=10.0),
+        }
+
+
+def in_sight(hits: np.ndarray, target_count: int) -> np.ndarray:
+    """(K,) bool: which of the scan's K targets at least MIN_HITS rays hit (`hits` holds each ray's
+    hit id, PointTruth: k >= 1 is the target of index k-1)."""
+    h = np.asarray(hits).reshape(-1)
+    counts = np.bincount(h[h > 0], minlength=target_count + 1)[1:target_count + 1]
+    return counts >= MIN_HITS

@@ -1,0 +1,56 @@
+"""Where voxels are: the map's geometry and its index arithmetic (pure numpy).
+
+A map is a dense grid of `shape` voxels of edge `voxel_size`, voxel (0, 0, 0)'s minimum corner at
+`origin`; voxel (i, j, k) covers origin + [i, i+1) × [j, j+1) × [k, k+1) voxel edges. Flat indices
+are C order over `shape`, as in VoxelMap messages.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GridGeometry:
+    origin: tuple[float, float, float]
+    shape: tuple[int, int, int]
+    voxel_size: float
+
+    def __post_init__(self) -> None:
+        if len(self.shape) != 3 or min(self.shape) <= 0:
+            raise ValueError(f"a voxel grid needs three positive dimensions, got {self.shape}")
+        if not self.voxel_size > 0:
+            raise ValueError(f"voxel size must be positive, got {self.voxel_size}")
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    @property
+    def corner(self) -> np.ndarray:
+        return np.asarray(self.origin, dtype=np.float64)
+
+    def voxel_of(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) int64 voxel indices of (N, 3) points (outside the grid too: check with `inside`)."""
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        return np.floor((p - self.corner) / self.voxel_size).astype(np.int64)
+
+    def inside(self, voxels: np.ndarray) -> np.ndarray:
+        v = np.asarray(voxels).reshape(-1, 3)
+        return np.all((v >= 0) & (v < np.asarray(self.shape)), axis=1)
+
+    def flat(self, voxels: np.ndarray) -> np.ndarray:
+        """Flat indices of (N, 3) voxels that are inside the grid."""
+        v = np.asarray(voxels, dtype=np.int64).reshape(-1, 3)
+        return np.ravel_multi_index(tuple(v.T), self.shape)
+
+    def unflat(self, flat: np.ndarray) -> np.ndarray:
+        return np.stack(np.unravel_index(np.asarray(flat, dtype=np.int64), self.shape), axis=1)
+
+    def centres(self, voxels: np.ndarray) -> np.ndarray:
+        return self.corner + (np.asarray(voxels, dtype=np.float64).reshape(-1, 3) + 0.5) * self.voxel_size
+
+    def same_as(self, other: "GridGeometry") -> bool:
+        return (tuple(self.shape) == tuple(other.shape) and float(self.voxel_size) == float(other.voxel_size)
+                and np.array_equal(self.corner, other.corner))
