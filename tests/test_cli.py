@@ -13,7 +13,7 @@ def falconry(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run(falconry_argv(*args), cwd=REPO, capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.mark.parametrize("command", [(), ("sim",), ("run",), ("health",), ("view",), ("record",)])
+@pytest.mark.parametrize("command", [(), ("sim",), ("run",), ("health",), ("view",), ("record",), ("analyze", "hit-probability")])
 def test_help_explains_every_option(command):
     result = falconry(*command, "--help")
     assert result.returncode == 0
@@ -51,6 +51,11 @@ def test_help_explains_every_option(command):
     (("sim", "--plot", "/tmp/timeline.txt"), "--plot writes a PNG"),
     (("sim", "--rrd", "/definitely/missing/dir/run.rrd"), "--rrd: no such directory"),
     (("record", "/tmp/x.mcap", "--connect", "tcp/127.0.0.1:9", "--health", "-1"), "--health must be"),
+    (("analyze",), "required: ANALYSIS"),
+    (("analyze", "hit-probability", "--noise", "rtk=0.02,0.1"), "give NAME=POSITION_M,ATTITUDE_DEG,RANGE_M"),
+    (("analyze", "hit-probability", "--noise", "bad=-1,0,0"), "must be finite and not negative"),
+    (("analyze", "hit-probability", "--step", "0"), "must be positive"),
+    (("analyze", "hit-probability", "--plot", "/tmp/p.txt"), "--plot writes a PNG"),
     (("frobnicate",), "invalid choice"),
 ])
 def test_user_mistakes_give_one_line_and_exit_2(args, expected):

@@ -2,13 +2,17 @@
 of eq. 20, the Jacobian of eq. 42 against numeric differentiation, p_hit of eq. 45–46."""
 from __future__ import annotations
 
+import subprocess
+
 import numpy as np
 import pytest
 
 from services.lidar.models import lidar_model
 from services.lidar.rays import body_mask, pack_mask, ray_ends, scan_rays, unpack_mask
-from services.lidar.uncertainty import hit_probability, point_covariance, point_jacobian, roll_pitch_yaw
+from services.lidar.uncertainty import (hit_probability, mean_hit_probability, point_covariance, point_jacobian,
+                                        roll_pitch_yaw)
 from services.sensor_driver.core import small_rotation
+from tests.conftest import REPO, falconry_argv
 
 
 def test_a_body_in_front_of_the_sensor_masks_the_beams_that_meet_it_a_box_around_it_none():
@@ -80,3 +84,26 @@ def test_hit_probability_is_the_gaussian_mass_in_the_measured_voxel():
     samples = rng.multivariate_normal(point, cov, 200_000)
     monte_carlo = np.mean(np.all((samples >= 0) & (samples < 0.5), axis=1))
     assert hit_probability(point, cov, voxel, 0.5) == pytest.approx(monte_carlo, abs=0.01)
+
+
+def test_mean_hit_probability_falls_with_distance_under_attitude_noise_as_in_fig_5():
+    rng = np.random.default_rng(3)
+    attitude = np.diag([0.0] * 3 + [np.radians(0.5) ** 2] * 3)
+    near, far = (mean_hit_probability(d, attitude, 0.02, 0.5, 60, rng) for d in (2.0, 40.0))
+    assert 0.5 < near < 1.0 and far < near - 0.2
+    ideal = mean_hit_probability(40.0, np.zeros((6, 6)), 0.0, 0.5, 20, rng)
+    assert ideal == pytest.approx(1.0, abs=1e-6)  # no noise: every point is in its own voxel
+
+
+def test_analyze_hit_probability_prints_a_table_and_draws_the_png(tmp_path):
+    plot = tmp_path / "hit.png"
+    result = subprocess.run(falconry_argv("analyze", "hit-probability", "--noise", "rtk=0.02,0.1,0.02",
+                                          "--noise", "poor=0.3,1,0.05", "--max-distance", "20", "--step", "10",
+                                          "--samples", "10", "--plot", str(plot)),
+                            cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    rows = [line.split("|") for line in result.stdout.splitlines() if line.strip()[:1].isdigit()]
+    assert [float(r[0]) for r in rows] == [10.0, 20.0]
+    rtk, poor = zip(*[(float(r[1]), float(r[2])) for r in rows])
+    assert all(p < r for p, r in zip(poor, rtk))  # the noisier sensor hits its voxel less often
+    assert plot.stat().st_size > 10_000

@@ -5,7 +5,8 @@ import argparse
 import logging
 import sys
 
-from services.launcher import health_cmd, params_cmd, record_cmd, replay_cmd, run_cmd, sim_cmd, view_cmd
+from services.launcher import (analyze_cmd, health_cmd, params_cmd, record_cmd, replay_cmd, run_cmd, sim_cmd,
+                               view_cmd)
 from services.launcher.common import Parser
 from services.runtime.errors import UsageError
 from services.simulator.scenario import ScenarioError
@@ -27,6 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     record_cmd.add_parser(commands)
     replay_cmd.add_parser(commands)
     view_cmd.add_parser(commands)
+    analyze_cmd.add_parser(commands)
     return parser
 
 

@@ -115,3 +115,24 @@ def _activity(ax, name: str, index: int, monitor: RunMonitor, end: float) -> Non
         partner.set_ylim(0, max(gaps) * 1.15)
     partner.set_ylabel("nearest partner (m)", fontsize=8)
     ax.set_xlim(0, end)
+
+
+def plot_curves(path: str | Path, x, curves: dict[str, list[float]], xlabel: str, ylabel: str, title: str,
+                ylim: tuple[float, float] | None = (0.0, 1.02)) -> None:
+    """Curves over a common x axis, one per label (analyses and benchmarks)."""
+    figure, ax = plt.subplots(figsize=(9, 5))
+    for label, values in curves.items():
+        ax.plot(x, values, marker="o", markersize=3, label=label)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if ylim is not None:
+        ax.set_ylim(*ylim)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title, fontsize=10)
+    try:
+        figure.savefig(path, dpi=110, bbox_inches="tight")
+    except OSError as exc:
+        raise UsageError(f"cannot write the plot {path}: {exc.strerror or exc}") from None
+    finally:
+        plt.close(figure)

@@ -90,3 +90,18 @@ def hit_probability(point: np.ndarray, covariance: np.ndarray, voxel_low: np.nda
     low = np.asarray(voxel_low, dtype=np.float64)
     dist = multivariate_normal(mean=np.asarray(point, dtype=np.float64), cov=cov, allow_singular=True)
     return float(np.clip(dist.cdf(low + voxel_size, lower_limit=low), 0.0, 1.0))
+
+
+def mean_hit_probability(distance: float, pose_covariance: np.ndarray, range_sigma: float, voxel_size: float,
+                         samples: int, rng: np.random.Generator) -> float:
+    """p_hit of eq. 46 averaged over where a point at `distance` falls inside its voxel and over the
+    ray's direction (uniform on the sphere; the sensor level): the curves of seed 000's Fig. 5."""
+    total = 0.0
+    for _ in range(samples):
+        direction = rng.normal(size=3)
+        direction /= np.linalg.norm(direction)
+        voxel_low = np.floor(distance * direction / voxel_size) * voxel_size
+        point = voxel_low + rng.uniform(0.0, voxel_size, 3)  # the measured point, somewhere in its voxel
+        covariance = point_covariance(point, np.zeros(3), np.eye(3), pose_covariance, range_sigma)
+        total += hit_probability(point, covariance, voxel_low, voxel_size)
+    return total / samples
