@@ -33,11 +33,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a plain checkout
 
 import msgspec  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.spatial.transform import Rotation  # noqa: E402
 
 from schemas.arrays import from_numpy, to_numpy  # noqa: E402
 from schemas.messages import Header, PointCloud, VoxelMap, WorldModel  # noqa: E402
 from services.classifier.core import ClassifierCore, SensorPose  # noqa: E402
+from services.geometry import rotation_matrix  # noqa: E402
 from services.lidar.rays import scan_rays  # noqa: E402
 from services.mapper.core import MapperCore  # noqa: E402
 from services.recorder.mcap_io import read_recording  # noqa: E402
@@ -105,8 +105,7 @@ def main() -> int:
     tracemalloc.start()
     for k, cloud in enumerate(clouds):
         points = to_numpy(cloud.points)
-        w, x, y, z = cloud.sensor_pose.orientation
-        pose = SensorPose(np.asarray(cloud.sensor_pose.position), Rotation.from_quat([x, y, z, w]).as_matrix(),
+        pose = SensorPose(np.asarray(cloud.sensor_pose.position), rotation_matrix(cloud.sensor_pose.orientation),
                           None if cloud.pose_covariance is None else to_numpy(cloud.pose_covariance))
         started = time.perf_counter()
         scan = classifier.classify(points, pose)

@@ -1,11 +1,22 @@
-"""Plane polygon geometry shared by the services (arena, working areas, scan areas).
+"""Geometry shared by the services: plane polygons (arena, working areas, scan areas) and rotations.
 
-Pure numpy. Polygons are (K, 2) vertex arrays, simple (possibly non-convex), without a
-repeated closing vertex (one is tolerated and dropped).
+Pure numpy (no scipy: see services/runtime/warmup.py). Polygons are (K, 2) vertex arrays, simple
+(possibly non-convex), without a repeated closing vertex (one is tolerated and dropped).
 """
 from __future__ import annotations
 
 import numpy as np
+
+
+def rotation_matrix(orientation_wxyz) -> np.ndarray:
+    """(3, 3) rotation of a quaternion given as (w, x, y, z), the order of schemas' Pose; normalised
+    first (a message's quaternion is only approximately unit)."""
+    w, x, y, z = np.asarray(orientation_wxyz, dtype=np.float64).reshape(4) / np.linalg.norm(orientation_wxyz)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
 
 
 def as_polygon(polygon: np.ndarray) -> np.ndarray:

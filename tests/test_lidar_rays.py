@@ -6,7 +6,9 @@ import subprocess
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
+from services.geometry import rotation_matrix
 from services.lidar.models import lidar_model
 from services.lidar.rays import body_mask, pack_mask, ray_ends, scan_rays, unpack_mask
 from services.lidar.uncertainty import (hit_probability, mean_hit_probability, point_covariance, point_jacobian,
@@ -65,6 +67,20 @@ def test_the_jacobian_of_eq_42_matches_numeric_differentiation(angles):
         / (2 * step) for e in np.eye(7)])
     assert np.allclose(jacobian, numeric, atol=1e-6)
     assert np.allclose(roll_pitch_yaw(small_rotation(*angles)), angles)
+
+
+@pytest.mark.parametrize("pitch", [np.pi / 2, -np.pi / 2])
+def test_roll_pitch_yaw_at_gimbal_lock_still_rebuilds_the_rotation(pitch):
+    rotation = small_rotation(0.3, pitch, -1.1)
+    assert np.allclose(small_rotation(*roll_pitch_yaw(rotation)), rotation)
+
+
+def test_rotation_matrix_of_a_wxyz_quaternion_matches_scipy():
+    for quaternion_xyzw in Rotation.random(5, random_state=2).as_quat():
+        x, y, z, w = quaternion_xyzw
+        expected = Rotation.from_quat(quaternion_xyzw).as_matrix()
+        assert np.allclose(rotation_matrix([w, x, y, z]), expected)
+        assert np.allclose(rotation_matrix([2 * w, 2 * x, 2 * y, 2 * z]), expected)  # not quite unit: normalised
 
 
 def test_point_covariance_grows_with_range_under_attitude_noise():

@@ -10,12 +10,13 @@ tick): every scan is classified against the map that integrated the scan before 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, VoxelMap
 from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose
+from services.geometry import rotation_matrix
 from services.runtime.node import Node
+from services.runtime.warmup import preload
 
 
 class ClassifierNode(Node):
@@ -24,6 +25,7 @@ class ClassifierNode(Node):
     params_type = ClassifierParams
 
     def setup(self) -> None:
+        preload("scipy.stats")  # p_hit's Gaussian CDF, beside start-up
         self.core = ClassifierCore(self.params)
         self.detections_pub = self.publisher(self.topic("detections"), Detections)
         self.labels_pub = self.publisher(self.topic("labels"), LabelSet)
@@ -48,10 +50,9 @@ class ClassifierNode(Node):
                 self.log.info("map delta with another geometry ignored until the next snapshot")
 
     def on_points(self, msg: PointCloud, key: str) -> None:
-        w, x, y, z = msg.sensor_pose.orientation
         covariance = None if msg.pose_covariance is None else to_numpy(msg.pose_covariance).reshape(6, 6)
         pose = SensorPose(np.asarray(msg.sensor_pose.position, dtype=np.float64),
-                          Rotation.from_quat([x, y, z, w]).as_matrix(), covariance)
+                          rotation_matrix(msg.sensor_pose.orientation), covariance)
         scan = self.core.classify(to_numpy(msg.points), pose)
         self._report_bad_input()
         stamp = msg.header.stamp

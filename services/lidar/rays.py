@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
+from services.geometry import rotation_matrix
 from services.lidar.models import lidar_model
 
 
@@ -58,7 +58,6 @@ def scan_rays(points: np.ndarray, width: int, sensor_model: str, frame: int, pos
     """The rays of a PointCloud's fields. Beams come from the named LiDAR model (services/lidar/models.py);
     a model we do not know, or a layout that does not fit the scan, leaves them unknown."""
     pts = np.asarray(points, dtype=np.float32)
-    w, x, y, z = (float(q) for q in orientation_wxyz)
     beams = None
     try:
         beams = lidar_model(sensor_model).directions(frame) if sensor_model else None
@@ -70,7 +69,7 @@ def scan_rays(points: np.ndarray, width: int, sensor_model: str, frame: int, pos
     if packed_mask is not None and pts.ndim == 3:
         masked = unpack_mask(packed_mask, width)
         masked = masked.reshape(-1) if masked.shape == pts.shape[:-1] else None
-    return ScanRays(np.asarray(position, dtype=np.float64), Rotation.from_quat([x, y, z, w]).as_matrix(),
+    return ScanRays(np.asarray(position, dtype=np.float64), rotation_matrix(orientation_wxyz),
                     pts.reshape(-1, 3), None if beams is None else beams.reshape(-1, 3), masked)
 
 

@@ -4,15 +4,13 @@ A point p = l·R·d + t (eq. 34) with R = Rz(γ)·Ry(β)·Rx(α); the noise w = 
 (eq. 35) maps through the Jacobian J of eq. 42 to the point's covariance Σ = J·Σ_w·Jᵀ (eq. 41).
 The probability that the measured voxel is the true one, p_hit (eq. 45–46), is the integral of
 that Gaussian over the measured voxel's cube: scipy's multivariate normal CDF over the box.
-Pure numpy and scipy.
+Pure numpy and scipy (scipy.stats imported where p_hit needs it: see services/runtime/warmup.py).
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from scipy.spatial.transform import Rotation
-from scipy.stats import multivariate_normal
 
 
 def _rx(a: float) -> np.ndarray:
@@ -47,8 +45,11 @@ def _drz(g: float) -> np.ndarray:
 
 def roll_pitch_yaw(rotation: np.ndarray) -> tuple[float, float, float]:
     """(α, β, γ) of R = Rz(γ)·Ry(β)·Rx(α) (intrinsic z-y-x, as ROS and MAVLink report attitude)."""
-    yaw, pitch, roll = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_euler("ZYX")
-    return float(roll), float(pitch), float(yaw)
+    r = np.asarray(rotation, dtype=np.float64)
+    pitch = math.asin(float(np.clip(-r[2, 0], -1.0, 1.0)))
+    if abs(r[2, 0]) < 1.0 - 1e-12:
+        return math.atan2(r[2, 1], r[2, 2]), pitch, math.atan2(r[1, 0], r[0, 0])
+    return 0.0, pitch, math.atan2(-r[0, 1], r[1, 1])  # gimbal lock: only roll ∓ yaw is known; put it in yaw
 
 
 def point_jacobian(roll: float, pitch: float, yaw: float, direction: np.ndarray, length: float) -> np.ndarray:
@@ -86,6 +87,8 @@ def point_covariance(point: np.ndarray, sensor_position: np.ndarray, rotation: n
 def hit_probability(point: np.ndarray, covariance: np.ndarray, voxel_low: np.ndarray, voxel_size: float) -> float:
     """p_hit of eq. 45–46: the probability that the true point lies in the measured voxel, the cube
     [voxel_low, voxel_low + voxel_size) holding the measured `point`, Σ the point's covariance."""
+    from scipy.stats import multivariate_normal  # imported here: see services/runtime/warmup.py
+
     cov = np.asarray(covariance, dtype=np.float64) + 1e-12 * np.eye(3)  # a perfect pose is a degenerate Gaussian
     low = np.asarray(voxel_low, dtype=np.float64)
     dist = multivariate_normal(mean=np.asarray(point, dtype=np.float64), cov=cov, allow_singular=True)
