@@ -32,6 +32,7 @@ from services.viz.geometry import cone_mesh, constant_acceleration_path, covaria
 from services.viz.mapview import MapView
 from services.viz.scene import SceneBuilder
 from services.viz.settings import ViewParams
+from services.viz.style import DETECTION_COLOR, FALSE_COLOR, MATCHED_COLOR
 
 S = 1_000_000_000
 encode = msgspec.msgpack.encode
@@ -244,6 +245,51 @@ def test_detections_tracks_and_lag_from_one_scan():
     (path,) = logs["uav1/tracks/predicted"][0].item.strips
     assert np.allclose(path[-1], [8.0, 5.0, 5.0])  # 3 s at 1 m/s
     assert logs["plots/track_uncertainty/uav1/7"][0].item.value == 2.5
+
+
+def test_with_truth_detections_are_coloured_matched_or_false_and_false_ones_plotted():
+    scene = SceneBuilder()
+    truth = GroundTruth(header=Header(stamp=2 * S), step=40, uavs=[], targets=[
+        TargetTruth(id="drone1", kind="drone", position=(10, 0, 5), velocity=(0, 0, 0), radius=0.3),
+        TargetTruth(id="gone", kind="drone", position=(0, 10, 5), velocity=(0, 0, 0), radius=0.3, destroyed=True)])
+    scene.feed("falconry/sim/truth", encode(truth))
+
+    def detections(stamp):
+        return encode(Detections(header=Header(stamp=stamp), detector="classifier",
+                                 positions=from_numpy(np.array([[10.4, 0.3, 5.2], [0.0, 10.0, 5.0]])),
+                                 covariances=from_numpy(np.tile(np.eye(3) * 0.01, (2, 1, 1))),
+                                 point_counts=from_numpy(np.array([9, 4], np.int32)),
+                                 extents=from_numpy(np.ones(2, np.float32))))
+    (det,) = entities(scene.feed("falconry/uav1/detections", detections(2 * S)))["uav1/detections"]
+    assert det.item.colors.tolist() == [list(MATCHED_COLOR), list(FALSE_COLOR)]  # a destroyed target matches nothing
+    assert det.item.labels == ["9 pts, matched", "4 pts, false"]
+    logs = entities(scene.feed("falconry/uav1/detections", detections(3 * S)))
+    assert logs["plots/false_detections/uav1"][0].item.value == 1.0
+
+
+def test_without_truth_detections_keep_the_flying_object_colour():
+    scene = SceneBuilder()
+    msg = Detections(header=Header(stamp=S), detector="classifier", positions=from_numpy(np.ones((1, 3))),
+                     covariances=from_numpy(np.eye(3)[None] * 0.01), point_counts=from_numpy(np.array([5], np.int32)),
+                     extents=from_numpy(np.ones(1, np.float32)))
+    (det,) = entities(scene.feed("falconry/uav1/detections", encode(msg)))["uav1/detections"]
+    assert det.item.colors == DETECTION_COLOR and det.item.labels == ["5 pts"]
+
+
+def test_map_age_is_the_scan_stamp_minus_the_map_stamp_it_was_classified_with():
+    scene = SceneBuilder()
+
+    def labels(stamp, map_stamp):
+        return encode(LabelSet(header=Header(stamp=stamp), sensor_origin=(0, 0, 5), map_stamp=map_stamp,
+                               points=from_numpy(np.zeros((1, 3), np.float32)),
+                               point_labels=from_numpy(np.zeros(1, np.uint8)), voxel_size=0.5,
+                               voxels=from_numpy(np.zeros((0, 3), np.int32)), voxel_labels=from_numpy(np.zeros(0, np.uint8)),
+                               voxel_weights=from_numpy(np.zeros(0, np.float32))))
+    scene.feed("falconry/uav1/labels", labels(S, 0))  # no map yet: no age
+    scene.feed("falconry/uav1/labels", labels(S + S // 10, S))
+    scene.feed("falconry/uav1/labels", labels(S + S // 5, S + S // 20))
+    logs = entities(scene.feed("falconry/uav1/labels", labels(2 * S, 2 * S - S // 10)))
+    assert logs["plots/map_age_ms/uav1"][0].item.value == pytest.approx(150.0)  # the worst of second 1
 
 
 def test_status_draws_state_changes_working_area_and_forbidden_zones_with_remaining_life():

@@ -37,7 +37,7 @@ class Ellipsoids:
     centers: np.ndarray  # (N, 3)
     half_sizes: np.ndarray  # (N, 3)
     quaternions: np.ndarray | None  # (N, 4), None: axis-aligned
-    color: Color
+    colors: np.ndarray | Color  # (N, 4) or one for all
     labels: list[str] | None = None
     show_labels: bool = True  # False: the labels show on hover only
     solid: bool = False

@@ -40,10 +40,12 @@ def blueprint(uavs: list[str]) -> rrb.Blueprint:
         rrb.TextLogView(name="events", origin="/events"),
         row_shares=[1, 2])
     plots = rrb.Vertical(
-        rrb.TimeSeriesView(name="detections per second", origin="/plots/detections"),
+        rrb.TimeSeriesView(name="detections per second, and false ones (truth)", origin="/plots",
+                           contents=["+ /plots/detections/**", "+ /plots/false_detections/**"]),
         rrb.TimeSeriesView(name="track uncertainty radius (m)", origin="/plots/track_uncertainty"),
         rrb.TimeSeriesView(name="CPU per service (%)", origin="/plots/cpu"),
         rrb.TimeSeriesView(name="lag after the scan, worst per second (ms)", origin="/plots/lag_ms"),
+        rrb.TimeSeriesView(name="age of the map a scan was classified with (ms)", origin="/plots/map_age_ms"),
         rrb.TimeSeriesView(name="nearest partner (m, truth)", origin="/plots/nearest_partner"),
         rrb.TimeSeriesView(name="memory per service (MB)", origin="/plots/memory_mb"),
         rrb.TimeSeriesView(name="real-time factor", origin="/plots/real_time_factor"),
@@ -69,7 +71,7 @@ def archetype(item: draw.Drawable):
                                    show_labels=item.show_labels)
         case draw.Ellipsoids():
             return rr.Ellipsoids3D(centers=item.centers, half_sizes=item.half_sizes, quaternions=item.quaternions,
-                                   colors=item.color, labels=item.labels, show_labels=item.show_labels,
+                                   colors=item.colors, labels=item.labels, show_labels=item.show_labels,
                                    fill_mode=FILL_SOLID if item.solid else FILL_WIRES)
         case draw.Boxes():
             # one half size for all is repeated by rerun for every centre

@@ -14,8 +14,11 @@ Entities (`UAV_FAMILIES` under each UAV's name; the rest run-wide):
   tracks with covariance ellipsoids, predicted track paths, trajectory reference, working area,
   forbidden zones, the job manager's state (timeline and document), events (faults, restarts,
   commands, state changes);
-- plots/…: detections per second, track uncertainty, CPU per service, pipeline lags, distance to the
-  nearest partner (truth), real-time factor; events: every event as a log line.
+- plots/…: detections per second (and, with truth, false ones), track uncertainty, CPU per service,
+  pipeline lags, the age of the map each scan was classified with, distance to the nearest partner
+  (truth), real-time factor; events: every event as a log line.
+With truth (a simulation), detections are coloured by services/evaluation.py's match: green within
+1 m of a live target, white otherwise.
 """
 from __future__ import annotations
 
@@ -45,6 +48,7 @@ from schemas.messages import (
     VoxelMap,
     WorldModel,
 )
+from services import evaluation
 from services.geometry import pairwise_gaps
 from services.runtime.clock import NS, StampOrigin
 from services.viz import draw
@@ -63,7 +67,8 @@ from services.viz.geometry import (
 )
 from services.viz.mapview import MapView
 from services.viz.settings import ViewParams
-from services.viz.style import LABEL_COLORS, STATE_COLORS, TRUTH_COLOR, uav_color
+from services.viz.style import (DETECTION_COLOR, FALSE_COLOR, LABEL_COLORS, MATCHED_COLOR, STATE_COLORS, TRUTH_COLOR,
+                                uav_color)
 
 UAV_FAMILIES = (
     "pose", "trail", "scan", "map/occupied", "map/unknown", "detections", "tracks/confirmed",
@@ -121,6 +126,7 @@ class SceneBuilder:
         self._world_key = b""
         self._target_paths: dict[str, deque] = {}
         self._target_last: dict[str, tuple[float, float, float]] = {}
+        self._targets_now: np.ndarray | None = None  # (K, 3) live targets' true positions, once truth is seen
         self._destroyed: list[tuple[np.ndarray, str]] = []
         self._cpu: dict[str, _Cpu] = {}
         self._windows: dict[str, _Window] = {}  # plot entity -> the second being folded
@@ -205,6 +211,9 @@ class SceneBuilder:
             self._log(f"{name}/state", draw.StateStyle(states, [STATE_COLORS[s] for s in states]), static=True)
             self._log(f"{name}/pose/body", draw.Axes(1.0), static=True)
             self._log(f"plots/detections/{name}", draw.SeriesStyle(name, uav.color), static=True)
+            pale = tuple(int(c + (255 - c) * 0.6) for c in uav.color[:3]) + (255,)
+            self._log(f"plots/false_detections/{name}", draw.SeriesStyle(f"{name} false", pale), static=True)
+            self._log(f"plots/map_age_ms/{name}", draw.SeriesStyle(name, uav.color), static=True)
             self._log(f"plots/nearest_partner/{name}", draw.SeriesStyle(name, uav.color), static=True)
         return uav
 
@@ -258,6 +267,7 @@ class SceneBuilder:
     def _on_truth(self, scope: str, truth: GroundTruth) -> None:
         """The evaluation layer: drawn as 'truth', never what a UAV believes."""
         p = self.params
+        self._targets_now = np.array([t.position for t in truth.targets if not t.destroyed]).reshape(-1, 3)
         for target in truth.targets:
             path = self._target_paths.setdefault(target.id, deque())
             if not target.destroyed:
@@ -346,6 +356,8 @@ class SceneBuilder:
     def _on_labels(self, name: str, labels: LabelSet) -> None:
         uav = self._uav(name)
         uav.has_labels = True
+        if labels.map_stamp:  # how old the map was that classified this scan (mission time: deterministic)
+            self._per_second(f"plots/map_age_ms/{name}", (labels.header.stamp - labels.map_stamp) / 1e6, max)
         if not self._due_now(uav.due, "scan", self.params.scan_period):
             return
         points = to_numpy(labels.points).reshape(-1, 3)
@@ -385,8 +397,14 @@ class SceneBuilder:
         counts = to_numpy(detections.point_counts).reshape(-1)
         if not (len(positions) == len(half) == len(counts)):
             raise ValueError("detection arrays differ in length")
-        self._log(f"{name}/detections", draw.Ellipsoids(positions, half, rotations, (230, 25, 25, 255),
-                                                        [f"{n} pts" for n in counts.tolist()], show_labels=False))
+        labels = [f"{n} pts" for n in counts.tolist()]
+        colors: np.ndarray | Color = DETECTION_COLOR
+        if self._targets_now is not None:  # a simulation: truth says which detections were right
+            right = evaluation.matched(positions, self._targets_now)
+            colors = np.where(right[:, None], MATCHED_COLOR, FALSE_COLOR).astype(np.uint8).reshape(-1, 4)
+            labels = [f"{label}, {'matched' if ok else 'false'}" for label, ok in zip(labels, right.tolist())]
+            self._per_second(f"plots/false_detections/{name}", float((~right).sum()), lambda a, b: a + b)
+        self._log(f"{name}/detections", draw.Ellipsoids(positions, half, rotations, colors, labels, show_labels=False))
         self._per_second(f"plots/detections/{name}", float(len(positions)), lambda a, b: a + b)
         self._lag(name, uav, "detections")
 

@@ -8,6 +8,9 @@ from services.viz.geometry import Color
 UAV_COLORS: tuple[Color, ...] = ((31, 119, 180, 255), (255, 127, 14, 255), (44, 160, 44, 255),
                                  (148, 103, 189, 255), (140, 86, 75, 255))
 TRUTH_COLOR: Color = (255, 0, 255, 110)  # the evaluation layer: never what a UAV believes
+DETECTION_COLOR: Color = (230, 25, 25, 255)  # the flying-object label's red
+MATCHED_COLOR: Color = (40, 200, 60, 255)  # with truth: a detection within 1 m of a target
+FALSE_COLOR: Color = (255, 255, 255, 255)  # ... and one that is not
 LABEL_COLORS = np.array([[150, 150, 150, 255], [230, 25, 25, 255], [245, 200, 0, 255]], dtype=np.uint8)  # by code
 STATE_COLORS: dict[str, Color] = {
     "PREFLIGHT": (190, 190, 190, 255), "TAKING_OFF": (160, 200, 255, 255), "IDLE": (200, 200, 120, 255),
