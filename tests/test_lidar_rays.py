@@ -102,6 +102,12 @@ def test_hit_probability_is_the_gaussian_mass_in_the_measured_voxel():
     assert hit_probability(point, cov, voxel, 0.5) == pytest.approx(monte_carlo, abs=0.01)
 
 
+def test_hit_probability_is_the_same_every_time_lockstep_runs_depend_on_it():
+    point, cov = np.array([10.2, 3.3, 5.1]), np.array([[0.05, 0.01, 0.0], [0.01, 0.03, 0.0], [0.0, 0.0, 0.02]])
+    first = hit_probability(point, cov, np.array([10.0, 3.0, 5.0]), 0.5)
+    assert all(hit_probability(point, cov, np.array([10.0, 3.0, 5.0]), 0.5) == first for _ in range(5))
+
+
 def test_mean_hit_probability_falls_with_distance_under_attitude_noise_as_in_fig_5():
     rng = np.random.default_rng(3)
     attitude = np.diag([0.0] * 3 + [np.radians(0.5) ** 2] * 3)

@@ -91,7 +91,8 @@ def hit_probability(point: np.ndarray, covariance: np.ndarray, voxel_low: np.nda
 
     cov = np.asarray(covariance, dtype=np.float64) + 1e-12 * np.eye(3)  # a perfect pose is a degenerate Gaussian
     low = np.asarray(voxel_low, dtype=np.float64)
-    dist = multivariate_normal(mean=np.asarray(point, dtype=np.float64), cov=cov, allow_singular=True)
+    # scipy integrates with randomised quasi-Monte Carlo: a fixed seed keeps lockstep runs identical
+    dist = multivariate_normal(mean=np.asarray(point, dtype=np.float64), cov=cov, allow_singular=True, seed=0)
     return float(np.clip(dist.cdf(low + voxel_size, lower_limit=low), 0.0, 1.0))
 
 
