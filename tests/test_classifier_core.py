@@ -21,9 +21,9 @@ def ball(centre=BALL_CENTRE, radius=0.3, count=60, seed=0) -> np.ndarray:
     return np.asarray(centre) + radius * directions / np.linalg.norm(directions, axis=1, keepdims=True)
 
 
-def classifier(free=(), occupied=()) -> ClassifierCore:
+def classifier(free=(), occupied=(), params=PARAMS) -> ClassifierCore:
     """A classifier whose map replica has confident free boxes and tentatively occupied voxels."""
-    core = ClassifierCore(PARAMS)
+    core = ClassifierCore(params)
     indices, values = [], []
     for low, high in free:
         ijk = np.stack(np.meshgrid(*[np.arange(int(a / VOXEL), int(b / VOXEL)) for a, b in zip(low, high)],
@@ -43,11 +43,34 @@ FREE_AROUND_BALL = [((11.0, 11.0, 2.0), (19.0, 19.0, 10.0))]
 
 
 def test_a_ball_walled_off_by_free_space_is_a_flying_object():
-    scan = classifier(free=FREE_AROUND_BALL).classify(ball(), SENSOR)
+    eq_19 = ClassifierParams(map_origin=ORIGIN, map_shape=SHAPE, surface_bias=0.0)
+    scan = classifier(free=FREE_AROUND_BALL, params=eq_19).classify(ball(), SENSOR)
     assert (scan.point_labels == FLYING).all()
     assert len(scan.positions) == 1
     assert np.allclose(scan.positions[0], ball().mean(axis=0))  # eq. 19: the centroid of its returns
     assert scan.point_counts.tolist() == [60] and 0.5 < scan.extents[0] <= 0.6
+
+
+def facing_hemisphere(radius=0.325, count=400, seed=1) -> np.ndarray:
+    """Returns of parallel rays from -x on a sphere at BALL_CENTRE: uniform over its projected disc."""
+    rng = np.random.default_rng(seed)
+    rho, angle = radius * np.sqrt(rng.uniform(0, 1, count)), rng.uniform(0, 2 * np.pi, count)
+    y, z = rho * np.cos(angle), rho * np.sin(angle)
+    return BALL_CENTRE + np.column_stack([-np.sqrt(radius ** 2 - rho ** 2), y, z])
+
+
+def test_the_one_sided_sampling_bias_is_taken_out_of_the_centre_estimate():
+    sensor = SensorPose(np.array([5.0, 15.0, 6.0]), np.eye(3))
+    plain = ClassifierParams(map_origin=ORIGIN, map_shape=SHAPE, surface_bias=0.0)
+    for params, largest_error in ((plain, None), (PARAMS, 0.03)):
+        (position,) = classifier(free=FREE_AROUND_BALL, params=params).classify(facing_hemisphere(), sensor).positions
+        error = position - BALL_CENTRE
+        if largest_error is None:  # eq. 19: 2a/3 in front of the centre, towards the sensor
+            assert error[0] == pytest.approx(-2 / 3 * 0.325, abs=0.02) and abs(error[1:]).max() < 0.03
+        else:
+            assert np.linalg.norm(error) < largest_error
+    with pytest.raises(ValueError, match="surface_bias"):
+        ClassifierParams(surface_bias=1.5)
 
 
 def test_the_same_ball_in_unknown_space_is_unknown_rule_b_needs_the_map():
