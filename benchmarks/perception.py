@@ -36,13 +36,13 @@ import numpy as np  # noqa: E402
 
 from schemas.arrays import from_numpy, to_numpy  # noqa: E402
 from schemas.messages import Header, PointCloud, VoxelMap, WorldModel  # noqa: E402
-from services.classifier.core import ClassifierCore, SensorPose  # noqa: E402
+from services.classifier.core import SensorPose  # noqa: E402
 from services.geometry import rotation_matrix  # noqa: E402
 from services.lidar.rays import scan_rays  # noqa: E402
-from services.mapper.core import MapperCore  # noqa: E402
 from services.recorder.mcap_io import read_recording  # noqa: E402
 from services.runtime.health import process_usage  # noqa: E402
-from services.voxels.apriori import obstacle_voxels  # noqa: E402
+
+from perception_loop import PerceptionLoop  # noqa: E402  (beside this file)
 
 GOAL_MS = 25.0
 SENSOR = "os0-128-1024"
@@ -94,12 +94,8 @@ def main() -> int:
         raise SystemExit(f"no scans of {args.uav} in the recording")
     print(f"{len(clouds)} scans of {args.uav}: {clouds[0].sensor_model}, {clouds[0].height} × {clouds[0].width}")
 
-    classifier, mapper = ClassifierCore(), MapperCore()
-    if world is not None:
-        mapper.pin(obstacle_voxels(world.obstacles, mapper.geometry))
-        snapshot = mapper.snapshot()
-        classifier.apply_map(True, mapper.params.origin, mapper.shape, mapper.voxel_size, mapper.params.unknown_value,
-                             snapshot.indices, snapshot.values)
+    loop = PerceptionLoop(apriori=world.obstacles if world is not None else None)
+    mapper = loop.mapper
     encoder = msgspec.msgpack.Encoder()
     classify_ms, map_ms, delta_bytes, detections = [], [], [], 0
     tracemalloc.start()
@@ -107,24 +103,19 @@ def main() -> int:
         points = to_numpy(cloud.points)
         pose = SensorPose(np.asarray(cloud.sensor_pose.position), rotation_matrix(cloud.sensor_pose.orientation),
                           None if cloud.pose_covariance is None else to_numpy(cloud.pose_covariance))
-        started = time.perf_counter()
-        scan = classifier.classify(points, pose)
-        classified = time.perf_counter()
+        started = time.perf_counter()  # the mapper node makes the rays of each scan it receives
         rays = scan_rays(points, cloud.width, cloud.sensor_model, cloud.frame, cloud.sensor_pose.position,
                          cloud.sensor_pose.orientation, None if cloud.mask is None else to_numpy(cloud.mask))
-        delta = mapper.integrate(cloud.header.stamp, rays, scan.voxels, scan.voxel_labels, scan.voxel_weights)
-        mapped = time.perf_counter()
-        classifier.apply_map(False, mapper.params.origin, mapper.shape, mapper.voxel_size,
-                             mapper.params.unknown_value, delta.indices, delta.values)
-        replicated = time.perf_counter()
+        rays_s = time.perf_counter() - started
+        step = loop.step(cloud.header.stamp, points, pose, rays)
         if k >= WARM_UP:
-            classify_ms.append((classified - started + replicated - mapped) * 1e3)
-            map_ms.append((mapped - classified) * 1e3)
+            classify_ms.append(step.classify_s * 1e3)
+            map_ms.append((rays_s + step.map_s) * 1e3)
             delta_bytes.append(len(encoder.encode(VoxelMap(
                 header=Header(stamp=cloud.header.stamp), snapshot=False, voxel_size=mapper.voxel_size,
-                origin=mapper.params.origin, shape=mapper.shape, indices=from_numpy(delta.indices),
-                values=from_numpy(delta.values)))))
-            detections += len(scan.positions)
+                origin=mapper.params.origin, shape=mapper.shape, indices=from_numpy(step.delta.indices),
+                values=from_numpy(step.delta.values)))))
+            detections += len(step.scan.positions)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     _, resident = process_usage()
