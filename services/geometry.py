@@ -10,8 +10,10 @@ import numpy as np
 
 def rotation_matrix(orientation_wxyz) -> np.ndarray:
     """(3, 3) rotation of a quaternion given as (w, x, y, z), the order of schemas' Pose; normalised
-    first (a message's quaternion is only approximately unit)."""
-    w, x, y, z = np.asarray(orientation_wxyz, dtype=np.float64).reshape(4) / np.linalg.norm(orientation_wxyz)
+    first (a message's quaternion is only approximately unit); all NaN for a zero quaternion."""
+    q = np.asarray(orientation_wxyz, dtype=np.float64).reshape(4)
+    with np.errstate(invalid="ignore", divide="ignore"):  # a zero quaternion gives NaN: the caller refuses it
+        w, x, y, z = q / np.linalg.norm(q)
     return np.array([
         [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
         [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],

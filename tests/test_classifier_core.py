@@ -163,7 +163,9 @@ def test_bad_input_is_dropped_and_counted():
     assert len(scan.points) == 60 and core.counters.invalid_points == 2
     assert len(core.classify(np.zeros((5, 2)), SENSOR).points) == 0  # not (…, 3)
     assert len(core.classify(ball(), SensorPose(np.array([np.nan, 0, 0]), np.eye(3))).points) == 0
-    assert core.counters.rejected_scans == 2
+    assert len(core.classify(ball(), SensorPose(SENSOR.position, np.full((3, 3), np.nan))).points) == 0
+    assert len(core.classify(ball(), SensorPose(SENSOR.position, np.eye(3), np.full((6, 6), np.inf))).points) == 0
+    assert core.counters.rejected_scans == 4
     outside = core.classify(ball(np.array([-30.0, 15.0, 6.0])), SENSOR)
     assert core.counters.points_outside_map == 60 and len(outside.voxels) == 0 and len(outside.positions) == 0
     organised = np.full((4, 16, 3), np.nan, np.float32)

@@ -169,6 +169,11 @@ def test_bad_label_sets_are_refused_whole_and_the_map_is_never_corrupted():
     core.integrate(0, rays(sensor, np.array([[np.nan, 1, 1], [np.inf, 1, 1]])), *NO_LABELS)
     core.integrate(0, rays((np.nan, 0.0, 0.0), np.array([[9.0, 5.0, 5.0]])), *NO_LABELS)
     assert np.array_equal(core.grid, before)
+    # points that are not (N, 3), a rotation that is not finite: refused and counted
+    core.integrate(0, ScanRays(np.array(sensor), np.eye(3), np.ones((4, 2), np.float32), None, None), *NO_LABELS)
+    core.integrate(0, ScanRays(np.array(sensor), np.full((3, 3), np.nan), np.ones((4, 3), np.float32), None, None),
+                   *NO_LABELS)
+    assert core.counters.rejected_rays == 3 and np.array_equal(core.grid, before)
     assert np.isfinite(core.grid).all()
 
 

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import queue
 import signal
 import time
@@ -11,6 +12,7 @@ import pytest
 
 from schemas import keys
 from schemas.messages import Tracks
+from services.runtime.counted import CountedWarnings
 from services.runtime.zenoh_config import ZenohConfigError, ZenohSettings, build
 from tests.tools.health import wait_healthy
 
@@ -71,3 +73,16 @@ def test_sigint_stops_a_service_within_2s(hub, processes, service):
     proc.send_signal(signal.SIGINT)
     code = proc.wait(timeout=5)
     assert code == 0 and time.monotonic() - started < 2.0
+
+
+def test_counted_warnings_speak_at_the_first_refusal_and_at_each_power_of_ten(caplog):
+    warnings = CountedWarnings(logging.getLogger("test.counted"))
+    with caplog.at_level(logging.WARNING, logger="test.counted"):
+        for count in (0, 1, 2, 9, 10, 11, 99, 250, 250, 1000):
+            warnings.update({"scans refused": count, "points dropped": 2 * count})
+    said = [r.getMessage() for r in caplog.records]
+    assert [m for m in said if m.startswith("scans refused")] == [
+        "scans refused so far: 1", "scans refused so far: 10", "scans refused so far: 250", "scans refused so far: 1000"]
+    assert [m for m in said if m.startswith("points dropped")] == [
+        "points dropped so far: 2", "points dropped so far: 18", "points dropped so far: 198",
+        "points dropped so far: 2000"]

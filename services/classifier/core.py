@@ -130,7 +130,9 @@ class ClassifierCore:
         Infinite coordinates are dropped and counted; a scan that is not (…, 3) is refused."""
         self.counters.scans += 1
         pts = np.asarray(points)
-        if pts.ndim < 2 or pts.shape[-1] != 3 or not np.all(np.isfinite(pose.position)):
+        pose_sound = np.all(np.isfinite(pose.position)) and np.all(np.isfinite(pose.rotation)) and \
+            (pose.covariance is None or np.all(np.isfinite(pose.covariance)))
+        if pts.ndim < 2 or pts.shape[-1] != 3 or not pose_sound:
             self.counters.rejected_scans += 1
             return _empty_scan()
         leaf_grid = self._leaf_grid()

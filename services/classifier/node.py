@@ -15,6 +15,7 @@ from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, VoxelMap
 from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose
 from services.geometry import rotation_matrix
+from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.runtime.warmup import preload
 
@@ -35,7 +36,8 @@ class ClassifierNode(Node):
         self.subscribe(self.topic("points"), PointCloud, self.on_points)
         self._ignored_deltas = 0
         self._map_stamp = 0
-        self._reported: dict[str, int] = {}  # what was reported -> the count of the next report
+        self._bad_input = CountedWarnings(self.log)
+        self._said_outside = False
 
     def on_map(self, msg: VoxelMap, key: str) -> None:
         applied = self.core.apply_map(
@@ -80,18 +82,13 @@ class ClassifierNode(Node):
         ))
 
     def _report_bad_input(self) -> None:
-        """A warning when refused input first appears and each time its count passes a power of ten
-        (bad input on every scan must not flood the log); returns outside the map are normal at the
-        arena's edge: said once."""
+        """Refused input, counted (services/runtime/counted.py); returns outside the map are normal at
+        the arena's edge: said once."""
         c = self.core.counters
-        for name, count in (("points with infinite coordinates dropped", c.invalid_points),
-                            ("scans refused (shape or sensor pose)", c.rejected_scans)):
-            if count and count >= self._reported.get(name, 1):
-                self.log.warning("%s so far: %d", name, count)
-                self._reported[name] = 10 ** len(str(count))
-        if c.points_outside_map and "outside" not in self._reported:
-            self._reported["outside"] = 1
+        self._bad_input.update({"points with infinite coordinates dropped": c.invalid_points,
+                                "scans refused (shape or sensor pose)": c.rejected_scans})
+        if c.points_outside_map and not self._said_outside:
+            self._said_outside = True
             self.log.info("returns outside the map are clustered but never update it")
-
 
 NODE = ClassifierNode

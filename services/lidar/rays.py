@@ -69,8 +69,10 @@ def scan_rays(points: np.ndarray, width: int, sensor_model: str, frame: int, pos
     if packed_mask is not None and pts.ndim == 3:
         masked = unpack_mask(packed_mask, width)
         masked = masked.reshape(-1) if masked.shape == pts.shape[:-1] else None
+    if pts.shape[-1:] == (3,):
+        pts = pts.reshape(-1, 3)  # anything else is left as it is, for the mapper to refuse and count
     return ScanRays(np.asarray(position, dtype=np.float64), rotation_matrix(orientation_wxyz),
-                    pts.reshape(-1, 3), None if beams is None else beams.reshape(-1, 3), masked)
+                    pts, None if beams is None else beams.reshape(-1, 3), masked)
 
 
 def ray_ends(origin, points: np.ndarray, directions: np.ndarray, masked: np.ndarray | None,

@@ -86,6 +86,7 @@ class MapperCounters:
     rays: int = 0
     voxels_outside: int = 0  # label voxels outside the map, dropped
     rejected_label_sets: int = 0  # label sets with impossible contents, not applied
+    rejected_rays: int = 0  # scans whose rays could not be cast (sensor pose not finite, fields of other lengths)
     resets: int = 0  # voxels reset by the separate-cluster rule
 
 
@@ -159,7 +160,11 @@ class MapperCore:
         grid small enough to stay in the processor's cache."""
         nothing = np.zeros(0, dtype=np.int64)
         origin = np.asarray(rays.origin, dtype=np.float64).reshape(3)
-        pts = np.ascontiguousarray(np.asarray(rays.points, dtype=np.float32).reshape(-1, 3))
+        pts = np.asarray(rays.points, dtype=np.float32)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            self.counters.rejected_rays += 1
+            return nothing
+        pts = np.ascontiguousarray(pts)
         beams = np.full(pts.shape, np.nan) if rays.beams is None else \
             np.ascontiguousarray(np.asarray(rays.beams, dtype=np.float64).reshape(-1, 3))
         blocked = np.zeros(len(pts), dtype=bool) if rays.masked is None else \
@@ -167,6 +172,7 @@ class MapperCore:
         rotation = np.ascontiguousarray(np.asarray(rays.rotation, dtype=np.float64).reshape(3, 3))
         if not (np.all(np.isfinite(origin)) and np.all(np.isfinite(rotation))) or len(beams) != len(pts) \
                 or len(blocked) != len(pts):
+            self.counters.rejected_rays += 1
             return nothing
         self.counters.rays += int(np.count_nonzero(~blocked))
         reach = self.params.raycast_max_distance / self.voxel_size + 1.0

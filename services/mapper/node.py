@@ -15,6 +15,7 @@ from schemas.messages import Header, LabelSet, PointCloud, VoxelMap, WorldModel
 from services.lidar.rays import ScanRays, scan_rays
 from services.mapper.core import MapDelta, MapperCore, MapperParams
 from services.runtime.clock import to_ns
+from services.runtime.counted import CountedWarnings
 from services.runtime.errors import UsageError
 from services.runtime.node import Node
 from services.voxels.apriori import load_map_file, obstacle_voxels
@@ -38,6 +39,7 @@ class MapperNode(Node):
         self._last_snapshot_ns: int | None = None
         self._warned_voxel_size = False
         self._unpaired = 0
+        self._bad_input = CountedWarnings(self.log)
         self._warned_model = False
         self._apriori_done = False
         apriori = self.params.apriori
@@ -85,6 +87,10 @@ class MapperNode(Node):
             labels = self._labels.pop(stamp)
             delta = self.core.integrate(stamp, rays, to_numpy(labels.voxels), to_numpy(labels.voxel_labels),
                                         to_numpy(labels.voxel_weights))
+            c = self.core.counters
+            self._bad_input.update({"label sets refused (impossible contents)": c.rejected_label_sets,
+                                    "scans whose rays could not be cast (pose or field lengths)": c.rejected_rays,
+                                    "label voxels outside the map dropped": c.voxels_outside})
             self._publish(stamp, snapshot=False, delta=delta)
         for waiting in (self._rays, self._labels):
             while len(waiting) > PENDING:
