@@ -83,3 +83,10 @@ def test_a_native_viewer_without_a_display_says_what_to_use_instead():
         result = subprocess.run(falconry_argv(*args), cwd=REPO, capture_output=True, text=True, timeout=60, env=env)
         assert result.returncode == 2 and "Traceback" not in result.stderr
         assert "no display for a native viewer" in result.stderr and "--viz web" in result.stderr, result.stderr
+
+
+def test_the_summary_sums_each_services_cpu_over_the_uavs_largest_first():
+    from services.launcher.sim_cmd import cpu_line
+
+    cpu = {"uav1/mapper": 2.0, "uav2/mapper": 3.0, "uav1/classifier": 1.0, "sim/simulator": 0.5, "launcher": 0.7}
+    assert cpu_line(cpu) == "mapper 5.0, classifier 1.0, launcher 0.7, simulator 0.5"

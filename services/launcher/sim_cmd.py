@@ -17,7 +17,7 @@ from pathlib import Path
 import msgspec
 
 from schemas import keys
-from schemas.messages import FaultCommand, Header, SimEvent
+from schemas.messages import FaultCommand, Header, ServiceHealth, SimEvent
 from services.launcher import netns
 from services.launcher.common import CliError, add_zenoh_options
 from services.launcher.faults import FaultExecutor
@@ -29,6 +29,7 @@ from services.launcher.supervisor import Supervisor, describe_exit
 from services.launcher.view_cmd import DRAIN_S, add_view_options, check_view_options
 from services.recorder.record import Recorder, summary_lines
 from services.runtime import shm
+from services.runtime.health import query_health
 from services.runtime.zenoh_config import free_port, init_logging, open_session
 from services.simulator.options import add_simulator_options
 from services.simulator.scenario import ScenarioError, load_scenario
@@ -194,6 +195,8 @@ def run_sim(args: argparse.Namespace) -> int:
         # a second Ctrl-C must not cut the clean-up short
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        # where the run's CPU went, asked while every service still lives (not after Ctrl-C: no waiting then)
+        usage = [] if outcome == "interrupted" else query_health(session, timeout=1.0)
         faults.end_all()
         killed = supervisor.stop_all(last={VIEWER: DRAIN_S + 10.0})
         viewer = supervisor.children.get(VIEWER)
@@ -214,7 +217,8 @@ def run_sim(args: argparse.Namespace) -> int:
     summary = monitor.summary()
     summary.update(outcome=outcome, scenario=scenario.name, seed=seed, lockstep=args.lockstep, detector=args.detector,
                    wall_time=round(time.time() - started_wall, 2), killed_at_shutdown=killed,
-                   failed_services=[c.name for c in supervisor.children.values() if c.failed])
+                   failed_services=[c.name for c in supervisor.children.values() if c.failed],
+                   cpu=cpu_by_service(usage, time.process_time()))
     print_summary(summary, len(uavs), duration)
     if args.rrd:
         print(rrd_line(args.rrd, summary["mission_time"]), flush=True)
@@ -311,6 +315,23 @@ def perception_line(p: dict) -> str:
             f"confirmed tracks never matched a target ({p['false_tracks_after_10s']} confirmed after 10 s)")
 
 
+def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[str, float]:
+    """CPU seconds per process at the end of the run ("uav1/mapper", "sim/simulator", "launcher"); a
+    restarted service counts from its restart."""
+    cpu = {f"{h.uav}/{h.service}": round(h.cpu_time, 2) for h in usage}
+    cpu["launcher"] = round(launcher_cpu_s, 2)
+    return cpu
+
+
+def cpu_line(cpu: dict[str, float]) -> str:
+    """'mapper 41.0, classifier 12.3, …': each service summed over the UAVs, the largest first."""
+    totals: dict[str, float] = {}
+    for process, seconds in cpu.items():
+        service = process.rsplit("/", 1)[-1]
+        totals[service] = totals.get(service, 0.0) + seconds
+    return ", ".join(f"{name} {seconds:.1f}" for name, seconds in sorted(totals.items(), key=lambda kv: -kv[1]))
+
+
 def print_summary(s: dict, uav_count: int, duration: float) -> None:
     lines = [
         "",
@@ -331,6 +352,8 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
     lines.append("restarts: " + (", ".join(s["restarts"]) if s["restarts"] else "none"))
     injected = [f for f in s["faults"] if "fault_injected" in f]
     lines.append(f"faults injected: {len(injected)}" + "".join(f"\n  {f}" for f in s["faults"]))
+    if s["cpu"]:
+        lines.append("CPU per service, s (all UAVs): " + cpu_line(s["cpu"]))
     if s["failed_services"]:
         lines.append("gave up on: " + ", ".join(s["failed_services"]))
     if s["killed_at_shutdown"]:
