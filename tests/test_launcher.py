@@ -128,3 +128,4 @@ def test_two_uav_mission_flies_and_reports(tmp_path):
     expected = {f"{u}/{s}" for u in ("uav1", "uav2") for s in services} | {"sim/simulator", "launcher"}
     assert set(summary["cpu"]) == expected
     assert all(seconds > 0 for seconds in summary["cpu"].values()), summary["cpu"]
+    assert summary["killed_at_shutdown"] == []  # every process stopped within the launcher's grace
