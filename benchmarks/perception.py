@@ -128,8 +128,9 @@ def main() -> int:
     print(f"  map delta  median {statistics.median(delta_bytes) / 1e3:6.1f} kB   p95 "
           f"{percentile(delta_bytes, 95) / 1e3:6.1f} kB   max {max(delta_bytes) / 1e3:6.1f} kB per scan "
           f"({statistics.mean(delta_bytes) * 10 / 1e3:.0f} kB/s at 10 Hz)")
-    print(f"  memory     peak {peak / 1e6:.0f} MB allocated in the loop, {resident / 1e6:.0f} MB resident "
-          f"(two dense {mapper.grid.nbytes / 1e6:.0f} MB grids and their scratch)")
+    held = sum(c.points.data.nbytes for c in clouds)
+    print(f"  memory     peak {peak / 1e6:.0f} MB allocated in the loop (two dense {mapper.grid.nbytes / 1e6:.0f} MB "
+          f"grids and their scratch); {resident / 1e6:.0f} MB resident, {held / 1e6:.0f} MB of it the loaded scans")
     print(f"  detections {detections} in {len(classify_ms)} scans")
     return 0
 
