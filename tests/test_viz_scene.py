@@ -94,10 +94,15 @@ def test_map_view_draws_named_voxels_by_state_in_layers_of_what_changed():
     (first,) = view.drain()
     # (1,1,0) is in cell (0,0,0) and (2,1,0) in cell (1,0,0): 1 m cubes centred on their cells
     assert np.allclose(sorted(first.occupied.tolist()), [[0.5, 0.5, 0.5], [1.5, 0.5, 0.5], [10.5, 15.5, 1.5]])
-    assert first.confident.sum() == 2 and len(first.unknown) == 0  # never-named voxels say nothing
+    assert len(first.unknown) == 0  # never-named voxels say nothing
 
     view.apply(False, **GEOMETRY, indices=occupied, values=np.array([-0.05, -0.01], dtype=np.float32))
     assert view.drain() == []  # still confidently occupied: nothing to draw
+    view.apply(False, **GEOMETRY, indices=occupied, values=np.array([-200.0, 0.0], dtype=np.float32))
+    assert view.drain() == []  # confident to tentative is still occupied: no layer is drawn again
+    view.apply(False, **GEOMETRY, indices=tentative, values=np.array([-900.0], dtype=np.float32))
+    (redrawn,) = view.drain()  # a voxel that went free leaves its layer: that layer is drawn again
+    assert redrawn.layer == first.layer and len(redrawn.occupied) == 2
 
     grown = flat((30, 5, 1))
     view.apply(False, **GEOMETRY, indices=grown, values=np.array([0.0], dtype=np.float32))
@@ -158,8 +163,8 @@ def test_a_snapshot_with_another_initial_value_is_read_from_the_new_grid():
     view.apply(True, **other, indices=flat((2, 2, 2)), values=np.array([0.0], dtype=np.float32))
     (layer,) = view.drain()
     # voxel (1,1,1) went back to the new initial value -100: still tentatively occupied, so unchanged;
-    # (2,2,2) is new and confident
-    assert np.allclose(layer.occupied, [[1.25, 1.25, 1.25]]) and layer.confident.all()
+    # (2,2,2) is new and occupied
+    assert np.allclose(layer.occupied, [[1.25, 1.25, 1.25]])
 
 
 def test_map_states_follow_eq_7_thresholds():

@@ -1,9 +1,12 @@
 """A viewer's copy of one UAV's occupancy map, drawn as append-only layers.
 
 What is drawn: display cells of `cell` × `cell` × `cell` voxels (`cell` > 1 decimates), each in
-the most telling state of its voxels — confidently occupied, tentatively occupied, or unknown — by
-the thresholds of eq. 7 (schemas/voxels.py). Only voxels a VoxelMap ever named count: a
-never-touched voxel holds the initial "unknown" value and says nothing.
+the most telling state of its voxels — occupied (at least tentatively: what rule A takes for
+background) or unknown — by the thresholds of eq. 7 (schemas/voxels.py). Only voxels a VoxelMap
+ever named count: a never-touched voxel holds the initial "unknown" value and says nothing.
+Tentative and confident occupancy are one class here on purpose: at OS0-128 the ground's voxels
+near the sensor swing between the two every few scans (grazing rays), and each swing would redraw
+the layer holding the voxel; drawn apart they made a recording five times larger.
 
 How: every `drain` puts the cells whose state changed since the last one into a new layer, and
 gives back that layer plus every older layer that lost a cell (drawn again without it). A map that
@@ -22,10 +25,10 @@ from schemas import voxels
 from services.voxels.replica import MapReplica
 
 # What a voxel or cell shows, in increasing importance: a cell shows its most important voxel.
-NOTHING, UNKNOWN, TENTATIVE, OCCUPIED = 0, 1, 2, 3
+NOTHING, UNKNOWN, OCCUPIED = 0, 1, 2
 _SHOWN = np.zeros(256, dtype=np.uint8)  # eq. 7 state -> what is shown (free shows nothing)
 _SHOWN[voxels.STATE_UNKNOWN] = UNKNOWN
-_SHOWN[voxels.STATE_TENTATIVE] = TENTATIVE
+_SHOWN[voxels.STATE_TENTATIVE] = OCCUPIED
 _SHOWN[voxels.STATE_OCCUPIED] = OCCUPIED
 
 
@@ -39,7 +42,6 @@ class MapUpdate:
 class Layer:
     layer: int
     occupied: np.ndarray  # (N, 3) cell centres at least tentatively occupied
-    confident: np.ndarray  # (N,) bool: confidently occupied (else tentative)
     unknown: np.ndarray  # (M, 3) cell centres whose voxels the mapper named and now calls uncertain
 
 
@@ -155,9 +157,7 @@ class MapView:
     def _layer(self, layer: int) -> Layer:
         members = np.flatnonzero(self._cell_layer == layer)
         state = self._cell_shown[members]
-        occupied = members[state >= TENTATIVE]
-        return Layer(layer=layer, occupied=self._centres(occupied),
-                     confident=self._cell_shown[occupied] == OCCUPIED,
+        return Layer(layer=layer, occupied=self._centres(members[state == OCCUPIED]),
                      unknown=self._centres(members[state == UNKNOWN]))
 
     def _centres(self, cells: np.ndarray) -> np.ndarray:

@@ -432,7 +432,6 @@ class SceneBuilder:
         half = uav.map.cell_size() * 0.45
         for layer in uav.map.drain():
             colors = height_colors(layer.occupied[:, 2], 0.0, 10.0, ramp=TERRAIN)
-            colors[~layer.confident] = (120, 220, 220, 160)  # tentative: pale cyan
             self._log(f"{name}/map/occupied/{layer.layer:04d}", draw.Boxes(layer.occupied, np.array([half] * 3), colors))
             self._log(f"{name}/map/unknown/{layer.layer:04d}", draw.Points(layer.unknown, (120, 200, 255, 120), half * 0.6))
 
