@@ -312,7 +312,8 @@ def perception_line(p: dict) -> str:
                       f"{100 * p['recall'][kind]:.0f} %)" for kind, n in p["in_sight"].items()) or "no target in sight"
     return (f"{p['matched']} detections matched a target (within 1 m), {p['false']} false "
             f"({p['false_per_minute']:.1f} per minute); {sight}; {p['false_tracks']} of {p['confirmed_tracks']} "
-            f"confirmed tracks never matched a target ({p['false_tracks_after_10s']} confirmed after 10 s)")
+            f"confirmed tracks never matched a target ({p['false_tracks_after_10s']} of those confirmed after the "
+            f"first 10 s)")
 
 
 def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[str, float]:
