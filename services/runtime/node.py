@@ -222,7 +222,7 @@ class Node:
             # Everything set up so far (modules, numba's dispatchers, scipy) lives as long as the
             # process: out of the collector's sight, the final collection at exit no longer walks
             # it (that took 0.6-2 s per process when a whole fleet stopped at once on 2 cores,
-            # past the launcher's 2 s grace) and no full collection in flight does either.
+            # past the launcher's 2 s grace), nor does any full collection while the service runs.
             gc.freeze()
             self.log.info("up (pid %d)", os.getpid())
             self.serve()
