@@ -16,6 +16,13 @@ from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging
 
 REPO = Path(__file__).resolve().parent.parent
 
+# A suite started in the background by a non-interactive shell (`make test &`, nohup) inherits
+# SIGINT ignored, and every process it starts would inherit that too: the tests that stop a
+# launcher or a viewer the way Ctrl-C does would wait in vain. Children of a process that handles
+# SIGINT get the default action back.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
 
 def _children(pid: int) -> list[int]:
     out = []
