@@ -16,7 +16,7 @@ and poles) over time, with the map learnt and with the world's obstacles pinned 
 once the map has converged). The first seconds of each case are the map's warm-up and not counted
 for recall and error.
 
-    .venv/bin/python benchmarks/detection_quality.py                 # about 4 min
+    .venv/bin/python benchmarks/detection_quality.py                 # about 5 min
     .venv/bin/python benchmarks/detection_quality.py --quick         # shorter cases, about 1 min
 """
 from __future__ import annotations

@@ -11,7 +11,7 @@ where the time went, printed per service as the share of one core it used on ave
 On this 2-core machine the processes of all UAVs share the two cores: the sum of the shares times
 the UAVs cannot exceed 200 %.
 
-    .venv/bin/python benchmarks/fleet.py                          # 60 s missions, 2 and 3 UAVs: ~6 min
+    .venv/bin/python benchmarks/fleet.py                          # 60 s missions, 2 and 3 UAVs: ~3 min
     .venv/bin/python benchmarks/fleet.py --sensor os0-64-512 --duration 30
 """
 from __future__ import annotations
