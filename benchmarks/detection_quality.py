@@ -166,7 +166,7 @@ def run_case(case: Case) -> Outcome:
             distance = float(np.linalg.norm(truth[0] - origin))
             outcome.distance_in_view.append(distance)
             outcome.detected.append(bool(right.any()))
-            outcome.in_sight.append(int((result.hits == 1).sum()) >= evaluation.MIN_HITS)
+            outcome.in_sight.append(bool(evaluation.in_sight(result.hits, 1)[0]))
             if right.any():
                 outcome.errors += np.linalg.norm(positions[right] - truth[0], axis=1).tolist()
                 returns = result.points[result.hits == 1]  # the whole target is one cluster here

@@ -48,8 +48,8 @@ class ClassifierNode(Node):
             self._map_stamp = msg.header.stamp
         else:
             self._ignored_deltas += 1
-            if self._ignored_deltas in (1, 100):
-                self.log.info("map delta with another geometry ignored until the next snapshot")
+            self._bad_input.update({"map deltas of another geometry ignored (until the next snapshot)":
+                                    self._ignored_deltas})
 
     def on_points(self, msg: PointCloud, key: str) -> None:
         covariance = None if msg.pose_covariance is None else to_numpy(msg.pose_covariance).reshape(6, 6)

@@ -175,10 +175,8 @@ class MapperCore:
             self.counters.rejected_rays += 1
             return nothing
         self.counters.rays += int(np.count_nonzero(~blocked))
-        reach = self.params.raycast_max_distance / self.voxel_size + 1.0
-        centre = (origin - self.origin) / self.voxel_size
-        low = np.clip(np.floor(centre - reach).astype(np.int64), 0, self.shape)
-        high = np.clip(np.ceil(centre + reach).astype(np.int64) + 1, 0, self.shape)
+        # one voxel of margin: a ray ending exactly d_max away may touch the voxel beyond
+        low, high = self.geometry.window(origin, self.params.raycast_max_distance + self.voxel_size)
         window = high - low
         if np.any(window <= 0):
             return nothing
@@ -229,10 +227,7 @@ class MapperCore:
         p = self.params
         if not np.all(np.isfinite(origin)):
             return np.zeros(0, dtype=np.int64)
-        reach = p.separation_reach / self.voxel_size
-        centre = (origin - self.origin) / self.voxel_size
-        low = np.clip(np.floor(centre - reach).astype(int), 0, self.shape)
-        high = np.clip(np.ceil(centre + reach).astype(int) + 1, 0, self.shape)
+        low, high = self.geometry.window(origin, p.separation_reach)
         if np.any(high <= low):
             return np.zeros(0, dtype=np.int64)
         box = self.grid[low[0]:high[0], low[1]:high[1], low[2]:high[2]]

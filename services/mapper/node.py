@@ -87,17 +87,16 @@ class MapperNode(Node):
             labels = self._labels.pop(stamp)
             delta = self.core.integrate(stamp, rays, to_numpy(labels.voxels), to_numpy(labels.voxel_labels),
                                         to_numpy(labels.voxel_weights))
-            c = self.core.counters
-            self._bad_input.update({"label sets refused (impossible contents)": c.rejected_label_sets,
-                                    "scans whose rays could not be cast (pose or field lengths)": c.rejected_rays,
-                                    "label voxels outside the map dropped": c.voxels_outside})
             self._publish(stamp, snapshot=False, delta=delta)
         for waiting in (self._rays, self._labels):
             while len(waiting) > PENDING:
                 waiting.pop(min(waiting))
                 self._unpaired += 1
-                if self._unpaired in (1, 10, 100, 1000):
-                    self.log.warning("%d scans never got their other half (points or labels): dropped", self._unpaired)
+        c = self.core.counters
+        self._bad_input.update({"label sets refused (impossible contents)": c.rejected_label_sets,
+                                "scans whose rays could not be cast (pose or field lengths)": c.rejected_rays,
+                                "label voxels outside the map dropped": c.voxels_outside,
+                                "scans dropped that never got their other half (points or labels)": self._unpaired})
 
     def on_tick(self, now_ns: int) -> None:
         if self._last_snapshot_ns is None or now_ns - self._last_snapshot_ns >= self._snapshot_period_ns:

@@ -51,6 +51,16 @@ class GridGeometry:
     def centres(self, voxels: np.ndarray) -> np.ndarray:
         return self.corner + (np.asarray(voxels, dtype=np.float64).reshape(-1, 3) + 0.5) * self.voxel_size
 
+    def window(self, centre: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+        """(low, high) voxel bounds, high exclusive, of the box of half-width `reach` (m) around the
+        point `centre`, cut to the grid; empty along an axis where high <= low."""
+        middle = (np.asarray(centre, dtype=np.float64).reshape(3) - self.corner) / self.voxel_size
+        cells = reach / self.voxel_size
+        shape = np.asarray(self.shape)
+        low = np.clip(np.floor(middle - cells).astype(np.int64), 0, shape)
+        high = np.clip(np.ceil(middle + cells).astype(np.int64) + 1, 0, shape)
+        return low, high
+
     def same_as(self, other: "GridGeometry") -> bool:
         return (tuple(self.shape) == tuple(other.shape) and float(self.voxel_size) == float(other.voxel_size)
                 and np.array_equal(self.corner, other.corner))
