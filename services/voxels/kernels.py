@@ -25,9 +25,16 @@ def accumulate_ray_lengths(origin, ends, corner, voxel_size, shape, weights):
     """For each segment origin → ends[i] (world frame, metres), add the length (m) of the segment
     inside every voxel it crosses to `weights` (float32, flat over `shape`), clipped to the grid.
     The voxels crossed are those whose weight grew (the caller zeroes them afterwards)."""
+    per_voxel = 1.0 / voxel_size
+    sx = (origin[0] - corner[0]) * per_voxel
+    sy = (origin[1] - corner[1]) * per_voxel
+    sz = (origin[2] - corner[2]) * per_voxel
     for i in range(ends.shape[0]):
-        _traverse(origin[0], origin[1], origin[2], ends[i, 0], ends[i, 1], ends[i, 2],
-                  corner, voxel_size, shape, weights)
+        dx, dy, dz = ends[i, 0] - origin[0], ends[i, 1] - origin[1], ends[i, 2] - origin[2]
+        distance = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if distance > 0.0 and distance < INF:
+            scale = 1.0 / distance
+            _walk(sx, sy, sz, dx * scale, dy * scale, dz * scale, distance * per_voxel, shape, voxel_size, weights)
 
 
 @njit(cache=True, error_model="numpy")
@@ -39,13 +46,15 @@ def cast_scan(origin, rotation, points, beams, masked, max_distance, corner, vox
     points (N, 3) float32, beams (N, 3)."""
     ox, oy, oz = origin[0], origin[1], origin[2]
     r = rotation
+    per_voxel = 1.0 / voxel_size
+    sx, sy, sz = (ox - corner[0]) * per_voxel, (oy - corner[1]) * per_voxel, (oz - corner[2]) * per_voxel
     for i in range(points.shape[0]):
         if masked[i]:
             continue
         dx, dy, dz = points[i, 0] - ox, points[i, 1] - oy, points[i, 2] - oz
         distance = math.sqrt(dx * dx + dy * dy + dz * dz)
         if distance > 0.0 and distance < INF:  # a return (NaN fails both tests)
-            reach = min(distance, max_distance) / distance
+            reach = min(distance, max_distance)
         else:
             bx, by, bz = beams[i, 0], beams[i, 1], beams[i, 2]
             if not (abs(bx) < INF and abs(by) < INF and abs(bz) < INF):
@@ -53,37 +62,37 @@ def cast_scan(origin, rotation, points, beams, masked, max_distance, corner, vox
             dx = r[0, 0] * bx + r[0, 1] * by + r[0, 2] * bz
             dy = r[1, 0] * bx + r[1, 1] * by + r[1, 2] * bz
             dz = r[2, 0] * bx + r[2, 1] * by + r[2, 2] * bz
+            distance = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if not distance > 0.0:
+                continue
             reach = max_distance
-        _traverse(ox, oy, oz, ox + dx * reach, oy + dy * reach, oz + dz * reach, corner, voxel_size, shape, weights)
+        scale = 1.0 / distance
+        _walk(sx, sy, sz, dx * scale, dy * scale, dz * scale, reach * per_voxel, shape, voxel_size, weights)
 
 
 @njit(cache=True, error_model="numpy")
-def _traverse(ox, oy, oz, ex, ey, ez, corner, voxel_size, shape, weights):
-    """Amanatides–Woo through one segment. The hot loop of the mapper: one comparison chain picks
-    the next boundary, a countdown per axis replaces the bounds tests."""
+def _walk(sx, sy, sz, ux, uy, uz, length, shape, voxel_size, weights):
+    """Amanatides–Woo along one segment: from s (grid coordinates, voxel edges) in the unit
+    direction u for `length` voxel edges, adding the length inside each voxel (m) to `weights`.
+    The hot loop of the mapper: one comparison chain picks the next boundary, a countdown per axis
+    replaces the bounds tests. A reciprocal per axis replaces the divisions of the set-up (a third
+    of the time of a scan's rays went into it)."""
     nx, ny, nz = shape[0], shape[1], shape[2]
-    sx = (ox - corner[0]) / voxel_size
-    sy = (oy - corner[1]) / voxel_size
-    sz = (oz - corner[2]) / voxel_size
-    dx = (ex - corner[0]) / voxel_size - sx
-    dy = (ey - corner[1]) / voxel_size - sy
-    dz = (ez - corner[2]) / voxel_size - sz
-    length = math.sqrt(dx * dx + dy * dy + dz * dz)  # voxel edges
-    if not length > 0.0:
-        return
-    ux, uy, uz = dx / length, dy / length, dz / length
+    inv_x = 1.0 / ux if ux != 0.0 else INF
+    inv_y = 1.0 / uy if uy != 0.0 else INF
+    inv_z = 1.0 / uz if uz != 0.0 else INF
     t0, t1 = 0.0, length
-    t0, t1 = _clip(sx, ux, nx, t0, t1)
-    t0, t1 = _clip(sy, uy, ny, t0, t1)
-    t0, t1 = _clip(sz, uz, nz, t0, t1)
+    t0, t1 = _clip(sx, ux, inv_x, nx, t0, t1)
+    t0, t1 = _clip(sy, uy, inv_y, ny, t0, t1)
+    t0, t1 = _clip(sz, uz, inv_z, nz, t0, t1)
     if not t0 < t1:
         return
     ix = _start(sx + ux * t0, nx)
     iy = _start(sy + uy * t0, ny)
     iz = _start(sz + uz * t0, nz)
-    step_x, next_x, delta_x = _axis(sx, ux, ix)
-    step_y, next_y, delta_y = _axis(sy, uy, iy)
-    step_z, next_z, delta_z = _axis(sz, uz, iz)
+    step_x, next_x, delta_x = _axis(sx, ux, inv_x, ix)
+    step_y, next_y, delta_y = _axis(sy, uy, inv_y, iy)
+    step_z, next_z, delta_z = _axis(sz, uz, inv_z, iz)
     left_x = _left(step_x, ix, nx)  # voxels before the grid's edge along each axis
     left_y = _left(step_y, iy, ny)
     left_z = _left(step_z, iz, nz)
@@ -128,13 +137,13 @@ def _left(step, i, n):
 
 
 @njit(cache=True)
-def _clip(s, u, n, t0, t1):
-    """Narrow [t0, t1] to where s + u·t lies within [0, n] (slab test)."""
+def _clip(s, u, inv_u, n, t0, t1):
+    """Narrow [t0, t1] to where s + u·t lies within [0, n] (slab test); inv_u = 1/u."""
     if u == 0.0:
         if s < 0.0 or s >= n:
             return 1.0, 0.0  # parallel and outside: empty
         return t0, t1
-    a, b = (0.0 - s) / u, (n - s) / u
+    a, b = -s * inv_u, (n - s) * inv_u
     return max(t0, min(a, b)), min(t1, max(a, b))
 
 
@@ -145,13 +154,13 @@ def _start(p, n):
 
 
 @njit(cache=True)
-def _axis(s, u, i):
+def _axis(s, u, inv_u, i):
     """(step, parameter of the first boundary crossed, parameter between boundaries) along one axis,
-    in the same units as the ray's length (voxel edges)."""
+    in the same units as the ray's length (voxel edges); inv_u = 1/u."""
     if u > 0.0:
-        return 1, (i + 1 - s) / u, 1.0 / u
+        return 1, (i + 1 - s) * inv_u, inv_u
     if u < 0.0:
-        return -1, (i - s) / u, -1.0 / u
+        return -1, (i - s) * inv_u, -inv_u
     return 0, INF, INF
 
 
