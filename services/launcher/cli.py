@@ -7,8 +7,9 @@ import sys
 
 from services.launcher import (analyze_cmd, health_cmd, params_cmd, record_cmd, replay_cmd, run_cmd, sim_cmd,
                                view_cmd)
-from services.launcher.common import Parser
-from services.runtime.errors import UsageError
+from services.launcher.common import EXIT_CODES, Parser
+from services.runtime.errors import INTERRUPTED, RuntimeFailure, UsageError
+from services.runtime.zenoh_config import OpenCancelled
 from services.simulator.scenario import ScenarioError
 
 
@@ -16,7 +17,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="falconry",
         description="Falconry: a team of autonomous LiDAR interceptor UAVs as services over Zenoh.",
-        epilog="Run `falconry COMMAND --help` for the options of each command.",
+        epilog="Run `falconry COMMAND --help` for the options of each command.\n\n" + EXIT_CODES,
     )
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
                         help="log verbosity of this process (default: info)")
@@ -41,8 +42,11 @@ def main(argv: list[str] | None = None) -> int:
         return args.handler(args)
     except (UsageError, ScenarioError) as exc:
         print(f"falconry {args.command}: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        return 130
+        return UsageError.exit_code
+    except RuntimeFailure as exc:  # e.g. Zenoh unreachable: one line too, and a code that asks for a restart
+        print(f"falconry {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except (KeyboardInterrupt, OpenCancelled):
+        return INTERRUPTED
 
 

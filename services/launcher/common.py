@@ -1,24 +1,50 @@
-"""What every `falconry` command shares: the one-line error parser, user-error type and Zenoh options."""
+"""What every `falconry` command shares: the one-line error parser, user-error type, Zenoh options
+and the exit codes' explanation."""
 from __future__ import annotations
 
 import argparse
 
-from services.runtime.errors import UsageError
-from services.runtime.zenoh_config import PROFILES, ZenohSettings
+from services.runtime.errors import INTERRUPTED, RUNTIME_FAILURE, USAGE_ERROR, UsageError
+from services.runtime.zenoh_config import PROFILES, RETRY_FIRST_S, RETRY_MAX_S, ZenohSettings
+
+EXIT_CODES = f"""exit codes:
+  0    done (a finished run; a service stopped by SIGTERM or Ctrl-C)
+  1    a failed run, or a bug (with a traceback)
+  {USAGE_ERROR}    usage error: a bad option, file, parameter or scenario (fix it: a restart
+       cannot help)
+  {RUNTIME_FAILURE}   runtime failure, e.g. Zenoh unreachable after --connect-timeout (EX_TEMPFAIL):
+       restart me, with back-off
+  {INTERRUPTED}  interrupted (Ctrl-C)"""
+FOREVER = object()  # add_zenoh_options(connect_timeout=FOREVER): keep trying by default
 
 
 class CliError(UsageError):
-    """A user mistake: reported as one line on stderr with exit code 2."""
+    """A user mistake: reported as one line on stderr with exit code 2 (USAGE_ERROR)."""
+
+
+class _Formatter(argparse.HelpFormatter):
+    """A text written on several lines (the exit-code table) keeps its lines; one-line texts are wrapped."""
+
+    def _fill_text(self, text, width, indent):
+        if "\n" in text:
+            return "\n".join(indent + line for line in text.splitlines())
+        return super()._fill_text(text, width, indent)
 
 
 class Parser(argparse.ArgumentParser):
     """One-line errors (argparse would print the whole usage first)."""
 
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", _Formatter)
+        super().__init__(*args, **kwargs)
+
     def error(self, message: str):
-        self.exit(2, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+        self.exit(USAGE_ERROR, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
 
 
-def add_zenoh_options(parser: argparse.ArgumentParser, embedded_hint: str) -> None:
+def add_zenoh_options(parser: argparse.ArgumentParser, embedded_hint: str, connect_timeout=None) -> None:
+    """connect_timeout: None offers no --connect-timeout (the session waits for ever), FOREVER
+    offers it with no limit as default, a number offers it with that default."""
     group = parser.add_argument_group("zenoh")
     group.add_argument("--zenoh-profile", choices=PROFILES, default="embedded",
                        help="embedded: loopback peers, multicast off (default); router: client of a zenohd router")
@@ -30,8 +56,22 @@ def add_zenoh_options(parser: argparse.ArgumentParser, embedded_hint: str) -> No
                        help="JSON5 zenoh configuration replacing the profile's base (also: ZENOH_CONFIG env)")
     group.add_argument("--lease-ms", type=int, metavar="MS",
                        help="transport lease; a cut link is noticed after about this long (zenoh default 10000)")
+    group.add_argument("--no-gossip-connect", dest="gossip_connect", action="store_false",
+                       help="connect only to the --connect endpoints, never to peers learnt by gossip (which may "
+                            "still connect to this one): `falconry sim` runs its simulator so with per-UAV links")
+    if connect_timeout is not None:
+        default = "keep trying" if connect_timeout is FOREVER else f"{connect_timeout:g}"
+        group.add_argument(
+            "--connect-timeout", type=float, metavar="S",
+            default=None if connect_timeout is FOREVER else connect_timeout,
+            help=f"while Zenoh will not open the session (no router answers yet, a listen port is busy) try again "
+                 f"after {RETRY_FIRST_S:g} s, doubling to {RETRY_MAX_S:g} s, and after S s of this exit with code "
+                 f"{RUNTIME_FAILURE}; 0 = one attempt (default: {default}). An embedded peer opens at once and "
+                 f"Zenoh retries its --connect endpoints in the background")
 
 
 def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
     return ZenohSettings(profile=args.zenoh_profile, connect=list(args.connect), listen=list(args.listen),
-                         config_file=args.zenoh_config, lease_ms=args.lease_ms)
+                         config_file=args.zenoh_config, lease_ms=args.lease_ms,
+                         connect_timeout=getattr(args, "connect_timeout", None),
+                         gossip_connect=getattr(args, "gossip_connect", True))

@@ -18,7 +18,7 @@ def add_parser(commands) -> None:
     )
     p.add_argument("--timeout", type=float, default=2.0, metavar="S", help="how long to wait for answers (default 2)")
     p.add_argument("--json", action="store_true", help="print the answers as JSON lines")
-    add_zenoh_options(p, "Give the run's hub, e.g. --connect tcp/127.0.0.1:PORT.")
+    add_zenoh_options(p, "Give the run's hub, e.g. --connect tcp/127.0.0.1:PORT.", connect_timeout=0)
     p.set_defaults(handler=run_health)
 
 

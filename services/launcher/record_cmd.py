@@ -8,7 +8,7 @@ import time
 
 import zenoh
 
-from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
+from services.launcher.common import FOREVER, CliError, add_zenoh_options, zenoh_settings
 from services.recorder.mcap_io import CHUNK_SIZE, COMPRESSIONS
 from services.recorder.record import DEFAULT_KEYS, Recorder, summary_lines
 from services.runtime.zenoh_config import init_logging, open_session
@@ -39,7 +39,7 @@ def add_parser(commands) -> None:
                         "answers on falconry/<scope>/health/<service> (default 1; 0 = never)")
     p.add_argument("--progress", type=float, default=5.0, metavar="S",
                    help="print a progress line every S seconds (default 5; 0 = never)")
-    add_zenoh_options(p, "Give the run's hub, e.g. --connect tcp/127.0.0.1:PORT (or --listen and let the run connect).")
+    add_zenoh_options(p, "Give the run's hub, e.g. --connect tcp/127.0.0.1:PORT (or --listen and let the run connect).", connect_timeout=FOREVER)
     p.set_defaults(handler=run_record)
 
 
@@ -69,7 +69,7 @@ def run_record(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     init_logging()
-    session = open_session(zenoh_settings(args))
+    session = open_session(zenoh_settings(args), wait=stop.wait)
     try:
         try:
             recorder = Recorder(session, args.file, key_exprs, compression=args.compression,

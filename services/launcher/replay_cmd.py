@@ -6,7 +6,7 @@ import signal
 import threading
 from pathlib import Path
 
-from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
+from services.launcher.common import FOREVER, CliError, add_zenoh_options, zenoh_settings
 from services.launcher.record_cmd import check_key_exprs
 from services.recorder.replay import Replayer, ReplayError
 from services.recorder.selection import DEFAULT_REPLAY_KEYS
@@ -43,7 +43,7 @@ def add_parser(commands) -> None:
                    help="give up when a --wait-for service is not alive after S seconds (default 30)")
     p.add_argument("--progress", type=float, default=5.0, metavar="S",
                    help="print a progress line every S seconds (default 5; 0 = never)")
-    add_zenoh_options(p, "Give the hub of the services under test, e.g. --connect tcp/127.0.0.1:PORT.")
+    add_zenoh_options(p, "Give the hub of the services under test, e.g. --connect tcp/127.0.0.1:PORT.", connect_timeout=FOREVER)
     p.set_defaults(handler=run_replay)
 
 
@@ -63,7 +63,7 @@ def run_replay(args: argparse.Namespace) -> int:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     init_logging()
-    session = open_session(zenoh_settings(args))
+    session = open_session(zenoh_settings(args), wait=stop.wait)
     try:
         replayer = Replayer(session, args.file, key_exprs, lockstep=args.lockstep, rate=args.rate,
                             wait_for=wait_for, wait_timeout=args.wait_timeout, progress_s=args.progress,

@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 
 from schemas import keys
-from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
+from services.launcher.common import EXIT_CODES, FOREVER, CliError, add_zenoh_options, zenoh_settings
 from services.launcher.params import ParamsError, params_for
 from services.launcher.registry import node_class
 from services.simulator.options import add_simulator_options
@@ -14,7 +14,10 @@ def add_parser(commands) -> None:
     p = commands.add_parser(
         "run", help="run one service in this process",
         description="Run one service alone (what compose and onboard deployment use). Every per-UAV "
-                    "service needs --uav; the simulator is run-wide.",
+                    "service needs --uav; the simulator is run-wide. A Zenoh that does not answer yet (a router "
+                    "started after the service) is retried with back-off, one log line per attempt, until it "
+                    "answers or --connect-timeout runs out.",
+        epilog=EXIT_CODES,
     )
     p.add_argument("service", choices=keys.SERVICES, metavar="SERVICE",
                    help="one of: " + ", ".join(keys.SERVICES))
@@ -25,7 +28,7 @@ def add_parser(commands) -> None:
     p.add_argument("--tick-hz", type=float, default=20.0, help="tick rate with --clock wall (default 20)")
     p.add_argument("--exit-with-parent", action="store_true",
                    help="stop when the launching process dies (the launcher sets this)")
-    add_zenoh_options(p, "Embedded default: none (this process only listens).")
+    add_zenoh_options(p, "Embedded default: none (this process only listens).", connect_timeout=FOREVER)
     add_simulator_options(p)
     p.set_defaults(handler=run)
 

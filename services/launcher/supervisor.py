@@ -1,6 +1,12 @@
 """Starts service processes, prefixes their output, restarts the ones that crash, and
 stops all of them (SIGTERM, then SIGKILL after a grace period) leaving nothing behind.
 
+Restarts: a child that exits with a usage error (2) is never restarted; any other exit
+(a crash, a signal, RUNTIME_FAILURE = 75 for an unreachable Zenoh) is, the first time at
+once and then with back-off (RESTART_BACKOFF_S doubling per restart within the window, at most
+RESTART_BACKOFF_MAX_S), so a child that cannot start does not spin; after MAX_RESTARTS
+restarts within RESTART_WINDOW_S the child is given up on.
+
 Children are separate interpreters started with subprocess (exec, never a bare fork of
 this process: Zenoh is not fork-safe), each in its own session so a terminal Ctrl-C
 reaches only the launcher, which then shuts them down in order.
@@ -16,9 +22,14 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
-USAGE_ERROR = 2  # what `falconry run` exits with on a bad option, parameter or scenario
+from services.runtime.errors import RUNTIME_FAILURE, USAGE_ERROR
+
 MAX_RESTARTS = 5  # within RESTART_WINDOW_S; beyond that the service is given up on
 RESTART_WINDOW_S = 60.0
+# The first restart within the window is immediate (a killed service is back within 2 s);
+# the n-th waits RESTART_BACKOFF_S * 2**(n-2), at most RESTART_BACKOFF_MAX_S: 0, 0.5, 1, 2, 4 s.
+RESTART_BACKOFF_S = 0.5
+RESTART_BACKOFF_MAX_S = 5.0
 
 
 @dataclass
@@ -32,6 +43,8 @@ class Child:
     held: bool = False  # killed by a fault and kept down until released
     restart: bool = True  # False: an exit is final (e.g. a viewer that would overwrite its file)
     reader: threading.Thread | None = None
+    restart_at: float | None = None  # exited, and to be started again at this time (back-off)
+    exit_code: int | None = None  # of the exit that restart_at answers
 
 
 class Supervisor:
@@ -59,6 +72,7 @@ class Supervisor:
             start_new_session=True, env=env, text=True, bufsize=1, errors="replace",
         )
         child.started = time.monotonic()
+        child.restart_at = child.exit_code = None
         child.reader = threading.Thread(target=self._pump_output, args=(child, child.process), daemon=True)
         child.reader.start()
 
@@ -76,35 +90,47 @@ class Supervisor:
                 print(line, file=self._out, flush=True)
 
     def poll(self) -> None:
-        """Restart children that exited while the run is still going."""
+        """Restart children that exited while the run is still going (call it often: a restart
+        that waits out its back-off happens in a later call)."""
         if self._stopping:
             return
         for child in self.children.values():
             if child.failed or child.held or child.process is None or child.process.poll() is None:
                 continue
-            code = child.process.returncode
             now = time.monotonic()
-            if code == USAGE_ERROR:  # a bad option or parameter: restarting cannot help
-                child.failed = True
-                self.say(f"{child.name} exited with a usage error (exit code 2); not restarting it")
-                continue
-            if not child.restart:
-                child.failed = code != 0
-                child.process = None
-                self.say(f"{child.name} exited ({describe_exit(code)}); the run goes on without it"
-                         + (" and will end with exit code 1" if child.failed else ""))
-                continue
-            child.restarts = [t for t in child.restarts if now - t < RESTART_WINDOW_S]
-            if len(child.restarts) >= MAX_RESTARTS:
-                child.failed = True
-                self.say(f"{child.name} exited ({describe_exit(code)}) {MAX_RESTARTS} times within "
-                         f"{RESTART_WINDOW_S:.0f} s; giving up on it")
-                continue
-            child.restarts.append(now)
-            self._spawn(child)
-            self.say(f"restarted {child.name} after it exited ({describe_exit(code)})")
-            if self._on_restart:
-                self._on_restart(child.name, code, now)
+            if child.restart_at is None:
+                self._exited(child, child.process.returncode, now)
+            if child.restart_at is not None and now >= child.restart_at:
+                code = child.exit_code
+                child.restarts.append(now)
+                self._spawn(child)
+                self.say(f"restarted {child.name} after it exited ({describe_exit(code)})")
+                if self._on_restart:
+                    self._on_restart(child.name, code, now)
+
+    def _exited(self, child: Child, code: int, now: float) -> None:
+        """Decide what a child's exit means: given up on, or to be restarted (at once or later)."""
+        if code == USAGE_ERROR:  # a bad option or parameter: restarting cannot help
+            child.failed = True
+            self.say(f"{child.name} exited with a usage error (exit code {USAGE_ERROR}); not restarting it")
+            return
+        if not child.restart:
+            child.failed = code != 0
+            child.process = None
+            self.say(f"{child.name} exited ({describe_exit(code)}); the run goes on without it"
+                     + (" and will end with exit code 1" if child.failed else ""))
+            return
+        child.restarts = [t for t in child.restarts if now - t < RESTART_WINDOW_S]
+        if len(child.restarts) >= MAX_RESTARTS:
+            child.failed = True
+            self.say(f"{child.name} exited ({describe_exit(code)}) {MAX_RESTARTS} times within "
+                     f"{RESTART_WINDOW_S:.0f} s; giving up on it")
+            return
+        delay = restart_delay(len(child.restarts))
+        child.exit_code, child.restart_at = code, now + delay
+        if delay > 0:
+            self.say(f"{child.name} exited ({describe_exit(code)}); restarting it in {delay:g} s "
+                     f"(restart {len(child.restarts) + 1} within {RESTART_WINDOW_S:.0f} s)")
 
     def send(self, name: str, sig: int) -> None:
         child = self.children[name]
@@ -171,10 +197,19 @@ def _signal_group(process: subprocess.Popen, sig: int) -> None:
         pass
 
 
+def restart_delay(recent_restarts: int) -> float:
+    """Back-off before the next restart, given the restarts already made within the window."""
+    if recent_restarts == 0:
+        return 0.0
+    return min(RESTART_BACKOFF_S * 2 ** (recent_restarts - 1), RESTART_BACKOFF_MAX_S)
+
+
 def describe_exit(code: int) -> str:
     if code < 0:
         try:
             return signal.Signals(-code).name
         except ValueError:
             return f"signal {-code}"
+    if code == RUNTIME_FAILURE:
+        return f"exit code {code}, a runtime failure such as Zenoh unreachable"
     return f"exit code {code}"

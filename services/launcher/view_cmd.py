@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
+from services.launcher.common import FOREVER, CliError, add_zenoh_options, zenoh_settings
 from services.launcher.monitor import RunMonitor
 from services.recorder.mcap_io import is_mcap
 from services.runtime.errors import UsageError
@@ -88,7 +88,7 @@ def add_parser(commands) -> None:
                       help="run N steps below normal priority, so the services watched get the CPU first "
                            "(default 10; 0 = normal)")
     live.add_argument("--quiet", action="store_true", help="no progress lines")
-    add_zenoh_options(p, "Live: give the run's hub, e.g. --connect tcp/127.0.0.1:PORT.")
+    add_zenoh_options(p, "Live: give the run's hub, e.g. --connect tcp/127.0.0.1:PORT.", connect_timeout=FOREVER)
     p.set_defaults(handler=run_view)
 
 
@@ -182,7 +182,7 @@ def _live(args: argparse.Namespace, viewer: Viewer) -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     init_logging()
-    session = open_session(zenoh_settings(args))
+    session = open_session(zenoh_settings(args), wait=stop.wait)
     parent = os.getppid()
     feed = LiveFeed(session)
     started = time.monotonic()

@@ -7,25 +7,62 @@
 - router: the process is a client of a zenohd router (compose, onboard).
 A JSON5 file (`--zenoh-config` or the ZENOH_CONFIG environment variable) replaces the
 profile's base; explicit connect/listen endpoints and the lease are applied on top.
+
+Opening a session tells a bad setting from an unreachable endpoint. A bad setting (unknown
+profile, missing or invalid config file, malformed endpoint) is a ZenohConfigError, a usage
+error (exit 2). Zenoh refusing to open an otherwise valid configuration (a client whose router
+does not answer yet, a listen port still held by a previous instance) is retried with back-off
+(0.5 s doubling to 5 s, one log line per attempt) until `connect_timeout` (None: for ever), then
+ZenohUnreachable, a runtime failure (exit 75) that supervisors restart. How Zenoh 1.x behaves
+with an endpoint that is down:
+- client (router profile): `zenoh.open` fails at once ("Unable to connect to any of [...]";
+  connect/timeout_ms is 0 for clients), so the retrying is ours. Once connected, a client whose
+  router goes away reconnects by itself when it returns.
+- peer (embedded profile): `zenoh.open` succeeds regardless (connect/exit_on_failure is false
+  for peers) and Zenoh itself retries the connect endpoints in the background, every 1 s doubling
+  to 4 s (connect/retry); only a listen endpoint that cannot be bound makes it fail.
+We do not raise connect/timeout_ms instead: Zenoh would then block inside `open`, where neither
+SIGTERM nor Ctrl-C can reach the Python loop.
 """
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
 import socket
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import zenoh
 
-from services.runtime.errors import UsageError
+from services.runtime.errors import RuntimeFailure, UsageError
 
 PROFILES = ("embedded", "router")
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+RETRY_FIRST_S = 0.5  # back-off between attempts to open a session: doubling up to RETRY_MAX_S
+RETRY_MAX_S = 5.0
+# Zenoh 1.x link protocols; an endpoint naming another is a typo, not an endpoint that is down.
+LINK_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws", "serial", "unixsock-stream", "unixpipe", "vsock")
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+_RUST_LOCATION = re.compile(r"\s+at \S+\.rs:\d+\.?")
+
+log = logging.getLogger("falconry.zenoh")
 
 
 class ZenohConfigError(UsageError):
     """A user-supplied Zenoh setting is wrong; the message says which."""
+
+
+class ZenohUnreachable(RuntimeFailure):
+    """Zenoh would not open a session with valid settings (no router answers, a port is busy)
+    within the connect timeout: the environment's problem, worth a restart."""
+
+
+class OpenCancelled(Exception):
+    """A stop was requested while waiting for Zenoh (SIGTERM, Ctrl-C, the parent gone)."""
 
 
 @dataclass
@@ -38,6 +75,12 @@ class ZenohSettings:
     # None keeps Zenoh's default (large local messages go through /dev/shm); a long-lived
     # in-process session such as a test's turns it off, since its segments go only at exit.
     shared_memory: bool | None = None
+    # How long to keep trying to open the session before ZenohUnreachable; None: for ever.
+    connect_timeout: float | None = None
+    # False: open connections only to `connect` endpoints, never to peers learnt by gossip (they
+    # may still connect to us). The simulator behind per-UAV airframe links must reach each UAV
+    # over its own link only, not over the radio a link_cut takes down.
+    gossip_connect: bool = True
 
     def as_args(self) -> list[str]:
         """Command-line arguments that reproduce these settings in a child process."""
@@ -50,7 +93,20 @@ class ZenohSettings:
             args += ["--zenoh-config", self.config_file]
         if self.lease_ms:
             args += ["--lease-ms", str(self.lease_ms)]
+        if self.connect_timeout is not None:
+            args += ["--connect-timeout", f"{self.connect_timeout:g}"]
+        if not self.gossip_connect:
+            args += ["--no-gossip-connect"]
         return args
+
+    def describe(self) -> str:
+        """Where this session goes, for log lines: its endpoints, or the config file."""
+        where = [f"connect {e}" for e in self.connect] + [f"listen {e}" for e in self.listen]
+        if not where:
+            config_file = self.config_file or os.environ.get("ZENOH_CONFIG")
+            where = [f"config {config_file}" if config_file
+                     else f"connect {DEFAULT_ROUTER}" if self.profile == "router" else "listen tcp/127.0.0.1:0"]
+        return f"{self.profile}: " + ", ".join(where)
 
 
 def free_port() -> int:
@@ -66,6 +122,25 @@ def _insert(config: zenoh.Config, path: str, value) -> None:
         raise ZenohConfigError(f"zenoh setting {path}={value!r} rejected: {exc}") from None
 
 
+def check_endpoint(endpoint: str, listening: bool) -> None:
+    """A malformed command-line endpoint is a usage error; Zenoh would only report it as
+    'Unable to connect', like an endpoint that is down, and be retried for ever."""
+    how = "listen" if listening else "connect"
+    protocol, slash, address = endpoint.partition("/")
+    if not slash or not protocol or not address:
+        raise ZenohConfigError(f"--{how} {endpoint!r}: an endpoint is PROTOCOL/ADDRESS, e.g. tcp/127.0.0.1:7447")
+    if protocol not in LINK_PROTOCOLS:
+        raise ZenohConfigError(f"--{how} {endpoint!r}: unknown protocol {protocol!r} "
+                               f"(zenoh knows {', '.join(LINK_PROTOCOLS)})")
+    if protocol in _IP_PROTOCOLS:
+        hostport = re.split(r"[?#]", address, maxsplit=1)[0]
+        host, colon, port = hostport.rpartition(":")
+        lowest = 0 if listening else 1
+        if not colon or not host or host in ("[", "[]") or not port.isdigit() or not lowest <= int(port) <= 65535:
+            raise ZenohConfigError(f"--{how} {endpoint!r}: give HOST:PORT with a port from {lowest} to 65535, "
+                                   f"e.g. {protocol}/127.0.0.1:7447")
+
+
 def build(settings: ZenohSettings) -> zenoh.Config:
     if settings.profile not in PROFILES:
         raise ZenohConfigError(f"unknown zenoh profile {settings.profile!r} (choose from {', '.join(PROFILES)})")
@@ -78,7 +153,13 @@ def build(settings: ZenohSettings) -> zenoh.Config:
             config = zenoh.Config.from_file(str(path))
         except Exception as exc:
             raise ZenohConfigError(f"zenoh config file {path} is invalid: {exc}") from None
-    else:
+    if settings.connect_timeout is not None and not settings.connect_timeout >= 0:
+        raise ZenohConfigError(f"--connect-timeout must be 0 or more seconds, not {settings.connect_timeout:g}")
+    for endpoint in settings.connect:
+        check_endpoint(endpoint, listening=False)
+    for endpoint in settings.listen:
+        check_endpoint(endpoint, listening=True)
+    if not config_file:
         config = zenoh.Config()
         if settings.profile == "embedded":
             _insert(config, "mode", "peer")
@@ -95,18 +176,56 @@ def build(settings: ZenohSettings) -> zenoh.Config:
         _insert(config, "listen/endpoints", settings.listen)
     if settings.shared_memory is not None:
         _insert(config, "transport/shared_memory/enabled", settings.shared_memory)
+    if not settings.gossip_connect:
+        _insert(config, "scouting/gossip/autoconnect", {"router": [], "peer": []})
     if settings.lease_ms:
         _insert(config, "transport/link/tx/lease", settings.lease_ms)
         _insert(config, "transport/link/tx/keep_alive", 4)
     return config
 
 
-def open_session(settings: ZenohSettings) -> zenoh.Session:
+def reason(exc: BaseException) -> str:
+    """Zenoh's error without the Rust source locations it carries."""
+    return _RUST_LOCATION.sub("", str(exc)).strip() or type(exc).__name__
+
+
+def open_session(settings: ZenohSettings, wait: Callable[[float], bool] | None = None,
+                 logger: logging.Logger | logging.LoggerAdapter | None = None) -> zenoh.Session:
+    """Open a session, retrying with back-off while Zenoh refuses (see the module's doc).
+
+    A bad setting raises ZenohConfigError at once. `wait(seconds)` sleeps between attempts and
+    returns True when the caller wants to stop (then OpenCancelled); by default a plain sleep,
+    which Ctrl-C interrupts with KeyboardInterrupt. After `settings.connect_timeout` seconds of
+    failures (0: one attempt only) it raises ZenohUnreachable."""
     config = build(settings)
-    try:
-        return zenoh.open(config)
-    except Exception as exc:
-        raise ZenohConfigError(f"cannot open zenoh session ({settings.profile}): {exc}") from None
+    logger = logger or log
+    started = time.monotonic()
+    delay = RETRY_FIRST_S
+    attempt = 0
+    while True:
+        attempt += 1
+        try:
+            session = zenoh.open(config)
+        except Exception as exc:
+            why = reason(exc)
+        else:
+            if attempt > 1:
+                logger.info("zenoh session open (%s) after %d attempts in %.1f s", settings.describe(), attempt,
+                            time.monotonic() - started)
+            return session
+        elapsed = time.monotonic() - started
+        if settings.connect_timeout is not None and elapsed + 1e-3 >= settings.connect_timeout:
+            tried = f" ({attempt} attempts in {elapsed:.1f} s)" if attempt > 1 else ""
+            raise ZenohUnreachable(f"cannot open zenoh session ({settings.describe()}){tried}: {why}")
+        pause = delay if settings.connect_timeout is None else min(delay, settings.connect_timeout - elapsed)
+        logger.warning("waiting for zenoh (%s): %s; attempt %d, next in %.1f s", settings.describe(), why, attempt,
+                       pause)
+        if wait is not None:
+            if wait(pause):
+                raise OpenCancelled()
+        else:
+            time.sleep(pause)
+        delay = min(delay * 2, RETRY_MAX_S)
 
 
 def undeclare_all(handles: list) -> None:
