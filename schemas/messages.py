@@ -199,6 +199,7 @@ class UavStatus(msgspec.Struct, kw_only=True):
     target: Vec3 | None = None
     fallen_partners: list[str] = []  # partners this UAV's job manager counts as fallen (revenge mode)
     forbidden_zones: list[ForbiddenZoneStatus] = []  # this UAV's live forbidden zones
+    state_reason: str = ""  # why the job manager entered `state` (e.g. "lost link: ...")
 
 
 class SimClock(msgspec.Struct, kw_only=True):
@@ -303,6 +304,14 @@ class FaultCommand(msgspec.Struct, kw_only=True):
     offset: Vec3 = (0.0, 0.0, 0.0)  # for "odometry_jump", m
 
 
+class Decision(msgspec.Struct, kw_only=True):
+    """A state a service's state machine entered, when (mission time, ns) and why."""
+
+    stamp: int
+    state: str
+    reason: str = ""
+
+
 class ServiceHealth(msgspec.Struct, kw_only=True):
     """Answer to a health query on falconry/<uav>/health/<service>."""
 
@@ -320,6 +329,8 @@ class ServiceHealth(msgspec.Struct, kw_only=True):
     subscriptions: list[str] = []
     cpu_time: float = 0.0  # s of CPU the whole process used so far (every thread)
     memory: int = 0  # resident set size, bytes (0 where the platform does not say)
+    # a state machine's whole history (the job manager's): what the ground reads after a link cut
+    decisions: list[Decision] = []
 
 
 ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (

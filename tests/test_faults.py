@@ -2,8 +2,10 @@
 and shows in the event log and the summary (one lockstep run with all of them)."""
 from __future__ import annotations
 
+import json
 import re
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -15,7 +17,7 @@ import zenoh
 
 from schemas import keys
 from schemas.arrays import to_numpy
-from schemas.messages import GroundTruth, Odometry, PointCloud, SimEvent
+from schemas.messages import GroundTruth, Odometry, PointCloud, SimEvent, UavStatus
 from services.launcher import netns
 from services.simulator.scenario import SCENARIO_DIR
 from tests.conftest import falconry_argv
@@ -203,4 +205,108 @@ def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
     summary = read_summary(summary_path)
     assert sum("fault_injected" in f for f in summary["faults"]) == len(expected)
     assert "faults injected: 8" in output
+    assert netns.leftovers(f"f{port}") == [], "network namespaces left behind"
+
+
+CUT = """
+[[faults]]
+time = 6.0
+kind = "link_cut"
+uav = "uav1"
+duration = 4.0
+"""
+
+
+class NamespaceProbe:
+    """tests.tools.probe running inside one UAV's network namespace: what reaches that UAV."""
+
+    def __init__(self, network: netns.UavNetwork, uav: str, port: int) -> None:
+        argv = network.wrap(uav, [sys.executable, "-m", "tests.tools.probe", "--connect",
+                                  f"tcp/{network.host_address}:{port}", "--listen", f"tcp/{network.address(uav)}:0"])
+        self.process = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        self.lines: list[dict] = []
+        self.reader = threading.Thread(target=self._read, daemon=True)
+        self.reader.start()
+
+    def _read(self) -> None:
+        for line in self.process.stdout:
+            self.lines.append(json.loads(line))
+
+    def stamps(self, key: str) -> list[float]:
+        return sorted(line["stamp"] for line in self.lines if line["key"] == key)
+
+    def stop(self) -> None:
+        self.process.stdin.close()
+        self.process.wait(timeout=20)
+        self.reader.join(timeout=5)
+
+
+def wait_for_namespaces(network: netns.UavNetwork, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        names = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+        links = subprocess.run(["ip", "-o", "addr", "show", "dev", network.bridge], capture_output=True, text=True).stdout
+        if all(network.namespace(u) in names for u in network.uavs) and network.host_address in links:
+            time.sleep(0.5)  # the last veth's addresses
+            return
+        time.sleep(0.05)
+    raise AssertionError("the run's network namespaces never appeared")
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
+def test_a_cut_link_parts_the_uav_from_partners_and_ground_but_not_from_its_vehicle(tmp_path, port):
+    """During uav1's cut (t = 6..10 s) no status of uav1 reaches uav2's namespace or the ground and
+    none of uav2 reaches uav1's, while uav1's own job manager keeps publishing on the simulator's
+    clock (its airframe link) and the lockstep run goes on to its end."""
+    scenario = fault_scenario(tmp_path)
+    scenario.write_text(scenario.read_text().split("[[faults]]")[0] + CUT)
+    network = netns.UavNetwork(port, ["uav1", "uav2"])  # the plan the launcher derives from the port
+    launcher = subprocess.Popen(
+        falconry_argv("sim", str(scenario), "--uavs", "2", "--lockstep", "--duration", "14", "--port", str(port),
+                      "--lease-ms", "1000", "--quiet", "--progress", "0", "--rtf", "1"),
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    probes: dict[str, NamespaceProbe] = {}
+    session = None
+    try:
+        wait_for_namespaces(network)
+        probes = {uav: NamespaceProbe(network, uav, port) for uav in network.uavs}
+        session = join_run(port)
+        ground: list[float] = []
+        decode = msgspec.msgpack.Decoder(UavStatus)
+        ground_sub = session.declare_subscriber(
+            keys.uav("uav1", "status"), lambda s: ground.append(decode.decode(s.payload.to_bytes()).header.stamp / 1e9))
+        output, _ = launcher.communicate(timeout=240)
+        ground_sub.undeclare()
+    finally:
+        if launcher.poll() is None:
+            launcher.terminate()
+            launcher.wait(timeout=30)
+        for probe in probes.values():
+            probe.stop()
+        if session is not None:
+            session.close()
+    assert launcher.returncode == 0, output[-3000:]
+    assert "mission time 14.0/14 s" in output, output[-2000:]
+
+    def during_cut(stamps: list[float]) -> list[float]:
+        return [t for t in stamps if 6.5 <= t <= 10.0]  # half a second for the last messages in flight
+
+    uav1, uav2 = probes["uav1"], probes["uav2"]
+    own = uav1.stamps(keys.uav("uav1", "status"))
+    ticks = uav1.stamps(keys.CLOCK)
+    print(f"uav1's namespace: {len(during_cut(ticks))} clock ticks and {len(during_cut(own))} own statuses during "
+          f"the cut, {len(during_cut(uav1.stamps(keys.uav('uav2', 'status'))))} of uav2; uav2's namespace: "
+          f"{len(during_cut(uav2.stamps(keys.uav('uav1', 'status'))))} statuses of uav1; ground: "
+          f"{len(during_cut(ground))} of uav1")
+    # uav1 keeps its vehicle, sensors and clock: ticks and its own job manager's statuses go on
+    assert len(during_cut(ticks)) >= 30 and len(during_cut(own)) >= 10, (ticks, own)
+    assert max(np.diff([t for t in own if 6.0 <= t <= 10.0])) < 0.5
+    # nothing crosses the cut either way, nor reaches the ground
+    assert during_cut(uav1.stamps(keys.uav("uav2", "status"))) == []
+    assert during_cut(uav2.stamps(keys.uav("uav1", "status"))) == []
+    assert during_cut(ground) == []
+    # and the link works before and after it
+    assert any(t < 6.0 for t in uav2.stamps(keys.uav("uav1", "status")))
+    assert any(t > 10.5 for t in uav2.stamps(keys.uav("uav1", "status"))), "uav1 never came back to uav2"
     assert netns.leftovers(f"f{port}") == [], "network namespaces left behind"

@@ -90,15 +90,54 @@ def test_fault_windows_silence_only_the_faulted_services_for_their_duration():
     windows = FaultWindows()
     windows.add(FaultCommand(header=Header(stamp=10_000_000_000), kind="freeze", uav="uav2", service="tracker",
                              duration=3.0))
-    windows.add(FaultCommand(header=Header(stamp=20_000_000_000), kind="link_cut", uav="uav1", duration=0.0))
+    windows.add(FaultCommand(header=Header(stamp=20_000_000_000), kind="kill", uav="uav1", duration=0.0))
+    windows.add(FaultCommand(header=Header(stamp=2_000_000_000), kind="link_cut", uav="uav2", duration=4.0))
     windows.add(FaultCommand(header=Header(stamp=5_000_000_000), kind="lidar_silent", uav="uav1", duration=9.0))
     windows.add(FaultCommand(header=Header(stamp=1_000_000_000), kind="kill", uav="uav2", service="mapper"))
     names = {"uav1/classifier", "uav2/tracker", "uav2/mapper"}
     assert windows.unaffected(names, 9.9) == names
     assert windows.unaffected(names, 10.0) == {"uav1/classifier", "uav2/mapper"}
     assert windows.unaffected(names, 13.0) == names  # the freeze is over
-    assert windows.unaffected(names, 20.0) == {"uav2/tracker", "uav2/mapper"}  # cut for good
+    assert windows.unaffected(names, 20.0) == {"uav2/tracker", "uav2/mapper"}  # the whole UAV killed for good
     assert windows.unaffected(names, 1e6) == {"uav2/tracker", "uav2/mapper"}
+    assert windows.unaffected(names, 3.0) == names  # a cut radio: the services still tick
+
+
+def test_a_cut_radio_parts_a_uav_from_its_partners_but_never_from_the_simulator():
+    from schemas.messages import FaultCommand, Header
+    from services.runtime.lockstep import FaultWindows
+
+    windows = FaultWindows()
+    windows.add(FaultCommand(header=Header(stamp=2_000_000_000), kind="link_cut", uav="uav2", duration=4.0))
+    assert not windows.parted("uav1", "uav2", 1.9) and not windows.parted("uav1", "uav3", 3.0)
+    assert windows.parted("uav1", "uav2", 2.0) and windows.parted("uav2", "uav3", 5.9)
+    assert not windows.parted("uav2", "sim", 3.0) and not windows.parted("uav2", "uav2", 3.0)
+    assert not windows.parted("uav1", "uav2", 6.0)
+
+
+def test_a_key_across_a_cut_link_is_not_waited_for_and_what_leaks_through_is_dropped():
+    """The cut starts on its tick, whatever the network still delivers; after the link is back the
+    first message through says where the partner is (what it sent meanwhile is gone)."""
+    key = "falconry/uav2/status"
+    gate = LockstepGate((), wants=lambda k: True)
+    gate.begin(1, {key: 3})
+    gate.hold(key, 3, "s3")
+    assert gate.missing(UP) == [] and [i for _, i in gate.release(UP)] == ["s3"]
+    cut = lambda k: k.startswith("falconry/uav2/")  # noqa: E731
+    gate.hold(key, 4, "s4 leaked")
+    gate.begin(2, {key: 4}, cut)
+    gate.hold(key, 5, "s5 leaked")
+    assert gate.missing(UP) == [] and gate.release(UP) == []
+    gate.begin(3, {key: 9})  # back: #6..#9 went out while the link was still down
+    assert gate.missing(UP) == []
+    assert gate.release(UP) == []
+    gate.hold(key, 11, "s11")  # the first through the restored link; #10 was lost too
+    gate.begin(4, {key: 10})
+    assert gate.missing(UP) == [] and gate.release(UP) == []  # s11 belongs to a later tick
+    gate.begin(5, {key: 11})
+    assert gate.missing(UP) == [] and [i for _, i in gate.release(UP)] == ["s11"]
+    gate.begin(6, {key: 12})
+    assert gate.missing(UP) == [f"{key}#12"]  # from now on it is waited for again
 
 
 def test_a_joined_service_never_waits_for_what_was_sent_before_it_joined():

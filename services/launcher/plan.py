@@ -31,34 +31,38 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
                                  config_file=args.zenoh_config, lease_ms=args.lease_ms,
                                  # the launcher carries no bulk data, and its process-wide segments
                                  # would outlive the run's clean-up
-                                 shared_memory=False)
+                                 shared_memory=False,
+                                 # an embedded hub only listens: a busy --port is one clear error, not a wait
+                                 connect_timeout=0 if embedded else None)
 
-    def zenoh_args(connect: str, listen_on: str | None) -> list[str]:
-        return ZenohSettings(profile=args.zenoh_profile, connect=[connect] if embedded else list(args.connect),
-                             listen=[listen_on] if (embedded and listen_on) else [],
-                             config_file=args.zenoh_config, lease_ms=args.lease_ms).as_args()
+    def zenoh_args(connect: list[str], listen: list[str], gossip_connect: bool = True) -> list[str]:
+        return ZenohSettings(profile=args.zenoh_profile, connect=connect if embedded else list(args.connect),
+                             listen=listen if embedded else [], config_file=args.zenoh_config,
+                             lease_ms=args.lease_ms, gossip_connect=gossip_connect).as_args()
 
     base = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "run"]
     extra = ["--exit-with-parent"] + (["--config", args.config] if args.config else [])
     plan = RunPlan(hub_settings, hub_label)
-    # Root-namespace processes listen on the bridge too, so processes in a UAV's namespace reach them.
-    sim_listen = f"tcp/{network.host_address}:0" if network else None
+    # With namespaces, the simulator is reached by each UAV over that UAV's airframe link only (never
+    # over the radio bridge, which a link_cut takes down), and by the ground over loopback.
+    sim_listen = ["tcp/127.0.0.1:0"] + [f"tcp/{network.sim_address(u)}:{port}" for u in uavs] if network else []
     plan.children["sim/simulator"] = base + [
-        "simulator", *extra, *zenoh_args(loopback_hub, sim_listen), "--scenario", args.scenario,
+        "simulator", *extra, *zenoh_args([loopback_hub], sim_listen, gossip_connect=network is None),
+        "--scenario", args.scenario,
         "--uavs", str(len(uavs)), "--seed", str(seed), "--duration", str(duration), "--rtf", str(args.rtf),
         "--tick", str(args.tick), "--detector", args.detector] + (["--lockstep"] if args.lockstep else [])
     for uav in uavs:
         for service in uav_services(args.detector):
-            if network:
-                argv = base + [service, "--uav", uav, *extra,
-                               *zenoh_args(f"tcp/{network.host_address}:{port}", f"tcp/{network.address(uav)}:0")]
+            if network:  # the ground and the partners over the radio, the simulator over the airframe link
+                connect = [f"tcp/{network.host_address}:{port}", f"tcp/{network.sim_address(uav)}:{port}"]
+                argv = base + [service, "--uav", uav, *extra, *zenoh_args(connect, [f"tcp/{network.address(uav)}:0"])]
                 argv = network.wrap(uav, argv)
             else:
-                argv = base + [service, "--uav", uav, *extra, *zenoh_args(loopback_hub, None)]
+                argv = base + [service, "--uav", uav, *extra, *zenoh_args([loopback_hub], [])]
             plan.children[f"{uav}/{service}"] = argv
     if args.viz or args.rrd:
         # a plain subscriber in the root namespace, never a lockstep participant
         plan.viewer = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "view",
-                       "--exit-with-parent", "--quiet", *zenoh_args(loopback_hub, None)] \
+                       "--exit-with-parent", "--quiet", *zenoh_args([loopback_hub], [])] \
             + (["--rrd", args.rrd] if args.rrd else []) + (["--viz", args.viz] if args.viz else [])
     return plan

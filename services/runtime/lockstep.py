@@ -7,12 +7,20 @@ service processes exactly:
 - for every other key, everything up to the seq the simulator's clock tick k names
   (what all services had published when tick k-1 was complete; feedback edges).
 Messages beyond those bounds wait for a later tick, so the result does not depend on
-how fast messages happen to arrive. Pure logic: no Zenoh, no clocks.
+how fast messages happen to arrive.
+
+A key across a cut radio link (`begin(..., cut=...)`) is neither waited for nor released while
+the cut lasts, whatever the network still delivers in the moment before the link really goes
+down: the cut starts on the tick the schedule says. When the link is back, the first message
+that gets through says where the key's publisher is; what it sent before is gone, as over a real
+radio. Pure logic: no Zenoh, no clocks.
 """
 from __future__ import annotations
 
 from collections import deque
 from typing import Callable, Generic, Hashable, Iterable, TypeVar
+
+from schemas import keys
 
 Item = TypeVar("Item")
 
@@ -39,16 +47,31 @@ class LockstepGate(Generic[Item]):
         # A service joining a run already under way (started late, restarted, or back after
         # missing ticks) cannot have what was sent before: its first tick waits for nothing.
         self.joining = joining
+        self._cut: Callable[[str], bool] = _never
+        self._reconnecting: set[str] = set()  # keys whose link is back but nothing came through yet
 
     # -- inputs -------------------------------------------------------------
     def hold(self, key: str, seq: int, item: Item) -> None:
+        if key in self._reconnecting and not self._cut(key):
+            self._reconnecting.discard(key)  # the first message over the restored link
+            self._floor[key] = seq - 1
         if seq < self._floor.get(key, 0) and not self._fifo.get(key):
             del self._floor[key]  # its publisher restarted: the new numbers are all news to us
         self._fifo.setdefault(key, deque()).append((seq, item))
 
-    def begin(self, step: int, clock_bounds: dict[str, int]) -> None:
+    def begin(self, step: int, clock_bounds: dict[str, int], cut: Callable[[str], bool] | None = None) -> None:
+        """Tick `step` with the simulator's bounds; `cut(key)`: the key comes over a radio link
+        that is down at this tick."""
         self.step = step
         self._clock_bounds = clock_bounds
+        self._cut = cut or _never
+        for key in [k for k in self._fifo if self._cut(k)]:
+            self._fifo[key].clear()  # delivered in the moment before the link really went down
+            self._reconnecting.add(key)
+        for key, bound in clock_bounds.items():
+            if self._cut(key):
+                self._reconnecting.add(key)
+                self._floor[key] = max(self._floor.get(key, 0), bound)
 
     def rejoin(self) -> None:
         self.joining = True
@@ -80,7 +103,7 @@ class LockstepGate(Generic[Item]):
             if service in alive_upstream and self.step not in self._acks.get(service, {})
         ]
         for key, bound in self.bounds(alive_upstream).items():
-            if not self._wants(key) or bound == 0:
+            if not self._wants(key) or bound == 0 or key in self._reconnecting:
                 continue
             # bound == released: nothing new. A bound *below* what we released means the
             # publisher restarted and counts from 1 again: its message `bound` is a new one.
@@ -97,6 +120,9 @@ class LockstepGate(Generic[Item]):
         for key in sorted(self._fifo, key=self._order):
             fifo = self._fifo[key]
             bound = bounds.get(key)
+            if self._cut(key):
+                fifo.clear()
+                continue
             if bound is None:  # not from a lockstep participant: nothing to wait for
                 take = len(fifo)
             else:
@@ -115,27 +141,44 @@ class LockstepGate(Generic[Item]):
         return out
 
 
-class FaultWindows:
-    """Which services a scheduled fault keeps from acknowledging ticks (killed, frozen or cut
-    off), so lockstep neither waits for them nor blocks on them. Times are mission seconds."""
+def _never(key: str) -> bool:
+    return False
 
-    SILENCING = ("kill", "freeze", "link_cut")
+
+class FaultWindows:
+    """Which services a scheduled fault keeps from acknowledging ticks (killed or frozen), so
+    lockstep neither waits for them nor blocks on them, and whose radio link is cut (its
+    services still tick over their airframe link, but reach no partner). Times are mission
+    seconds."""
+
+    SILENCING = ("kill", "freeze")
 
     def __init__(self) -> None:
         self._windows: list[tuple[str, str, float, float]] = []  # uav, service ("" = all), start, end
+        self._radio: list[tuple[str, float, float]] = []  # uav, start, end of a link_cut
 
     def add(self, command) -> None:
+        start = command.header.stamp / 1e9
+        end = start + command.duration if command.duration > 0 else float("inf")
+        if command.kind == "link_cut":
+            self._radio.append((command.uav, start, end))
         # One killed service is restarted by supervision: liveliness covers its absence.
-        if command.kind == "kill" and command.service:
-            return
-        if command.kind in self.SILENCING:
-            start = command.header.stamp / 1e9
-            end = start + command.duration if command.duration > 0 else float("inf")
+        elif command.kind in self.SILENCING and not (command.kind == "kill" and command.service):
             self._windows.append((command.uav, command.service, start, end))
 
     def silenced(self, uav: str, service: str, now: float) -> bool:
         return any(u == uav and s in ("", service) and start <= now < end
                    for u, s, start, end in self._windows)
+
+    def radio_down(self, uav: str, now: float) -> bool:
+        return any(u == uav and start <= now < end for u, start, end in self._radio)
+
+    def parted(self, one: str, other: str, now: float) -> bool:
+        """Whether the radio keeps UAV scopes `one` and `other` apart at `now` (the simulator's
+        scope is reached over every UAV's airframe link and is never parted)."""
+        if one == other or keys.SIM in (one, other):
+            return False
+        return self.radio_down(one, now) or self.radio_down(other, now)
 
     def unaffected(self, names: set[str], now: float) -> set[str]:
         """Of "<uav>/<service>" names, those no fault silences at `now`."""

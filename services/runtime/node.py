@@ -30,12 +30,12 @@ import msgspec
 import zenoh
 
 from schemas import keys
-from schemas.messages import FaultCommand, Header, ServiceHealth, SimClock, StepAck
+from schemas.messages import Decision, FaultCommand, Header, ServiceHealth, SimClock, StepAck
 from services.runtime.clock import MissionClock, WallClock
 from services.runtime.health import process_usage
 from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.typed import Counters, M, Subscription, TypedPublisher
-from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session, undeclare_all
+from services.runtime.zenoh_config import OpenCancelled, ZenohSettings, init_logging, open_session, undeclare_all
 
 POLL_S = 0.1  # how often the loop looks at stop requests when idle
 LOCKSTEP_TIMEOUT_S = 5.0
@@ -189,34 +189,22 @@ class Node:
 
     # ---------------------------------------------------------------- run
     def run(self) -> int:
-        """Serve until stopped (SIGTERM/SIGINT, stop(), or the parent process dying)."""
+        """Serve until stopped (SIGTERM/SIGINT, stop(), or the parent process dying).
+
+        A Zenoh that does not answer yet is waited for (see `open_session`); a stop request
+        meanwhile ends the wait within POLL_S and the run with 0."""
         init_logging()
         if threading.current_thread() is threading.main_thread():
             signal.signal(signal.SIGTERM, self._handle_signal)
             signal.signal(signal.SIGINT, self._handle_signal)
-        self.session = open_session(self._zenoh_settings)
+        try:
+            self.session = open_session(self._zenoh_settings, wait=self._wait_unless_stopped, logger=self.log)
+        except OpenCancelled:
+            self.log.info("stopped before zenoh answered")
+            return 0
         token = None
         try:
-            if self._clock_kind == "sim":
-                self._add_subscription(keys.CLOCK, SimClock, self._on_clock, internal=True)
-            for service in self.upstream:
-                self._add_subscription(keys.ack(self.scope, service), StepAck, self._on_upstream_ack, internal=True)
-            if self.upstream:
-                self._add_subscription(keys.FAULTS, FaultCommand, self._on_fault, internal=True)
-            self.on_liveliness(f"{keys.ROOT}/{self.scope}/alive/*", self._on_scope_liveliness, internal=True)
-            if self._clock_kind == "sim":
-                self.on_liveliness(keys.alive(keys.SIM, "simulator"), self._on_simulator_liveliness, internal=True)
-            self.setup()
-            for sub in self._subs:
-                self._declare_subscriber(sub)
-            for key_expr, handler, internal in self._liveliness_handlers:
-                self._declare_liveliness_subscriber(key_expr, handler, internal)
-            self._declared = True
-            self._ack_pub = self.publisher(keys.ack(self.scope, self.service), StepAck)
-            inbox = self._inbox
-            self._zenoh_handles.append(
-                self.session.declare_queryable(keys.health(self.scope, self.service), lambda q: inbox.put(("query", q)))
-            )
+            self.declare()
             token = self.session.liveliness().declare_token(keys.alive(self.scope, self.service))
             self.state = "running"
             # Everything set up so far (modules, numba's dispatchers, scipy) lives as long as the
@@ -236,6 +224,31 @@ class Node:
             self.session = None
         self.log.info("stopped")
         return 0
+
+    def declare(self) -> None:
+        """Everything this node declares on `self.session` before its liveliness token: the
+        runtime's inputs (clock, upstream acks, faults, liveliness), the service's own (setup),
+        the ack publisher and the health queryable."""
+        if self._clock_kind == "sim":
+            self._add_subscription(keys.CLOCK, SimClock, self._on_clock, internal=True)
+        for service in self.upstream:
+            self._add_subscription(keys.ack(self.scope, service), StepAck, self._on_upstream_ack, internal=True)
+        # every node: a scheduled fault can silence an upstream service or part us from a partner
+        self._add_subscription(keys.FAULTS, FaultCommand, self._on_fault, internal=True)
+        self.on_liveliness(f"{keys.ROOT}/{self.scope}/alive/*", self._on_scope_liveliness, internal=True)
+        if self._clock_kind == "sim":
+            self.on_liveliness(keys.alive(keys.SIM, "simulator"), self._on_simulator_liveliness, internal=True)
+        self.setup()
+        for sub in self._subs:
+            self._declare_subscriber(sub)
+        for key_expr, handler, internal in self._liveliness_handlers:
+            self._declare_liveliness_subscriber(key_expr, handler, internal)
+        self._declared = True
+        self._ack_pub = self.publisher(keys.ack(self.scope, self.service), StepAck)
+        inbox = self._inbox
+        self._zenoh_handles.append(
+            self.session.declare_queryable(keys.health(self.scope, self.service), lambda q: inbox.put(("query", q)))
+        )
 
     def serve(self) -> None:
         """The main loop; the simulator replaces it with its own clock-driving loop."""
@@ -273,6 +286,15 @@ class Node:
                 self._flush_pending()
                 self._tick(self.clock.now_ns())
             self._check_parent()
+
+    def _wait_unless_stopped(self, seconds: float) -> bool:
+        """Sleep up to `seconds`; True as soon as a stop is requested (or the parent is gone)."""
+        deadline = time.monotonic() + seconds
+        while not self._stop.wait(max(0.0, min(POLL_S, deadline - time.monotonic()))):
+            self._check_parent()
+            if time.monotonic() >= deadline:
+                return self._stop.is_set()
+        return True
 
     def _check_parent(self) -> None:
         if self._exit_with_parent and os.getppid() != self._parent:
@@ -363,11 +385,11 @@ class Node:
             return
         if self._last_step >= 0 and tick.step != self._last_step + 1:
             self._gate.rejoin()  # we missed ticks (cut off, frozen): what was sent then is gone
-        self._gate.begin(tick.step, tick.bounds)
+        self._gate.begin(tick.step, tick.bounds, self._radio_cut(tick.header.stamp / 1e9))
         self._wait_for_gate(tick.step)
         if self._stop.is_set():
             return
-        self._apply_tick_liveliness(tick.alive)
+        self._apply_tick_liveliness(tick.alive, self._radio_cut(tick.header.stamp / 1e9))
         for key, (sub, msg) in self._gate.release(self._answering_upstream()):
             self._call(sub.handler, msg, key)
         self._last_step = tick.step
@@ -399,8 +421,18 @@ class Node:
                 continue
             self._dispatch(item)
 
-    def _apply_tick_liveliness(self, alive: list[str]) -> None:
-        current = set(alive)
+    def _radio_cut(self, now: float) -> Callable[[str], bool]:
+        """Whether a key (or a "<scope>/<service>" name) is out of reach over a cut radio link
+        at mission time `now`. The simulator's tick carries everything it hears over the
+        airframe links: what a partner could not have sent us over the radio must not leak in."""
+        def cut(name: str) -> bool:
+            parts = name.split("/")
+            scope = parts[1] if parts[0] == keys.ROOT and len(parts) > 1 else parts[0]
+            return self._fault_windows.parted(self.scope, scope, now)
+        return cut
+
+    def _apply_tick_liveliness(self, alive: list[str], cut: Callable[[str], bool]) -> None:
+        current = {name for name in alive if not cut(name)}
         for name in sorted(current ^ self._tick_alive):
             scope, service = name.split("/", 1)
             key = keys.alive(scope, service)
@@ -418,8 +450,7 @@ class Node:
         self._gate.record_ack(service, ack.step, ack.published)
 
     def _on_fault(self, command: FaultCommand, key: str) -> None:
-        if command.uav == self.scope:
-            self._fault_windows.add(command)
+        self._fault_windows.add(command)  # a partner's cut radio parts us too
 
     def _answering_upstream(self) -> set[str]:
         """Upstream services that are alive and not silenced by a scheduled fault right now."""
@@ -458,7 +489,12 @@ class Node:
             subscriptions=[sub.key_expr for sub in self._subs],
             cpu_time=cpu_time,
             memory=memory,
+            decisions=self.decisions(),
         )
+
+    def decisions(self) -> list[Decision]:
+        """A node with a state machine tells its whole history (health answers carry it)."""
+        return []
 
     def _answer_health(self, query: zenoh.Query) -> None:
         try:
