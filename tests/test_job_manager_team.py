@@ -24,7 +24,8 @@ REVENGE = [
     # (why the partner falls, what the rig sees, seconds after the partner was last fine)
     ("reports not flying normally", lambda r, t: flying(r, "uav2", t, state="EMERGENCY_LANDING", normally=False), 0.0),
     ("silent for t_s", lambda r, t: None, 15.0),
-    ("job manager token gone", lambda r, t: r.jm.partner_token("uav2", False, s(t)), 0.0),
+    # a lost token alone could be a cut radio with the partner still flying: it falls after t_s of silence too
+    ("job manager token gone", lambda r, t: r.jm.partner_token("uav2", False, s(t)), 15.0),
 ]
 
 
@@ -59,12 +60,10 @@ def test_partner_heard_again_gets_its_area_back_only_after_rejoin_time(fall):
     rig.tick(1.1)
     if fall == "token gone":
         rig.jm.partner_token("uav2", False, s(2.0))
-        rig.tick(2.0)
-        rig.jm.partner_token("uav2", True, s(3.0))
-        back_from = 3.0
-    else:
-        rig.run(1.2, 16.2)  # last heard at 1.0: fallen after 15 s of silence
-        back_from = 16.3
+    rig.run(1.2, 16.2)  # last heard at 1.0: fallen after 15 s of silence
+    back_from = 16.3
+    if fall == "token gone":
+        rig.jm.partner_token("uav2", True, s(back_from))
     assert x_range(rig.jm.working_area) == (0.0, 100.0)
     for t in np.arange(back_from, back_from + 2.95, 0.2):
         flying(rig, "uav2", round(t, 3))
@@ -154,3 +153,61 @@ def test_an_engaged_uav_drops_its_target_when_a_closer_partner_claims_it():
     assert rig.jm.state is State.IDLE and "partner" in rig.jm.transitions[-1].reason
     rig.tick(1.4, detections=[BALLOON])
     assert rig.jm.state is State.GOING_AROUND  # and leaves it alone
+
+
+def test_an_isolated_uav_second_in_team_order_lands_where_it_is_and_the_first_goes_on():
+    """Lost-link rule, 2 UAVs: both halves hear nothing; uav2 lands in place, uav1 keeps its area and takes
+    over uav2's only t_s after uav2's last status, when uav2 is surely on the ground."""
+    for me, partner, lands in (("uav2", "uav1", True), ("uav1", "uav2", False)):
+        rig = Rig(uav=me).airborne()
+        rig.jm.partner_token(partner, True, s(1.0))
+        for t in np.arange(1.0, 5.01, 0.1):
+            flying(rig, partner, round(t, 3), position=(30.0, 30.0, 5.0))
+            rig.tick(round(t, 3))
+        rig.jm.partner_token(partner, False, s(5.05))  # the radio goes
+        rig.run(5.1, 6.4)
+        assert rig.jm.state is not State.LANDING, "landed before lost_link_time"
+        rig.run(6.5, 6.7)
+        if lands:
+            assert rig.jm.state is State.LANDING and rig.last.action == "land"
+            assert rig.last.target[:2] == pytest.approx(rig.position[:2])  # where it is
+            assert "lost link" in rig.jm.transitions[-1].reason
+        else:
+            assert rig.jm.state is not State.LANDING
+            assert x_range(rig.jm.working_area) == (0.0, 50.0)  # not before t_s
+            rig.run(6.8, 20.1)
+            assert x_range(rig.jm.working_area) == (0.0, 100.0)
+
+
+def test_in_a_team_of_three_the_isolated_uav_lands_and_the_two_that_hear_each_other_go_on():
+    heard = {"uav1": ("uav2", "uav3"), "uav2": ("uav1", "uav3"), "uav3": ("uav1", "uav2")}
+    for me in ("uav1", "uav3"):
+        cut = "uav1" if me == "uav1" else "uav2"  # uav1 cut off (seen by itself), or uav2 (seen by uav3)
+        rig = Rig(uav=me, team=("uav1", "uav2", "uav3")).airborne()
+        for t in np.arange(1.0, 8.01, 0.1):
+            for partner in heard[me]:
+                if round(t, 3) <= 5.0 or (me != cut and partner != cut):
+                    flying(rig, partner, round(t, 3), position=(50.0, 30.0, 5.0))
+            rig.tick(round(t, 3))
+        assert (rig.jm.state is State.LANDING) == (me == cut), (me, rig.jm.state)
+
+
+def test_an_unaccounted_partner_is_a_no_fly_column_until_it_is_seen_landed():
+    """Detections near its last position are no targets, and a sweep over it passes high enough above it."""
+    rig = Rig().airborne()
+    for t in np.arange(1.0, 3.01, 0.1):
+        flying(rig, "uav2", round(t, 3), position=(45.0, 30.0, 6.0))
+        rig.tick(round(t, 3))
+    assert rig.last.action == "scan" and rig.last.height == rig.jm.params.search_height
+    rig.run(3.1, 5.0)  # uav2 silent: stale after 1.5 s
+    p = rig.jm.params
+    assert rig.last.action == "scan" and rig.last.height == pytest.approx(6.0 + p.vertical_separation
+                                                                           + p.safety_distance)
+    near, far = [40.0, 30.0, 4.0], [20.0, 30.0, 4.0]  # 5 m and 25 m from its last position
+    assert rig.jm.candidates(s(5.0), rig.position).shape == (0, 3)
+    rig.tick(5.1, detections=[near, far])
+    assert rig.jm.candidates(s(5.1), rig.position).tolist() == [far]
+    rig.jm.partner_status("uav2", s(5.2), flying_normally=False, airborne=False, position=(45.0, 30.0, 0.0),
+                          state="LANDED")
+    rig.tick(5.2, detections=[near, far])
+    assert sorted(rig.jm.candidates(s(5.2), rig.position).tolist()) == sorted([near, far])

@@ -17,12 +17,16 @@ PARTNER_TIMEOUT = 15.0  # t_s, the job manager's default
 
 def run_mission(tmp_path: Path, port: int, faults: str, *, uavs: int, duration: float, seed: int = 1,
                 lease_ms: int | None = None) -> tuple[dict, str]:
+    """mbzirc with `faults` added, on the oracle detector and a light LiDAR (OS0-32 × 512: these tests are
+    about the team's decisions, and the light sensor keeps each run under a minute)."""
     scenario = tmp_path / "mission.toml"
     scenario.write_text((SCENARIO_DIR / "mbzirc.toml").read_text() + faults)
+    light = tmp_path / "light.toml"
+    light.write_text('[sensor_driver]\nmodel = "os0-32-512"\n')
     summary = tmp_path / "summary.json"
     argv = ["sim", str(scenario), "--uavs", str(uavs), "--lockstep", "--seed", str(seed), "--duration", str(duration),
             "--detector", "oracle", "--port", str(port), "--quiet", "--progress", "0", "--summary-json", str(summary),
-            "--wall-timeout", "400"]
+            "--wall-timeout", "400", "--config", str(light)]
     if lease_ms:
         argv += ["--lease-ms", str(lease_ms)]
     result = subprocess.run(falconry_argv(*argv), capture_output=True, text=True, timeout=480)
@@ -51,6 +55,14 @@ def check_revenge(summary: dict, output: str, cut_at: float) -> None:
     print(f"uav1 took the whole arena at t={took:.1f} s; balloons destroyed at {destroyed}")
     assert len(destroyed) == 5, output[-3000:]
     assert "uav1" in [d["by"] for d in summary["destroyed"] if d["t"] > took]
+    check_separation(summary)
+
+
+def check_separation(summary: dict) -> None:
+    """The invariant of the lost-link rule: no two flying UAVs ever closer than the safety distance."""
+    closest = summary["min_separation"]
+    print(f"closest approach {closest and closest['m']} m; safety distance {summary['safety_distance']} m")
+    assert summary["separation_violations"] == [], summary["separation_violations"]
 
 
 @pytest.mark.timeout(600)
@@ -60,13 +72,37 @@ def test_revenge_after_the_partner_is_killed(tmp_path, port):
     check_revenge(summary, output, 20.0)
 
 
+LINK_CUTS = [pytest.param(2, 20.0, id="2 UAVs, cut at 20 s"),
+             pytest.param(3, 60.0, id="3 UAVs, cut at 60 s"),
+             pytest.param(2, 60.0, id="2 UAVs, cut at 60 s", marks=pytest.mark.heavy),
+             pytest.param(3, 20.0, id="3 UAVs, cut at 20 s", marks=pytest.mark.heavy)]
+
+
 @pytest.mark.timeout(600)
 @pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
-def test_revenge_after_the_link_to_the_partner_is_cut(tmp_path, port):
-    faults = '\n[[faults]]\ntime = 20.0\nkind = "link_cut"\nuav = "uav2"\n'
-    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=120, lease_ms=1000)
-    check_revenge(summary, output, 20.0)
+@pytest.mark.parametrize("uavs,cut_at", LINK_CUTS)
+def test_a_uav_cut_off_for_good_keeps_flying_and_the_team_stays_apart(tmp_path, port, uavs, cut_at):
+    """uav2 loses its radio for good. It keeps its vehicle and flies on its own services; hearing no
+    partner it lands where it is (lost-link rule), the partners take its area t_s after its last
+    status, every balloon is still destroyed and no two flying UAVs come within the safety distance."""
+    faults = f'\n[[faults]]\ntime = {cut_at}\nkind = "link_cut"\nuav = "uav2"\n'
+    summary, output = run_mission(tmp_path, port, faults, uavs=uavs, duration=120, lease_ms=1000)
     assert netns.leftovers(f"f{port}") == []
+    decisions = {name: u["decisions"] for name, u in summary["uavs"].items()}
+    landing = [(t, reason) for t, state, reason in decisions["uav2"] if state == "LANDING"]
+    assert landing and cut_at < landing[0][0] <= cut_at + 2.0 and "lost link" in landing[0][1], decisions["uav2"]
+    assert f"uav2: LANDING (lost link" in output  # the summary says who decided what, and when
+    assert summary["uavs"]["uav2"]["landed_s"] is not None
+    for name in summary["uavs"]:
+        if name != "uav2":
+            assert "lost link" not in " ".join(r for _, _, r in decisions[name]), (name, decisions[name])
+    took = [c["t"] for c in summary["team_changes"] if "uav2" in c["fallen"]]
+    assert took and min(took) >= cut_at + PARTNER_TIMEOUT - 1.0, summary["team_changes"]
+    destroyed = balloons_destroyed(summary)
+    print(f"uav2 landed by the lost-link rule at t={landing[0][0]:.1f} s; its area taken over at "
+          f"t={min(took):.1f} s; balloons destroyed at {destroyed}")
+    assert len(destroyed) == 5, output[-3000:]
+    check_separation(summary)
 
 
 @pytest.mark.timeout(600)
@@ -85,3 +121,18 @@ def test_silent_lidar_lands_that_uav_only_and_three_uavs_share_its_area(tmp_path
     assert max(left, right) <= emergency[0] + 1.0
     print(f"uav2 emergency landing at t={emergency[0]:.2f} s; uav1 took x 0..50 at t={left:.1f} s, "
           f"uav3 x 50..100 at t={right:.1f} s")
+
+
+@pytest.mark.timeout(600)
+def test_the_partner_keeps_clear_of_a_uav_hovering_after_its_onboard_computer_died(tmp_path, port):
+    """A whole-UAV kill whose flight controller holds position: the survivor takes the arena over
+    t_s later, leaves the hovering UAV's no-fly column alone and never comes within the safety distance."""
+    faults = '\n[[faults]]\ntime = 20.0\nkind = "kill"\nuav = "uav2"\nfailsafe = "hold"\n'
+    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=90)
+    took = took_over(summary, "uav1", (0.0, 100.0), "uav2")
+    assert took is not None and 20.0 + PARTNER_TIMEOUT - 1.0 <= took <= 20.0 + PARTNER_TIMEOUT + 1.0, \
+        summary["team_changes"]
+    assert summary["uavs"]["uav2"]["landed_s"] is None, "uav2 should hover to the end"
+    assert summary["uavs"]["uav1"]["distance_m"] > 0
+    print(f"uav1 took the whole arena at t={took:.1f} s; balloons destroyed at {balloons_destroyed(summary)}")
+    check_separation(summary)

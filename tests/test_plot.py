@@ -57,3 +57,20 @@ def test_an_unwritable_plot_is_one_clear_error(tmp_path):
     feed_run(monitor, 0)
     with pytest.raises(UsageError, match="cannot write the plot"):
         plot_timeline(monitor, tmp_path / "missing" / "run.png", "test run")
+
+
+def test_the_monitor_reports_each_episode_below_the_safety_distance():
+    """uav2 passes uav1 at 2 m (t = 3..5 s below 5 m), later comes within 4 m once more; landed UAVs never count."""
+    monitor = RunMonitor(safety_distance=5.0)
+    gaps = [8.0, 6.0, 4.9, 2.0, 4.0, 5.5, 7.0, 4.5, 6.0, 1.0]  # the last while uav2 is on the ground
+    for k, gap in enumerate(gaps):
+        monitor.handle("falconry/sim/truth", encode(GroundTruth(header=Header(stamp=(k + 1) * S), step=k, uavs=[
+            VehicleTruth(name="uav1", position=(0.0, 0.0, 5.0), velocity=(0, 0, 0), heading=0, airborne=True),
+            VehicleTruth(name="uav2", position=(gap, 0.0, 5.0), velocity=(0, 0, 0), heading=0, airborne=k < 9)])))
+    summary = monitor.summary()
+    assert summary["safety_distance"] == 5.0
+    assert summary["min_separation"]["m"] == 2.0
+    assert summary["separation_violations"] == [
+        {"start": 3.0, "end": 6.0, "pair": "uav1-uav2", "m": 2.0},
+        {"start": 8.0, "end": 9.0, "pair": "uav1-uav2", "m": 4.5}]
+    assert RunMonitor().summary()["separation_violations"] == []  # no safety distance given: nothing judged

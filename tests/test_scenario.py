@@ -59,7 +59,7 @@ def test_good_file_defaults_and_automatic_starts(tmp_path):
     s = load_scenario(write(tmp_path, GOOD))
     assert s.balloons[0].radius == 0.3 and s.needle_reach == 0.3 and s.max_height == 20.0
     assert s.balloon_ids() == ["balloon1"]
-    assert start_poses(s, 3) == [(5.0, 5.0, 0.0), (10.0, 5.0, 0.0), (15.0, 5.0, 0.0)]
+    assert start_poses(s, 3) == [(5.0, 5.0, 0.0), (15.0, 5.0, 0.0), (25.0, 5.0, 0.0)]  # START_SPACING apart
 
 
 def test_clockwise_arena_is_reoriented(tmp_path):

@@ -101,3 +101,20 @@ def test_airframe_envelope_caps_the_reference_profile():
     speeds = np.array(speeds)
     assert 2.99 < speeds[:, 0].max() <= 3.0 + 1e-9 and max(climbs) <= 1.0 + 1e-9
     assert speeds[:, 1].max() > 6.0  # uav2's own, faster airframe
+
+
+def test_position_hold_hovers_where_it_is_and_ignores_every_reference():
+    """A whole-UAV kill with failsafe = "hold": the flight controller keeps the vehicle in the air."""
+    sim = Simulation(world(), ["uav1", "uav2"], seed=3)
+    sim.set_reference("uav1", sim.time_ns, 1.0, np.array([[0.0, 0.0, 5.0], [20.0, 0.0, 5.0]]), np.zeros(2), **LIMITS)
+    for _ in range(int(8.0 / DT)):
+        sim.step(DT)
+    sim.hold_position("uav1", "onboard computer lost")
+    sim.hold_position("uav1")  # a second call changes nothing
+    held = sim.vehicles()[0].position.copy()
+    sim.set_reference("uav1", sim.time_ns, 1.0, np.array([[-10.0, 0.0, 1.0]]), np.zeros(1), **LIMITS)
+    events = [e for _ in range(int(10.0 / DT)) for e in sim.step(DT)]
+    assert events == [("position_hold", "uav1", "onboard computer lost")]
+    state = sim.vehicles()[0]
+    assert state.airborne and np.linalg.norm(state.position - held) < 2.0  # braked from its speed, then still
+    assert np.linalg.norm(state.velocity) < 0.05

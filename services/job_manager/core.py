@@ -146,7 +146,8 @@ class JobManager:
         self.arena = arena
         p = self.params
         if self.team is None or self.team.members != list(uavs):
-            self.team = Team(self.uav, list(uavs), int(p.partner_timeout * NS), int(p.rejoin_time * NS))
+            self.team = Team(self.uav, list(uavs), int(p.partner_timeout * NS), int(p.rejoin_time * NS),
+                             lost_link_ns=int(p.lost_link_time * NS))
         self.duration_ns = int(round(duration_s * NS))
         self.ground_z = float(ground_z)
         self._split()
@@ -280,7 +281,28 @@ class JobManager:
         claimed = self.team.claimed_targets(mine, position, p.claim_radius) if self.team else np.zeros((0, 3))
         keep = usable_detections(detections, area=self.working_area, zones=self.zones, claimed=claimed,
                                  claim_radius=p.claim_radius, min_z=self.ground_z + p.min_target_height)
+        no_fly = self._no_fly(now)
+        if len(no_fly) and len(detections):  # an unaccounted partner may be there: no attack near it
+            apart = np.linalg.norm(detections[:, None, :2] - no_fly[None, :, :2], axis=2)
+            keep &= (apart >= p.safety_distance + p.no_fly_margin).all(axis=1)
         return detections[keep]
+
+    def _no_fly(self, now: int) -> np.ndarray:
+        return self.team.no_fly(now, self.takeoff_at) if self.team is not None else np.zeros((0, 3))
+
+    def _sweep_height(self, now: int) -> float:
+        """search_height, or high enough to pass over an unaccounted partner whose no-fly column
+        touches the working area (it may hover at its last height; it cannot get out of the way)."""
+        p = self.params
+        no_fly = self._no_fly(now)
+        if not len(no_fly) or self.working_area is None:
+            return p.search_height
+        reach = p.safety_distance + p.no_fly_margin
+        low, high = self.working_area.min(axis=0) - reach, self.working_area.max(axis=0) + reach
+        near = no_fly[((no_fly[:, :2] >= low) & (no_fly[:, :2] <= high)).all(axis=1)]
+        if not len(near):
+            return p.search_height
+        return max(p.search_height, float(near[:, 2].max()) + p.vertical_separation + p.safety_distance)
 
     def _lock(self, candidates: np.ndarray, stamps: np.ndarray, position: np.ndarray, now: int) -> bool:
         """Select b_c: the closest static candidate (a moving one only when none is static); the
@@ -320,6 +342,9 @@ class JobManager:
                 return State.EMERGENCY_LANDING, f"LiDAR silent {(now - max(heard, self.takeoff_at)) / NS:.1f} s"
             if self._mission_over(now):
                 return State.LANDING, "mission timer"
+            if (self.team is not None and self.takeoff_at is not None and self.team.isolated(now, self.takeoff_at)
+                    and self.team.lands_when_isolated(now, self.takeoff_at)):
+                return State.LANDING, f"lost link: no partner heard for {p.lost_link_time:g} s, landing where I am"
         if state in _TIMED and now - self.state_since > int(getattr(p, _TIMED[state]) * NS):
             limit = getattr(p, _TIMED[state])
             b_c = self.engagement.position(now) if self.engagement is not None else self._checked
@@ -502,7 +527,7 @@ class JobManager:
                 return MissionDecision("takeoff", height=p.search_height, spacing=p.scan_spacing)
             self._climbed = True
             area = tuple((float(x), float(y)) for x, y in self.working_area)
-            return MissionDecision("scan", area=area, height=p.search_height, spacing=p.scan_spacing)
+            return MissionDecision("scan", area=area, height=self._sweep_height(now), spacing=p.scan_spacing)
         if state in (State.GOING_TO_TARGET, State.DESTROYING):
             return self._engage(now)
         if state is State.LANDING:

@@ -14,6 +14,7 @@ from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import (
     ConstraintProfile,
+    Decision,
     Detections,
     ForbiddenZoneStatus,
     Header,
@@ -179,7 +180,12 @@ class JobManagerNode(Node):
             fallen_partners=[] if self.core.team is None else self.core.team.fallen,
             forbidden_zones=[ForbiddenZoneStatus(center=z.center, radius=self.core.zones.radius, expires=z.expires,
                                                  reason=z.reason) for z in self.core.zones.zones],
+            state_reason=self.core.transitions[-1].reason if self.core.transitions else "",
         ))
+
+
+    def decisions(self) -> list[Decision]:
+        return [Decision(stamp=t.stamp, state=t.target.value, reason=t.reason) for t in self.core.transitions]
 
 
 NODE = JobManagerNode

@@ -4,8 +4,18 @@ revenge mode, who may chase which target, and who yields when two UAVs come clos
 Rules (docs/architecture.md, "Mission"):
 - A partner has **fallen** when, after it was once seen flying normally, its status says it no
   longer is (landed, emergency landing); or it has been silent for t_s (`partner_timeout`;
-  a partner never heard at all counts from this UAV's own take-off); or its job manager's
-  liveliness token disappeared.
+  a partner never heard at all counts from this UAV's own take-off). A lost liveliness token
+  alone does not make it fall: a cut radio looks the same as a dead UAV, and a cut-off partner
+  may still be flying.
+- **Lost link** (docs/architecture.md, "Lost link"): a partner is **stale** when silent for
+  `lost_link_time`, and **unaccounted** while stale or fallen
+  without its last status saying it is on the ground. An unaccounted partner's last known
+  position is a no-fly column (`no_fly`). A UAV that finds every partner not seen landed stale is
+  **isolated**; it keeps flying the mission only when it is the first in team order among the
+  members not seen landed and at most one partner is unaccounted (the two halves of a 2-UAV team
+  must not both stop, nor both go on blind); otherwise it lands where it is. Its partners
+  therefore find it on the ground, inside its no-fly column, by the time they take over its area
+  (t_s after its last status).
 - **Revenge mode**: the arena is split into equal working areas among the *active* UAVs (this
   one plus every partner that has not fallen), always in the world's team order, west to east.
   With 2 UAVs a survivor gets the whole arena; with 3 the two survivors share it.
@@ -45,6 +55,7 @@ class Partner:
     state: str = ""
     target: np.ndarray | None = None
     fallen_reason: str = ""  # "" while active
+    landed_seen: bool = False  # its last status said it is on the ground
 
 
 @dataclass(frozen=True)
@@ -60,6 +71,7 @@ class Team:
     members: list[str]  # the world's team order
     partner_timeout_ns: int
     rejoin_time_ns: int
+    lost_link_ns: int = 1_500_000_000
     partners: dict[str, Partner] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -78,6 +90,7 @@ class Team:
         p.was_flying |= flying_normally
         p.position = np.asarray(position, dtype=np.float64).reshape(3)
         p.airborne = airborne
+        p.landed_seen = not airborne
         p.state = state
         p.target = None if target is None else np.asarray(target, dtype=np.float64).reshape(3)
 
@@ -111,8 +124,6 @@ class Team:
     def _fall_reason(self, p: Partner, now: int, my_takeoff: int | None) -> str:
         if p.was_flying and not p.flying_normally:
             return f"reports not flying normally ({p.state or 'unknown state'})"
-        if p.token_alive is False and (p.was_flying or p.heard is not None):
-            return "job manager liveliness lost"
         since = p.heard if p.heard is not None else my_takeoff
         if since is not None and now - since > self.partner_timeout_ns:
             what = "silent" if p.heard is not None else "never heard"
@@ -123,6 +134,34 @@ class Team:
         return (p.flying_normally and p.token_alive is not False and p.normal_since is not None
                 and p.heard is not None and now - p.heard <= self.partner_timeout_ns
                 and now - p.normal_since >= self.rejoin_time_ns)
+
+    # --------------------------------------------------------------- lost link
+    def stale(self, p: Partner, now: int, my_takeoff: int | None) -> bool:
+        """Silent for lost_link_time (its statuses stop when its radio or its token goes; a link
+        glitch shorter than that changes nothing)."""
+        since = p.heard if p.heard is not None else my_takeoff
+        return since is not None and now - since > self.lost_link_ns
+
+    def unaccounted(self, now: int, my_takeoff: int | None) -> list[Partner]:
+        """Partners that may be flying where I cannot know: stale or fallen, not seen landed."""
+        return [p for p in self.partners.values()
+                if not p.landed_seen and (p.fallen_reason or self.stale(p, now, my_takeoff))]
+
+    def isolated(self, now: int, my_takeoff: int | None) -> bool:
+        """Every partner not seen landed is stale (and there is at least one)."""
+        up = [p for p in self.partners.values() if not p.landed_seen]
+        return bool(up) and all(self.stale(p, now, my_takeoff) for p in up)
+
+    def lands_when_isolated(self, now: int, my_takeoff: int | None) -> bool:
+        """Whether an isolated UAV must land: it goes on only as the first in team order among
+        the members not seen landed, with at most one of them unaccounted."""
+        up = [m for m in self.members if m == self.me or not self.partners[m].landed_seen]
+        return up[0] != self.me or len(self.unaccounted(now, my_takeoff)) > 1
+
+    def no_fly(self, now: int, my_takeoff: int | None) -> np.ndarray:
+        """(K, 3) last known positions of unaccounted partners: columns to keep out of."""
+        spots = [p.position for p in self.unaccounted(now, my_takeoff) if p.position is not None]
+        return np.array(spots, dtype=np.float64).reshape(-1, 3)
 
     @property
     def active(self) -> list[str]:

@@ -84,8 +84,12 @@ class FaultExecutor:
             self.network.restore(command.uav)
         self.report("fault_ended", "/".join(filter(None, (command.uav, command.service))), command.kind)
 
-    def end_all(self) -> None:
-        """Before shutdown: frozen processes must be able to take SIGTERM, links come back."""
+    def end_all(self) -> bool:
+        """Before shutdown: frozen processes must be able to take SIGTERM, links come back.
+        True when a link was restored."""
+        restored = False
         for fault in list(self.active):
             if fault.command.kind in ("freeze", "link_cut"):
+                restored |= fault.command.kind == "link_cut"
                 self.end(fault)
+        return restored

@@ -61,6 +61,7 @@ class UavSummary:
     confirmed_tracks: set[int] = field(default_factory=set)
     last_position: tuple[float, float, float] | None = None
     states: list[tuple[float, str]] = field(default_factory=list)  # (mission time, job manager state) changes
+    decisions: list[tuple[float, str, str]] = field(default_factory=list)  # the same with the job manager's reason
     detection_counts: list[Sample] = field(default_factory=list)  # detections per scan
     nearest_partner: list[Sample] = field(default_factory=list)  # m to the nearest flying partner (truth), 4 Hz
     perception: evaluation.PerceptionScore = field(default_factory=evaluation.PerceptionScore)
@@ -68,8 +69,12 @@ class UavSummary:
 
 
 class RunMonitor:
-    def __init__(self, truth_log: BinaryIO | None = None, digests: bool = False) -> None:
+    def __init__(self, truth_log: BinaryIO | None = None, digests: bool = False,
+                 safety_distance: float | None = None) -> None:
         self.truth_log = truth_log
+        # the job manager's safety_distance: two flying UAVs closer than this break the invariant
+        self.safety_distance = safety_distance
+        self.violations: list[dict] = []  # one per episode below safety_distance: start, end, pair, closest m
         self.digests: dict[str, tuple[int, "hashlib._Hash"]] | None = {} if digests else None
         self.step = -1
         self.truth_step = -1
@@ -189,6 +194,7 @@ class RunMonitor:
         u.state = status.state
         if not u.states or u.states[-1][1] != status.state:
             u.states.append((t, status.state))
+            u.decisions.append((t, status.state, status.state_reason))
         xs = [x for x, _ in status.working_area]
         view = ((round(min(xs), 1), round(max(xs), 1)) if xs else None, tuple(status.fallen_partners))
         if view != u.team_view:
@@ -231,16 +237,32 @@ class RunMonitor:
             self._truth_history.pop(min(self._truth_history))
         flying = [v for v in truth.uavs if v.airborne and v.alive]
         if len(flying) < 2:
+            self._note_separation(t, None, "")
             return
         gaps = pairwise_gaps(np.array([v.position for v in flying]))
         i, j = np.unravel_index(np.argmin(gaps), gaps.shape)
+        a, b = sorted((i, j))
+        pair = f"{flying[a].name}-{flying[b].name}"
         if self.min_separation is None or gaps[i, j] < self.min_separation[0]:
-            a, b = sorted((i, j))
-            self.min_separation = (float(gaps[i, j]), t, f"{flying[a].name}-{flying[b].name}")
+            self.min_separation = (float(gaps[i, j]), t, pair)
+        self._note_separation(t, float(gaps[i, j]), pair)
         for v, gap in zip(flying, gaps.min(axis=1)):
             series = self._uav(v.name).nearest_partner
             if not series or t - series[-1].t >= NEAREST_PERIOD:
                 series.append(Sample(t, float(gap)))
+
+    def _note_separation(self, t: float, closest: float | None, pair: str) -> None:
+        """Episodes in which two flying UAVs were closer than the safety distance."""
+        if self.safety_distance is None:
+            return
+        inside = closest is not None and closest < self.safety_distance
+        episode = self.violations[-1] if self.violations and self.violations[-1]["end"] is None else None
+        if inside and episode is None:
+            self.violations.append({"start": round(t, 2), "end": None, "pair": pair, "m": round(closest, 2)})
+        elif inside:
+            episode["m"] = min(episode["m"], round(closest, 2))
+        elif episode is not None:
+            episode["end"] = round(t, 2)
 
     def _note_first_detections(self, uav: str, det: Detections) -> None:
         """When each target was first detected by anyone: a detection within DETECTED_WITHIN of its
@@ -287,6 +309,8 @@ class RunMonitor:
             "min_separation": None if self.min_separation is None else {
                 "m": round(self.min_separation[0], 2), "t": round(self.min_separation[1], 2),
                 "pair": self.min_separation[2]},
+            "safety_distance": self.safety_distance,
+            "separation_violations": [dict(v) for v in self.violations],
             "restarts": list(self.restarts),
             "team_changes": list(self.team_changes),
             "faults": list(self.faults),
@@ -295,6 +319,7 @@ class RunMonitor:
                        "takeoff_s": u.takeoff, "landed_s": u.landed, "final_state": u.state,
                        "detections": u.detections, "confirmed_tracks": len(u.confirmed_tracks),
                        "states": [[round(t, 2), state] for t, state in u.states],
+                       "decisions": [[round(t, 2), state, reason] for t, state, reason in u.decisions],
                        "perception": u.perception.summary()}
                 for name, u in sorted(self.uavs.items())
             },

@@ -36,6 +36,8 @@ from services.simulator.scenario import ScenarioError, load_scenario
 from services.viz.settings import web_address
 
 VIEWER = "sim/viewer"
+LEAVING_STATES = ("LANDING", "EMERGENCY_LANDING")
+RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS) + tuple(
     keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth"))
 
@@ -77,107 +79,127 @@ def add_parser(commands) -> None:
 
 
 def run_sim(args: argparse.Namespace) -> int:
-
-    try:
-        scenario = load_scenario(args.scenario)
-        read_tables(args.config)
-        for service in ["simulator", *keys.uav_services(args.detector)]:
-            params_for(service, node_class(service).params_type, args.config)
-    except (ScenarioError, ParamsError) as exc:
-        raise CliError(str(exc)) from None
-    check_view_options(args)
-    outputs = Outputs(args)
-    for name, value in (("--duration", args.duration), ("--rtf", args.rtf), ("--tick", args.tick)):
-        if value is not None and value <= 0:
-            raise CliError(f"{name} must be positive")
-    uavs = keys.uav_names(args.uavs or scenario.uavs)
-    duration = args.duration if args.duration is not None else scenario.duration
-    seed = args.seed if args.seed is not None else scenario.seed
-
-    needs_network = args.isolate or any(f.kind == "link_cut" for f in getattr(scenario, "faults", []))
-    if needs_network and (why := netns.available()):
-        raise CliError(f"{'--isolate' if args.isolate else 'the scenario schedules link_cut faults, which'} "
-                       f"needs per-UAV network namespaces, but {why}")
-
-    started_wall = time.time()
-    segments_before = shm.segments()
-    port = args.port or free_port()
-    network = netns.UavNetwork(port, uavs) if needs_network else None
-    plan = plan_run(args, uavs, seed, duration, port, network)
-    if network:
-        network.setup()
-    init_logging()
-    session = open_session(plan.hub_settings)
-    inbox: queue.SimpleQueue = queue.SimpleQueue()
-    subscribers = [session.declare_subscriber(k, lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes())))
-                   # digests need everything; one subscription keeps each payload from arriving twice
-                   for k in ((f"{keys.ROOT}/**",) if args.digest_json else WATCHED + (keys.FAULTS,))]
-    events_pub = session.declare_publisher(keys.EVENTS)
-    resume = session.declare_queryable(keys.RESUME, lambda query: inbox.put(("query", query)))
-    recorder = Recorder(session, args.record) if args.record else None
-    encoder = msgspec.msgpack.Encoder()
-    fault_decoder = msgspec.msgpack.Decoder(FaultCommand)
-    event_seq = [0]
-
-    monitor = RunMonitor(outputs.truth, digests=args.digest_json is not None)
-
-    def report(kind: str, subject: str, detail: str) -> None:
-        event_seq[0] += 1
-        events_pub.put(encoder.encode(SimEvent(
-            header=Header(sender="sim/launcher", seq=event_seq[0], stamp=int(monitor.mission_time * 1e9)),
-            kind=kind, subject=subject, detail=detail)))
-
-    def on_restart(name: str, code: int, _when: float) -> None:
-        report("service_restarted", name, describe_exit(code))
-
-    supervisor = Supervisor(echo=not args.quiet, on_restart=on_restart,
-                            log_file=outputs.log)
-    mode = "lockstep" if args.lockstep else f"real time x{args.rtf:g}"
-    supervisor.say(f"{scenario.name}: {len(uavs)} UAVs, seed {seed}, {duration:g} s of mission time, {mode}, "
-                   f"detector {args.detector}, zenoh {plan.hub_label}"
-                   + (f", UAVs in network namespaces on {network.prefix}.0/24" if network else ""))
-    if args.viz == "web":
-        supervisor.say(f"watch the run in a browser: {web_address()}")
-    faults = FaultExecutor(supervisor, network, report)
-
-    def dispatch(key: str, payload) -> None:
-        if key == "query":
-            answer_resume(payload, monitor.last_truth)
-        elif key == keys.FAULTS:
-            try:
-                faults.start(fault_decoder.decode(payload), monitor.mission_time)
-            except (msgspec.DecodeError, msgspec.ValidationError):
-                pass
-        else:
-            monitor.handle(key, payload)
-    outcome = "finished"
+    run = SimRun(args)  # checks everything first: a bad option is one line, nothing started
+    outcome = "interrupted"
     signal.signal(signal.SIGTERM, _interrupt)  # `kill`, `timeout` and compose stop us like Ctrl-C does
     try:
+        run.setup()
+        outcome = run.loop()
+    except KeyboardInterrupt:
+        outcome = "interrupted"
+    finally:
+        # a second Ctrl-C must not cut the clean-up short
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        run.teardown(outcome)
+    return run.report(outcome)
+
+
+class SimRun:
+    """One `falconry sim` run in three steps: `setup` (network, hub session, children),
+    `loop` (until the mission is over), `teardown` (stop everything, leave nothing behind);
+    `report` then prints and writes the summary."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.args = args
+        try:
+            self.scenario = load_scenario(args.scenario)
+            read_tables(args.config)
+            for service in ["simulator", *keys.uav_services(args.detector)]:
+                params_for(service, node_class(service).params_type, args.config)
+            self.safety_distance = params_for("job_manager", node_class("job_manager").params_type,
+                                              args.config).safety_distance
+        except (ScenarioError, ParamsError) as exc:
+            raise CliError(str(exc)) from None
+        check_view_options(args)
+        for name, value in (("--duration", args.duration), ("--rtf", args.rtf), ("--tick", args.tick)):
+            if value is not None and value <= 0:
+                raise CliError(f"{name} must be positive")
+        self.uavs = keys.uav_names(args.uavs or self.scenario.uavs)
+        self.duration = args.duration if args.duration is not None else self.scenario.duration
+        self.seed = args.seed if args.seed is not None else self.scenario.seed
+        needs_network = args.isolate or any(f.kind == "link_cut" for f in getattr(self.scenario, "faults", []))
+        if needs_network and (why := netns.available()):
+            raise CliError(f"{'--isolate' if args.isolate else 'the scenario schedules link_cut faults, which'} "
+                           f"needs per-UAV network namespaces, but {why}")
+        self.outputs = Outputs(args)
+        self.started_wall = time.time()
+        self.segments_before = shm.segments()
+        port = args.port or free_port()
+        self.network = netns.UavNetwork(port, self.uavs) if needs_network else None
+        self.plan = plan_run(args, self.uavs, self.seed, self.duration, port, self.network)
+        self.monitor = RunMonitor(self.outputs.truth, digests=args.digest_json is not None,
+                                  safety_distance=self.safety_distance)
+        self.inbox: queue.SimpleQueue = queue.SimpleQueue()
+        self.encoder = msgspec.msgpack.Encoder()
+        self.fault_decoder = msgspec.msgpack.Decoder(FaultCommand)
+        self.event_seq = 0
+        self.session = self.events_pub = self.resume = self.recorder = None
+        self.subscribers: list = []
+        self.supervisor = Supervisor(echo=not args.quiet, on_restart=self._on_restart, log_file=self.outputs.log)
+        self.faults = FaultExecutor(self.supervisor, self.network, self.report_event)
+        self.usage: list[ServiceHealth] = []
+        self.killed: list[str] = []
+
+    # ------------------------------------------------------------------ setup
+    def setup(self) -> None:
+        args, plan = self.args, self.plan
+        if self.network:
+            self.network.setup()
+        init_logging()
+        self.session = open_session(plan.hub_settings)
+        self.subscribers = [
+            self.session.declare_subscriber(k, lambda s: self.inbox.put((str(s.key_expr), s.payload.to_bytes())))
+            # digests need everything; one subscription keeps each payload from arriving twice
+            for k in ((f"{keys.ROOT}/**",) if args.digest_json else WATCHED + (keys.FAULTS,))]
+        self.events_pub = self.session.declare_publisher(keys.EVENTS)
+        self.resume = self.session.declare_queryable(keys.RESUME, lambda query: self.inbox.put(("query", query)))
+        self.recorder = Recorder(self.session, args.record) if args.record else None
+        mode = "lockstep" if args.lockstep else f"real time x{args.rtf:g}"
+        self.supervisor.say(f"{self.scenario.name}: {len(self.uavs)} UAVs, seed {self.seed}, {self.duration:g} s of "
+                            f"mission time, {mode}, detector {args.detector}, zenoh {plan.hub_label}"
+                            + (f", UAVs in network namespaces on {self.network.prefix}.0/24" if self.network else ""))
+        if args.viz == "web":
+            self.supervisor.say(f"watch the run in a browser: {web_address()}")
         if plan.viewer:
-            supervisor.start(VIEWER, plan.viewer, restart=False)  # first, so it sees the run from the start
+            self.supervisor.start(VIEWER, plan.viewer, restart=False)  # first, so it sees the run from the start
         for name, argv in plan.children.items():
-            supervisor.start(name, argv)
+            self.supervisor.start(name, argv)
+
+    def report_event(self, kind: str, subject: str, detail: str) -> None:
+        self.event_seq += 1
+        self.events_pub.put(self.encoder.encode(SimEvent(
+            header=Header(sender="sim/launcher", seq=self.event_seq, stamp=int(self.monitor.mission_time * 1e9)),
+            kind=kind, subject=subject, detail=detail)))
+
+    def _on_restart(self, name: str, code: int, _when: float) -> None:
+        self.report_event("service_restarted", name, describe_exit(code))
+
+    # ------------------------------------------------------------------- loop
+    def loop(self) -> str:
+        """Until the mission is over; returns the outcome."""
+        args, monitor, supervisor = self.args, self.monitor, self.supervisor
         next_progress = args.progress
         finished_at = None
+        outcome = "finished"
         while not monitor.over:
             if monitor.finished and finished_at is None:
                 finished_at = time.monotonic()
             if finished_at is not None and time.monotonic() - finished_at > 3.0:
                 break  # the simulator's closing event went missing: the run is over all the same
             try:
-                dispatch(*inbox.get(timeout=0.1))
+                self._dispatch(*self.inbox.get(timeout=0.1))
             except queue.Empty:
                 pass
-            faults.tick(monitor.mission_time)
+            self.faults.tick(monitor.mission_time)
             supervisor.poll()
             if args.progress and monitor.mission_time >= next_progress:
-                supervisor.say(monitor.progress(duration))
+                supervisor.say(monitor.progress(self.duration))
                 next_progress += args.progress
-            sim_child = supervisor.children["sim/simulator"]
-            if sim_child.failed:
+            if supervisor.children["sim/simulator"].failed:
                 outcome = "simulator failed"
                 break
-            if args.wall_timeout and time.time() - started_wall > args.wall_timeout:
+            if args.wall_timeout and time.time() - self.started_wall > args.wall_timeout:
                 outcome = f"wall timeout ({args.wall_timeout:g} s)"
                 break
         # Messages of the last tick travel on other links and threads than the closing event:
@@ -185,56 +207,86 @@ def run_sim(args: argparse.Namespace) -> int:
         deadline = time.monotonic() + 2.0
         while time.monotonic() < deadline:
             try:
-                dispatch(*inbox.get(timeout=0.2))
+                self._dispatch(*self.inbox.get(timeout=0.2))
             except queue.Empty:
                 if monitor.truth_step >= monitor.step:
                     break
-    except KeyboardInterrupt:
-        outcome = "interrupted"
-    finally:
-        # a second Ctrl-C must not cut the clean-up short
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        # where the run's CPU went, asked while every service still lives (not after Ctrl-C: no waiting then)
-        usage = [] if outcome == "interrupted" else query_health(session, timeout=1.0)
-        faults.end_all()
-        killed = supervisor.stop_all(last={VIEWER: DRAIN_S + 10.0})
-        viewer = supervisor.children.get(VIEWER)
+        return outcome
+
+    def _dispatch(self, key: str, payload) -> None:
+        if key == "query":
+            answer_resume(payload, self.monitor.last_truth)
+        elif key == keys.FAULTS:
+            try:
+                self.faults.start(self.fault_decoder.decode(payload), self.monitor.mission_time)
+            except (msgspec.DecodeError, msgspec.ValidationError):
+                pass
+        else:
+            self.monitor.handle(key, payload)
+
+    # --------------------------------------------------------------- teardown
+    def teardown(self, outcome: str) -> None:
+        """Stop everything, whatever got started; safe after a setup that failed half-way."""
+        restored = self.faults.end_all()  # links come back, so a cut-off UAV can still tell its story
+        if self.session is not None and outcome != "interrupted":
+            # where the run's CPU went and what the job managers decided, asked while every service still
+            # lives (not after Ctrl-C: no waiting then); a link just restored needs a moment to reconnect
+            self.usage = self._ask_health(wait=RECONNECT_S if restored else 0.0)
+        self.killed = self.supervisor.stop_all(last={VIEWER: DRAIN_S + 10.0})
+        viewer = self.supervisor.children.get(VIEWER)
         if viewer is not None and viewer.process is not None and viewer.process.returncode not in (0, None):
             viewer.failed = True  # e.g. a live viewer that went away: its own log line says what it missed
-        for sub in subscribers:
-            sub.undeclare()
-        events_pub.undeclare()
-        resume.undeclare()
-        if recorder:
-            print("\n".join(summary_lines(args.record, recorder.close(), time.time() - started_wall)))
-        session.close()
-        outputs.close()
-        if network:
-            network.teardown()
-        shm.remove_orphans(shm.segments() - segments_before)
+        for handle in [*self.subscribers, self.events_pub, self.resume]:
+            if handle is not None:
+                handle.undeclare()
+        if self.recorder:
+            print("\n".join(summary_lines(self.args.record, self.recorder.close(), time.time() - self.started_wall)))
+        if self.session is not None:
+            self.session.close()
+        self.outputs.close()
+        if self.network:
+            self.network.teardown()
+        shm.remove_orphans(shm.segments() - self.segments_before)
 
-    summary = monitor.summary()
-    summary.update(outcome=outcome, scenario=scenario.name, seed=seed, lockstep=args.lockstep, detector=args.detector,
-                   wall_time=round(time.time() - started_wall, 2), killed_at_shutdown=killed,
-                   failed_services=[c.name for c in supervisor.children.values() if c.failed],
-                   cpu=cpu_by_service(usage, time.process_time()))
-    print_summary(summary, len(uavs), duration)
-    if args.rrd:
-        print(rrd_line(args.rrd, summary["mission_time"]), flush=True)
-    if args.plot:
-        from services.launcher.plot import plot_timeline  # matplotlib loads only when asked for
+    def _ask_health(self, wait: float) -> list[ServiceHealth]:
+        expected = {name for name, child in self.supervisor.children.items()
+                    if name != VIEWER and not child.held and not child.failed}
+        deadline = time.monotonic() + wait
+        while True:
+            usage = query_health(self.session, timeout=1.0)
+            if {f"{h.uav}/{h.service}" for h in usage} >= expected or time.monotonic() >= deadline:
+                return usage
 
-        plot_timeline(monitor, args.plot, f"Falconry run: {scenario.name}, {len(uavs)} UAVs, seed {seed}, "
-                                          f"detector {args.detector}", duration)
-        print(f"timeline plot: {args.plot}", flush=True)
-    if args.summary_json:
-        Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
-    if args.digest_json:
-        Path(args.digest_json).write_text(json.dumps(monitor.digest_summary(), indent=2, sort_keys=True) + "\n")
-    if outcome == "interrupted":
-        return 130
-    return 0 if outcome == "finished" and not summary["failed_services"] else 1
+    # ----------------------------------------------------------------- report
+    def report(self, outcome: str) -> int:
+        """Print and write the summary; the exit status of the run."""
+        args, monitor = self.args, self.monitor
+        summary = monitor.summary()
+        summary.update(outcome=outcome, scenario=self.scenario.name, seed=self.seed, lockstep=args.lockstep,
+                       detector=args.detector, wall_time=round(time.time() - self.started_wall, 2),
+                       killed_at_shutdown=self.killed,
+                       failed_services=[c.name for c in self.supervisor.children.values() if c.failed],
+                       cpu=cpu_by_service(self.usage, time.process_time()), health=health_totals(self.usage))
+        for h in self.usage:  # the job managers' own logs: complete even where a cut hid their statuses
+            if h.decisions and h.uav in summary["uavs"]:
+                summary["uavs"][h.uav]["decisions"] = [[round(d.stamp / 1e9, 2), d.state, d.reason]
+                                                       for d in h.decisions]
+        print_summary(summary, len(self.uavs), self.duration)
+        if args.rrd:
+            print(rrd_line(args.rrd, summary["mission_time"]), flush=True)
+        if args.plot:
+            from services.launcher.plot import plot_timeline  # matplotlib loads only when asked for
+
+            plot_timeline(monitor, args.plot, f"Falconry run: {self.scenario.name}, {len(self.uavs)} UAVs, seed "
+                                              f"{self.seed}, detector {args.detector}", self.duration)
+            print(f"timeline plot: {args.plot}", flush=True)
+        if args.summary_json:
+            Path(args.summary_json).write_text(json.dumps(summary, indent=2) + "\n")
+        if args.digest_json:
+            Path(args.digest_json).write_text(json.dumps(monitor.digest_summary(), indent=2, sort_keys=True) + "\n")
+        if outcome == "interrupted":
+            return 130
+        return 0 if outcome == "finished" and not summary["failed_services"] else 1
 
 
 def rrd_line(path: str, mission_s: float) -> str:
@@ -297,13 +349,24 @@ def _completion_lines(s: dict) -> list[str]:
         if len(done) == len(wanted):
             lines.append(f"all {len(wanted)} {kind}s {'destroyed' if kind == 'balloon' else 'captured'} "
                          f"at t={max(done):.1f} s")
+    for name, u in s.get("uavs", {}).items():  # the decisions that leave the mission, with the job manager's reason
+        for t, state, reason in u.get("decisions", []):
+            if state in LEAVING_STATES and reason:
+                lines.append(f"t={t:.1f} s {name}: {state} ({reason})")
     for change in s.get("team_changes", []):
         area = "no area" if change["x"] is None else f"working area x {change['x'][0]:g}..{change['x'][1]:g}"
         fallen = f" (fallen: {', '.join(change['fallen'])})" if change["fallen"] else ""
         lines.append(f"t={change['t']:.1f} s {change['uav']}: {area}{fallen}")
-    sep = s.get("min_separation")
+    sep, safety = s.get("min_separation"), s.get("safety_distance")
     if sep is not None:
-        lines.append(f"closest approach of two flying UAVs: {sep['m']:.1f} m ({sep['pair']}, t={sep['t']:.1f} s)")
+        verdict = ""
+        if safety is not None:
+            episodes = s.get("separation_violations", [])
+            verdict = (f"; safety distance {safety:g} m kept" if not episodes else
+                       f"; SAFETY DISTANCE {safety:g} m BROKEN {len(episodes)} time(s), first at "
+                       f"t={episodes[0]['start']:.1f} s ({episodes[0]['pair']})")
+        lines.append(f"closest approach of two flying UAVs: {sep['m']:.1f} m ({sep['pair']}, t={sep['t']:.1f} s)"
+                     + verdict)
     return lines
 
 
@@ -322,6 +385,19 @@ def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[st
     cpu = {f"{h.uav}/{h.service}": round(h.cpu_time, 2) for h in usage}
     cpu["launcher"] = round(launcher_cpu_s, 2)
     return cpu
+
+
+def health_totals(usage: list[ServiceHealth]) -> dict[str, int]:
+    """What every service counted by the end of the run: payloads it could not decode, handler
+    errors, lockstep waits given up, and messages of its own UAV's publishers it never received
+    (per subscriber: published - received on a key of its own UAV; a restart also shows here)."""
+    published = {key: n for h in usage for key, n in h.published.items()}
+    lost = sum(max(0, published[key] - n) for h in usage for key, n in h.received.items()
+               if key in published and key.startswith(f"falconry/{h.uav}/"))
+    return {"decode_errors": sum(sum(h.decode_errors.values()) for h in usage),
+            "handler_errors": sum(h.handler_errors for h in usage),
+            "lockstep_timeouts": sum(h.lockstep_timeouts for h in usage), "lost_own_uav": lost,
+            "services_answering": len(usage)}
 
 
 def cpu_line(cpu: dict[str, float]) -> str:
@@ -355,6 +431,11 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
     lines.append(f"faults injected: {len(injected)}" + "".join(f"\n  {f}" for f in s["faults"]))
     if s["cpu"]:
         lines.append("CPU per service, s (all UAVs): " + cpu_line(s["cpu"]))
+    if s.get("health"):
+        h = s["health"]
+        lines.append(f"service counters ({h['services_answering']} answered): {h['decode_errors']} undecodable, "
+                     f"{h['handler_errors']} handler errors, {h['lockstep_timeouts']} lockstep waits given up, "
+                     f"{h['lost_own_uav']} own-UAV messages not received")
     if s["failed_services"]:
         lines.append("gave up on: " + ", ".join(s["failed_services"]))
     if s["killed_at_shutdown"]:

@@ -27,7 +27,7 @@ from services.simulator.specs import (
     Vec3,
 )
 
-START_SPACING = 5.0
+START_SPACING = 10.0  # m: twice the job manager's safety distance, so a take-off is no separation violation
 FAULT_SERVICES = keys.UAV_SERVICES + (keys.ORACLE,)
 _UAV_NAME = re.compile(r"^uav([1-9][0-9]*)$")
 
@@ -282,6 +282,8 @@ def _check_fault(s: Scenario, f, where: str) -> None:
         if f.service not in FAULT_SERVICES:
             raise ScenarioError(f"{where}.service: unknown service {f.service!r} "
                                 f"(one of {', '.join(FAULT_SERVICES)})")
+    if f.failsafe != "land" and (f.kind != "kill" or f.service):
+        raise ScenarioError(f"{where}.failsafe: only a whole-UAV kill (no service) takes a failsafe")
     moved = any(v != 0 for v in f.offset)
     if f.kind == "odometry_jump" and not moved:
         raise ScenarioError(f"{where}.offset: an odometry_jump needs a non-zero offset")

@@ -60,6 +60,12 @@ class Simulation:
         if self.fleet.emergency_land(self.index(uav)):
             self._pending.append(("emergency_landing", uav, reason))
 
+    def hold_position(self, uav: str, reason: str = "") -> None:
+        """Hover where it is, ignoring every reference from now on (a flight controller's position
+        hold). Reports ("position_hold", uav, reason)."""
+        if self.fleet.hold_position(self.index(uav)):
+            self._pending.append(("position_hold", uav, reason))
+
     def jump_odometry(self, uav: str, offset) -> None:
         """Add `offset` (x, y, z, m) to the UAV's odometry error from now on (negate to undo)."""
         offset = np.asarray(offset, dtype=float).reshape(3)

@@ -267,7 +267,10 @@ class SimulatorNode(Node):
                     self._undo_jumps.sort(key=lambda u: u[0])
             elif spec.kind == "kill" and not spec.service:
                 # the flight controller's failsafe when the onboard computer dies
-                self.sim.emergency_land(spec.uav, "onboard computer lost")
+                if spec.failsafe == "hold":
+                    self.sim.hold_position(spec.uav, "onboard computer lost")
+                else:
+                    self.sim.emergency_land(spec.uav, "onboard computer lost")
             self.faults_pub.put(command)
             target = "/".join(filter(None, (spec.uav, spec.service)))
             self.event("fault_injected", target, spec.kind + (f" for {spec.duration:g} s" if spec.duration else ""))

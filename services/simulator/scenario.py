@@ -26,7 +26,7 @@ Top-level fields
   capture_speed   float = 2.0     ... at a relative speed of at most this, m/s. A captured drone
                                   drops to the ground and counts as destroyed.
   starts          [[x, y, heading], ...] = []   UAV start poses on the ground, inside the arena.
-                  If fewer than the team size, the rest are placed 5 m apart along x from the
+                  If fewer than the team size, the rest are placed 10 m apart along x from the
                   first (towards +x while inside the arena, then towards -x; spots already taken
                   are skipped); with none, the first goes to the arena point furthest from its edges.
 
@@ -106,6 +106,8 @@ Top-level fields
   service   str = ""     kill and freeze only: one service (e.g. "planner"); "" = every process of the UAV.
   duration  float = 0.0  s (>= 0); 0 = until the end of the run.
   offset    [x, y, z] = [0, 0, 0]   odometry_jump only, required non-zero: the jump, m.
+  failsafe  "land" | "hold" = "land"   whole-UAV kill only: what the flight controller does when the
+            onboard computer dies: land where it is, or hold its position in the air until the end.
 """
 from __future__ import annotations
 
@@ -145,6 +147,16 @@ def builtin_scenarios() -> list[str]:
 
 def load_scenario(name_or_path: str) -> Scenario:
     """A built-in scenario by name, or a scenario file by path."""
+    path = scenario_path(name_or_path)
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{path.name}: invalid TOML: {_one_line(str(exc))}") from None
+    return parse_scenario(data, path.name)
+
+
+def scenario_path(name_or_path: str) -> Path:
+    """The file of a built-in scenario by name, or the given path; ScenarioError when there is none."""
     path = Path(name_or_path)
     looks_like_path = path.suffix == ".toml" or "/" in name_or_path or "\\" in name_or_path
     if not looks_like_path:
@@ -157,11 +169,7 @@ def load_scenario(name_or_path: str) -> Scenario:
         path = builtin
     if not path.is_file():
         raise ScenarioError(f"scenario file not found: {name_or_path}")
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ScenarioError(f"{path.name}: invalid TOML: {_one_line(str(exc))}") from None
-    return parse_scenario(data, path.name)
+    return path
 
 
 def parse_scenario(data: dict, source: str = "<scenario>") -> Scenario:

@@ -138,6 +138,7 @@ class FaultSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     service: str = ""
     duration: float = 0.0
     offset: Vec3 = (0.0, 0.0, 0.0)
+    failsafe: Literal["land", "hold"] = "land"  # a whole-UAV kill: what the flight controller does then
 
     def command(self) -> FaultCommand:
         """The FaultCommand announcing this fault, stamped with its mission time."""

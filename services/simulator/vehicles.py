@@ -102,6 +102,7 @@ class Fleet:
         self.airborne = np.zeros(count, dtype=bool)
         self.alive = np.ones(count, dtype=bool)
         self.emergency = np.zeros(count, dtype=bool)
+        self.holding = np.zeros(count, dtype=bool)  # position hold by the flight controller
         self.hold = self.position.copy()  # reference until the first trajectory arrives
         self.references: list[_Reference | None] = [None] * count
         specs = [scenario.uav_spec(n) for n in self.names]
@@ -120,8 +121,19 @@ class Fleet:
 
     # ------------------------------------------------------------ inputs
     def set_reference(self, i: int, reference: _Reference, limits: np.ndarray) -> None:
+        if self.holding[i]:
+            return
         self.references[i] = reference
         self.limits[i] = np.minimum(np.maximum(limits, 0.0), self.envelope[i])
+
+    def hold_position(self, i: int) -> bool:
+        """Hover where it is from now on; False when already holding, landing or dead."""
+        if self.holding[i] or self.emergency[i] or not self.alive[i]:
+            return False
+        self.holding[i] = True
+        self.hold[i] = self.position[i]
+        self.references[i] = None
+        return True
 
     def emergency_land(self, i: int) -> bool:
         """Start an emergency landing; False when already landing that way or dead."""
