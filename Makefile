@@ -5,8 +5,9 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1 --detector oracle
+CAMPAIGN_ARGS ?= --runs 20 --seed 1
 
-.PHONY: .venv sim test bench schemas clean
+.PHONY: .venv sim test acceptance bench campaign schemas clean
 
 .venv: $(STAMP)
 
@@ -22,8 +23,16 @@ sim: .venv
 test: .venv
 	$(PY) -m pytest -q
 
+# the whole missions beyond make test's budget (link cuts at t = 20 and 60 s on 2 and 3 UAVs; about 5 min)
+acceptance: .venv
+	$(PY) -m pytest -q -m heavy
+
 bench: .venv
 	$(PY) benchmarks/transport.py
+
+# 20 seeded runs with a random fault each (about 15 min; `make test` flies a 2-run one)
+campaign: .venv
+	$(VENV)/bin/falconry campaign $(CAMPAIGN_ARGS)
 
 schemas: .venv
 	$(PY) -m schemas export

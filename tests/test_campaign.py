@@ -1,0 +1,46 @@
+"""The fault campaign: seeded schedules that are valid scenario faults, and a small campaign end to end."""
+from __future__ import annotations
+
+import subprocess
+import tomllib
+
+import pytest
+
+from services.launcher import netns
+from services.launcher.campaign import EARLIEST, LATEST_BEFORE_END, draw_runs
+from services.simulator.scenario import SCENARIO_DIR, parse_scenario
+from tests.conftest import falconry_argv
+
+
+def test_a_campaign_is_the_same_list_of_valid_runs_for_the_same_seed():
+    runs = draw_runs(40, seed=7, duration=90.0)
+    assert runs == draw_runs(40, seed=7, duration=90.0) and runs != draw_runs(40, seed=8, duration=90.0)
+    assert [r.uavs for r in runs[:4]] == [2, 3, 2, 3]
+    drawn = set()
+    for run in runs:
+        base = tomllib.loads((SCENARIO_DIR / "mbzirc.toml").read_text())
+        faults = tomllib.loads("\n".join(f.toml() for f in run.faults))["faults"]
+        scenario = parse_scenario({**base, "uavs": run.uavs, "faults": faults}, "campaign.toml")  # validates
+        for fault in scenario.faults:
+            assert EARLIEST <= fault.time <= 90.0 - LATEST_BEFORE_END
+            assert int(fault.uav.removeprefix("uav")) <= run.uavs
+        drawn |= {f.kind + ("_" + f.failsafe if f.kind == "kill" and not f.service else "") for f in run.faults}
+    assert {"link_cut", "kill_hold", "kill_land", "freeze", "odometry_jump"} <= drawn
+    assert all(f.kind == "link_cut" for r in draw_runs(10, 1, 90.0, kinds=("link_cut",)) for f in r.faults)
+    with pytest.raises(ValueError):
+        draw_runs(1, 1, 20.0)  # no room for a fault between take-off and the end
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
+def test_a_small_campaign_keeps_the_team_apart_and_prints_its_table(tmp_path):
+    result = subprocess.run(falconry_argv("campaign", "--runs", "2", "--seed", "5", "--duration", "45",
+                                          "--kinds", "link_cut,kill_hold", "--out", str(tmp_path)),
+                            capture_output=True, text=True, timeout=500)
+    print(result.stdout[-2500:])
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
+    assert "runs finished: 2/2; separation violations (closer than 5 m): 0" in result.stdout
+    assert "handler errors: 0;" in result.stdout
+    table = result.stdout.split("run UAVs")[1].splitlines()
+    assert len([line for line in table if line.strip().startswith(("1 ", "2 "))]) == 2
+    assert sorted(p.name for p in tmp_path.glob("run*.json")) == ["run001.json", "run002.json"]
