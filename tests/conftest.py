@@ -121,3 +121,17 @@ def processes():
     procs = Processes()
     yield procs
     procs.stop_all()
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """The fuzz cases run per message type (tests/test_fuzz_messages.py), once per session."""
+    fuzz = sys.modules.get("tests.tools.fuzz")  # imported only by a session that fuzzes
+    runs = config.stash.get(fuzz.CASES_RUN, {}) if fuzz else {}
+    if not runs:
+        return
+    terminalreporter.section("fuzz cases run per message type")
+    terminalreporter.write_line(f"{'message type':<20}" + "".join(f"{f:>9}" for f in fuzz.FAMILIES)
+                                + f"{'total':>9}  through")
+    for name, run in sorted(runs.items()):
+        terminalreporter.write_line(f"{name:<20}" + "".join(f"{run.cases[f]:>9}" for f in fuzz.FAMILIES)
+                                    + f"{sum(run.cases.values()):>9}  {', '.join(run.services)}")

@@ -181,3 +181,15 @@ def test_result_is_deterministic(seed):
     second = classifier(free=FREE_AROUND_BALL).classify(points, SENSOR)
     for a, b in zip(vars(first).values(), vars(second).values()):
         assert np.array_equal(a, b)
+
+
+def test_maps_it_could_not_hold_or_downsample_are_refused_before_anything_changes():
+    """Found by tests/test_fuzz_messages.py: a snapshot of 4 billion voxels had the classifier killed for
+    want of memory; one of 1 km voxels made every later scan fail on its downsampling grid."""
+    core = classifier()
+    for origin, shape, voxel in ((ORIGIN, (4189, 1630, 577), VOXEL), (ORIGIN, SHAPE, 1000.0),
+                                 (ORIGIN, (0, 1, 1), VOXEL), ((np.nan, 0.0, 0.0), SHAPE, VOXEL)):
+        with pytest.raises(ValueError):
+            core.apply_map(True, origin, shape, voxel, -740.0, np.zeros(0, np.int64), np.zeros(0, np.float32))
+    assert core.map.shape == SHAPE and core.map.voxel_size == VOXEL and core.map.snapshots == 1
+    assert len(core.classify(ball(), SENSOR).points) == 60

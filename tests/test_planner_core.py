@@ -412,3 +412,15 @@ def test_pursuit_closes_onto_the_predicted_track_within_the_profile(uav, velocit
 def test_pursuit_refuses_a_target_faster_than_the_profile():
     from services.planner.core import pursuit
     assert pursuit(np.zeros(3), np.array([10.0, 0, 5]), np.array([9.0, 0, 0]), profile=ATTACK) is None
+
+
+def test_trajectories_longer_than_an_hour_are_refused():
+    """Found by tests/test_fuzz_messages.py: a target 10,000 km away cost the planner 70 s and 20 million
+    samples; limits near zero would have cost it all its memory."""
+    with pytest.raises(ValueError, match="longer than"):
+        approach(np.zeros(3), np.array([1e7, 0.0, 5.0]), profile=SWEEP)
+    slow_turns = ConstraintProfile(max_speed=5.0, max_acceleration=1.5, max_heading_rate=1e-9)
+    with pytest.raises(ValueError, match="turn"):
+        fly(np.array([[0.0, 0.0, 5.0], [0.0, 10.0, 5.0]]), slow_turns, start_heading=0.0)
+    with pytest.raises(ValueError, match="lines"):
+        lawnmower(AREA, 5.0, 1e-6, profile=SWEEP)

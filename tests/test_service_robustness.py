@@ -10,13 +10,10 @@ from schemas import keys
 from schemas.catalogue import CATALOGUE
 from schemas.messages import Header, SimClock
 from tests.tools.health import health, wait_healthy
+from tests.tools.samples import concrete
 
 GARBAGE = (b"\x00\xffnot msgpack at all", b"", msgspec.msgpack.encode({"header": "wrong shape"}),
            os.urandom(256))
-
-
-def concrete(key_expr: str) -> str:
-    return key_expr.replace("**", "uav2/x").replace("*", "uav2")
 
 
 def test_services_count_garbage_and_keep_working(hub, processes):

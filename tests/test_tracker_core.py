@@ -121,3 +121,17 @@ def test_the_number_of_tracks_is_bounded_whatever_the_detections():
         ids = core.update(k * 100_000_000, rng.uniform(-50, 50, size=(300, 3)), None)
         assert len(set(i for i in ids if i >= 0)) <= 10
     assert len(core.estimates(500_000_000)) <= 10
+
+
+def test_detections_that_would_poison_the_filters_are_dropped_and_counted():
+    """Found by tests/test_fuzz_messages.py: one NaN detection made a NaN track, after which every
+    association raised; an indefinite covariance made the filter's innovation singular."""
+    tracker = TrackerCore()
+    tracker.update(stamp(0), np.array([[1.0, 2.0, 5.0]]))
+    not_a_covariance = np.array([[[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]])
+    assert tracker.update(stamp(1), np.array([[np.nan, 2.0, 5.0]])) == [-1]
+    assert tracker.update(stamp(2), np.array([[1.0, 2.0, 5.0]]), not_a_covariance) == [-1]
+    assert tracker.update(stamp(3), np.array([[1.0, 2.0, 5.0]]), np.eye(3)[None] * 0.02) == [1]
+    assert tracker.rejected_detections == 2 and tracker.diverged_tracks == 0
+    tracker._tracks[0].kf.x[0] = np.inf  # what extreme (finite) detections can drive a filter to
+    assert tracker.prune(stamp(4)) == [] and tracker.ids == [] and tracker.diverged_tracks == 1

@@ -177,3 +177,12 @@ def test_euclidean_clusters_on_sparse_and_dense_random_clouds(seed, count):
     labels, n = euclidean_clusters(points, 1.5)
     reference_count, reference = connected_components(cdist(points, points) <= 1.5, directed=False)
     assert n == reference_count and len(set(zip(labels, reference))) == n
+
+
+def test_rule_a_ignores_points_far_off_the_map():
+    """Found by tests/test_fuzz_messages.py: a return 1e21 m away overflowed int() into reads out of
+    bounds (a segfault of the classifier)."""
+    states = grid_states(STATE_TENTATIVE)
+    points = np.array([[-1.0e21, 2.0e24, 1.0], [1.0e30, 0.0, 0.0], [np.nan, 0.0, 0.0], CORNER + 0.1])
+    near = clusters_near_occupied(points, np.arange(4), 4, np.ones(4, bool), states, CORNER, VOXEL, SHAPE, 1.5)
+    assert near.tolist() == [False, False, False, True]

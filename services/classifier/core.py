@@ -38,6 +38,7 @@ Pure: numpy in, numpy out; the map replica is plain state updated by the node.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import msgspec
@@ -48,7 +49,7 @@ from services.classifier.kernels import cluster_stats, downsample, group_by, lab
 from services.lidar.uncertainty import hit_probability, point_covariance
 from services.voxels.grid import GridGeometry
 from services.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
-from services.voxels.replica import MapReplica
+from services.voxels.replica import MapReplica, geometry_of
 
 
 class ClassifierParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -118,6 +119,11 @@ class ClassifierCore:
 
     def apply_map(self, snapshot: bool, origin, shape, voxel_size: float, default_value: float,
                   indices: np.ndarray, values: np.ndarray) -> bool:
+        if snapshot:  # refused before anything changes: a map whose downsampling grid (_leaf_grid) cannot be held
+            g = geometry_of(origin, shape, voxel_size)
+            if not math.prod(n * g.voxel_size / self.params.downsample for n in g.shape) <= MapReplica.MAX_VOXELS:
+                raise ValueError(f"a map of {g.shape} voxels of {g.voxel_size:g} m is too large to downsample "
+                                 f"at {self.params.downsample:g} m")
         applied = self.map.apply(snapshot, origin, shape, voxel_size, default_value, indices, values)
         if len(self._visited) != self.map.geometry.size:  # a snapshot of another geometry
             self._visited = np.zeros(self.map.geometry.size, dtype=np.uint8)

@@ -16,12 +16,10 @@ INF = math.inf
 @njit(cache=True)
 def _cell(px, py, pz, corner, edge, shape):
     """Flat index of the grid cell holding a point, -1 outside the grid."""
-    ix = int(math.floor((px - corner[0]) / edge))
-    iy = int(math.floor((py - corner[1]) / edge))
-    iz = int(math.floor((pz - corner[2]) / edge))
-    if ix < 0 or iy < 0 or iz < 0 or ix >= shape[0] or iy >= shape[1] or iz >= shape[2]:
-        return -1
-    return (ix * shape[1] + iy) * shape[2] + iz
+    x, y, z = (px - corner[0]) / edge, (py - corner[1]) / edge, (pz - corner[2]) / edge
+    if not (0.0 <= x < shape[0] and 0.0 <= y < shape[1] and 0.0 <= z < shape[2]):
+        return -1  # tested before int(), which a far point would overflow (undefined in compiled code)
+    return (int(x) * shape[1] + int(y)) * shape[2] + int(z)
 
 
 @njit(cache=True)

@@ -35,15 +35,21 @@ class ClassifierNode(Node):
         self.subscribe(self.topic("map"), VoxelMap, self.on_map)
         self.subscribe(self.topic("points"), PointCloud, self.on_points)
         self._ignored_deltas = 0
+        self._refused_maps = 0
         self._map_stamp = 0
         self._bad_input = CountedWarnings(self.log)
         self._said_outside = False
 
     def on_map(self, msg: VoxelMap, key: str) -> None:
-        applied = self.core.apply_map(
-            msg.snapshot, msg.origin, msg.shape, msg.voxel_size, msg.default_value,
-            to_numpy(msg.indices), to_numpy(msg.values),
-        )
+        try:
+            applied = self.core.apply_map(
+                msg.snapshot, msg.origin, msg.shape, msg.voxel_size, msg.default_value,
+                to_numpy(msg.indices), to_numpy(msg.values),
+            )
+        except (ValueError, MemoryError):  # an impossible geometry or contents, or a grid too large to hold
+            self._refused_maps += 1
+            self._bad_input.update({"map messages refused (impossible geometry or contents)": self._refused_maps})
+            return
         if applied:
             self._map_stamp = msg.header.stamp
         else:

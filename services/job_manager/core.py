@@ -142,6 +142,10 @@ class JobManager:
             return False
         if self.uav not in uavs:
             raise ValueError(f"{self.uav} is not in the world's team {uavs}")
+        if len(arena) < 3 or not np.isfinite(arena).all():
+            raise ValueError(f"the arena needs at least 3 finite vertices, got {len(arena)}")
+        if not (0.0 <= duration_s < 1e6 and np.isfinite(ground_z)):  # 1e6 s: 11 days, beyond any battery
+            raise ValueError(f"mission duration {duration_s} s or ground height {ground_z} m is impossible")
         self._world_key = key
         self.arena = arena
         p = self.params

@@ -26,6 +26,7 @@ from schemas.messages import (
 )
 from services.job_manager.core import NS, JobManager, MissionDecision
 from services.job_manager.params import JobManagerParams
+from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.runtime.warmup import preload
 
@@ -41,6 +42,8 @@ class JobManagerNode(Node):
     params_type = JobManagerParams
 
     def setup(self) -> None:
+        self._refused_worlds = 0
+        self._bad_input = CountedWarnings(self.log)
         preload("filterpy.kalman")  # the target filter's library: off the restart's critical path
         self.core = JobManager(self.params, self.uav)
         p = self.params
@@ -70,7 +73,17 @@ class JobManagerNode(Node):
     # ---------------------------------------------------------------- inputs
     def on_world(self, msg: WorldModel, key: str) -> None:
         ground_z = next((o.center[2] for o in msg.obstacles if o.kind == "plane"), 0.0)
-        if self.core.set_world(np.asarray(msg.arena, dtype=np.float64), list(msg.uavs), msg.duration, ground_z):
+        try:
+            changed = self.core.set_world(np.asarray(msg.arena, dtype=np.float64), list(msg.uavs), msg.duration,
+                                          ground_z)
+        except ValueError as exc:  # an impossible world: keep the last good one
+            self._refused_worlds += 1
+            self._bad_input.update({"world models refused (arena, team, duration or ground impossible)":
+                                    self._refused_worlds})
+            if self._refused_worlds == 1:
+                self.log.warning("the first refused world model: %s", exc)
+            return
+        if changed:
             area = self.core.working_area
             self.log.info("working area %d of %d: x %.1f..%.1f, %d vertices; mission %.0f s",
                           msg.uavs.index(self.uav) + 1, len(msg.uavs), area[:, 0].min(), area[:, 0].max(),

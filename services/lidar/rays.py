@@ -66,7 +66,7 @@ def scan_rays(points: np.ndarray, width: int, sensor_model: str, frame: int, pos
     if beams is not None and beams.shape != pts.shape:
         beams = None
     masked = None
-    if packed_mask is not None and pts.ndim == 3:
+    if packed_mask is not None and pts.ndim == 3 and width == pts.shape[1]:  # a lying width would size the unpacking
         masked = unpack_mask(packed_mask, width)
         masked = masked.reshape(-1) if masked.shape == pts.shape[:-1] else None
     if pts.shape[-1:] == (3,):

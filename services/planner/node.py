@@ -47,6 +47,19 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     repeat_scan: bool = True  # sweep again once a scan trajectory has ended
 
 
+def unplannable(command: MissionCommand) -> str | None:
+    """Why the numbers of a command cannot be planned from (None: they can)."""
+    profile = command.profile
+    limits = (profile.max_speed, profile.max_acceleration, profile.max_heading_rate, profile.max_vertical_speed)
+    if not all(0.0 < v < math.inf for v in limits):
+        return f"profile {profile.name!r} needs positive finite limits, not {limits}"
+    numbers = (command.height, command.spacing, *(command.target or ()), *(command.target_velocity or ()),
+               *(c for point in command.area for c in point))
+    if not all(math.isfinite(v) for v in numbers):
+        return "a target, area, height or spacing that is not finite"
+    return None
+
+
 def yaw_of(quaternion: tuple[float, float, float, float]) -> float:
     w, x, y, z = quaternion
     return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
@@ -95,7 +108,11 @@ class PlannerNode(Node):
             self.publish(now_ns)
 
     def plan(self, now_ns: int, command: MissionCommand) -> None:
-        positions, headings = self.plan_path(command, *self.start_state(now_ns))
+        try:
+            positions, headings = self.plan_path(command, *self.start_state(now_ns))
+        except ValueError as err:  # refused by the core: a trajectory too long, an area with no scan in it, ...
+            self.log.warning("command %d: %s; hovering", command.command_id, err)
+            positions, headings = core.hover(self.position, self.heading)
         self.planned_id = command.command_id
         dt = self.params.dt
         self.trajectory = TrajectoryReference(
@@ -131,6 +148,9 @@ class PlannerNode(Node):
     def plan_path(self, command: MissionCommand, p: np.ndarray | None = None, v: np.ndarray | None = None) -> core.Path:
         p = self.position if p is None else p
         v = self.velocity if v is None else v
+        if (problem := unplannable(command)) is not None:
+            self.log.warning("command %d: %s; hovering", command.command_id, problem)
+            return core.hover(p, self.heading)
         dt, profile, prm = self.params.dt, command.profile, self.params
         action, target = command.action, command.target
         moving = dict(start_velocity=v, start_heading=self.heading)

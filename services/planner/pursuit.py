@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from schemas.messages import ConstraintProfile
-from services.planner.timing import DT, Path, steer
+from services.planner.timing import DT, Path, check_duration, steer
 
 BRAKING = 0.5  # share of max_acceleration the closing speed plans to brake with
 GAIN = 4.0  # 1/s: how fast the velocity demand is taken up (then capped by max_acceleration)
@@ -59,6 +59,7 @@ def pursuit(position, target_position, target_velocity, *, profile: ConstraintPr
         positions.append(p.copy())
     speed = float(np.linalg.norm(v))
     if speed > 1e-9:  # brake to rest along the last velocity
+        check_duration(speed / accel, "braking")
         stop = np.arange(1, int(np.ceil(speed / (accel * dt))) + 1) * dt
         stop = np.minimum(stop, speed / accel)
         travelled = speed * stop - 0.5 * accel * stop**2

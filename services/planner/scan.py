@@ -15,6 +15,8 @@ from schemas.messages import ConstraintProfile
 from services.geometry import as_polygon, point_in_polygon
 from services.planner.timing import DT, Path, fly
 
+MAX_LINES = 10_000  # the most sweep lines planned: 10 km of area at 1 m spacing
+
 _EPS = 1e-9
 
 
@@ -104,7 +106,10 @@ def _sweep_corners(low: np.ndarray, high: np.ndarray, height: float, spacing: fl
     size = high - low
     along = 0 if size[0] >= size[1] else 1
     across = 1 - along
-    lines = max(int(np.ceil(size[across] / spacing - 1e-9)), 1)
+    lines = size[across] / spacing
+    if not lines <= MAX_LINES:  # NaN and inf included
+        raise ValueError(f"a sweep of {lines:.3g} lines {spacing:g} m apart: more than the {MAX_LINES} planned")
+    lines = max(int(np.ceil(lines - 1e-9)), 1)
     first = low[across] + 0.5 * (size[across] - (lines - 1) * spacing)
     across_at = first + spacing * np.arange(lines)
     start = np.asarray(start, dtype=np.float64).reshape(3)

@@ -29,6 +29,9 @@ from schemas.messages import ConstraintProfile
 
 DT = 0.1
 STOP_ANGLE = 2.0 * np.pi / 3.0
+# The longest trajectory planned (a mission lasts minutes): a command asking for more (a target
+# thousands of kilometres away, limits near zero) is refused before its samples are made.
+MAX_DURATION = 3600.0  # s
 _EPS = 1e-9
 
 Path = tuple[np.ndarray, np.ndarray]  # positions (N, 3), headings (N,)
@@ -207,8 +210,14 @@ def evaluate(timing: Timing, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]
     return positions, tangents
 
 
+def check_duration(duration: float, what: str = "trajectory") -> None:
+    if not duration <= MAX_DURATION:  # NaN included
+        raise ValueError(f"a {what} of {duration:.3g} s is longer than the {MAX_DURATION:.0f} s planned at most")
+
+
 def sample_times(duration: float, dt: float) -> np.ndarray:
     """i·dt up to the first sample at or after `duration`, that one clamped to it."""
+    check_duration(duration)
     count = int(np.ceil(duration / dt - 1e-9)) + 1
     return np.minimum(np.arange(count) * dt, duration)
 
@@ -238,6 +247,7 @@ def steer(positions: np.ndarray, desired: np.ndarray, start_heading: float | Non
         current = (current + min(max(gap, -step), step) + math.pi) % (2.0 * math.pi) - math.pi
         headings[i] = current
     gap = float(wrap_angle(desired[-1] - current))
+    check_duration(abs(gap) / rate, "turn")
     extra = int(np.ceil(abs(gap) / step - 1e-9))
     if extra > 0:
         turn = np.sign(gap) * np.minimum(step * np.arange(1, extra + 1), abs(gap))

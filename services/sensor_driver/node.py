@@ -23,6 +23,7 @@ from schemas.arrays import from_numpy
 from schemas.messages import FaultCommand, GroundTruth, Header, PointCloud, PointTruth, Pose, WorldModel
 from services.lidar.models import lidar_model
 from services.lidar.rays import body_mask, pack_mask
+from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.sensor_driver.core import (
     FALLBACK_MODEL,
@@ -55,6 +56,8 @@ class SensorDriverNode(Node):
         self.rng_key: tuple[int, int] | None = None
         self.last_slot = -1
         self.faults = LidarFaults()
+        self._unposed = 0
+        self._bad_input = CountedWarnings(self.log)
         self._scan(np.zeros(3), 0.0, Primitives(planes=[-1.0]), np.random.default_rng(0))  # compile now,
         # before the liveliness token: the first scan of a run must not stall a lockstep tick
         self.points_pub = self.publisher(self.topic("points"), PointCloud)
@@ -124,6 +127,10 @@ class SensorDriverNode(Node):
         if me is None or not me.alive:
             return
         self.last_slot = slot
+        if not all(math.isfinite(v) for v in (*me.position, me.heading)):
+            self._unposed += 1
+            self._bad_input.update({"scans skipped: our pose in the ground truth is not finite": self._unposed})
+            return
         fault = self.faults.active(now_ns)
         if fault == "lidar_silent":
             return

@@ -36,6 +36,7 @@ from schemas.messages import (
 )
 from services.runtime.clock import seconds, to_ns
 from services.runtime.errors import UsageError
+from services.runtime.counted import CountedWarnings
 from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.node import Node
 from services.simulator.core import Simulation
@@ -83,6 +84,8 @@ class SimulatorNode(Node):
         self._alive: set[str] = set()
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
         self._fault_windows = FaultWindows()
+        self._refused_references = 0
+        self._bad_input = CountedWarnings(self.log)
         self._undo_jumps: list[tuple[int, str, np.ndarray]] = []  # (mission ns, uav, offset)
         self._acks: dict[str, StepAck] = {}
         self._sim_gate: LockstepGate = LockstepGate((), self._wants, self._order, joining=False)
@@ -118,9 +121,16 @@ class SimulatorNode(Node):
     def on_trajectory(self, msg: TrajectoryReference, key: str) -> None:
         uav = key.split("/")[1]
         p = msg.profile
-        self.sim.set_reference(uav, msg.start, msg.dt, np.array(to_numpy(msg.positions)),
-                               np.array(to_numpy(msg.headings)), p.max_speed, p.max_acceleration,
-                               p.max_heading_rate, p.max_vertical_speed)
+        try:
+            self.sim.set_reference(uav, msg.start, msg.dt, np.array(to_numpy(msg.positions)),
+                                   np.array(to_numpy(msg.headings)), p.max_speed, p.max_acceleration,
+                                   p.max_heading_rate, p.max_vertical_speed)
+        except ValueError as exc:  # the vehicle keeps its last good reference, as a flight controller would
+            self._refused_references += 1
+            self._bad_input.update({"trajectory references refused (empty, dt <= 0 or not finite)":
+                                    self._refused_references})
+            if self._refused_references == 1:
+                self.log.warning("the first refused trajectory reference: %s", exc)
 
     # --------------------------------------------------------------- loop
     def expected_services(self) -> set[str]:

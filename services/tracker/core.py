@@ -64,6 +64,15 @@ def uncertainty_radius(params: TrackerParams, covariance: np.ndarray) -> float:
     return float(max(params.radius_min, params.radius_confidence * np.cbrt(det)))
 
 
+def is_covariance(matrix: np.ndarray) -> bool:
+    """Finite, symmetric and positive semi-definite: what a detection's covariance must be to weigh it."""
+    m = np.asarray(matrix, dtype=np.float64)
+    if not np.isfinite(m).all() or not np.allclose(m, m.T):
+        return False
+    eigenvalues = np.linalg.eigvalsh(m)
+    return bool(np.isfinite(eigenvalues).all() and eigenvalues.min() >= -1e-9 * max(1.0, abs(eigenvalues).max()))
+
+
 def measurement_noise(params: TrackerParams, detection_covariance: np.ndarray | None) -> np.ndarray:
     """R = the detection covariance with each variance raised to at least the floor (stays PSD)."""
     floor = params.measurement_variance
@@ -109,6 +118,8 @@ class TrackerCore:
         self.params = params or TrackerParams()
         self._tracks: list[_Track] = []
         self._next_id = 1
+        self.rejected_detections = 0  # a non-finite position or an impossible covariance: one would poison every track
+        self.diverged_tracks = 0  # filters driven to inf or NaN (by extreme detections): dropped
 
     def __len__(self) -> int:
         return len(self._tracks)
@@ -118,18 +129,25 @@ class TrackerCore:
         return [t.id for t in self._tracks]
 
     def update(self, stamp_ns: int, positions: np.ndarray, covariances: np.ndarray | None = None) -> list[int]:
-        """Apply one set of detections (N, 3) taken at stamp_ns; returns the track id each went to."""
+        """Apply one set of detections (N, 3) taken at stamp_ns; returns the track id each went to
+        (-1: none; a detection with a non-finite position or an impossible covariance is dropped and counted)."""
         p = self.params
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        sound = np.isfinite(positions).all(axis=1)
+        if covariances is not None:
+            sound &= [is_covariance(c) for c in np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)]
+        usable = np.flatnonzero(sound)
+        self.rejected_detections += len(positions) - len(usable)
         for track in self._tracks:
             track.predict_to(p, stamp_ns)
+        self._drop_diverged()
         self._tracks = [t for t in self._tracks if uncertainty_radius(p, t.kf.P) <= p.radius_max]
 
         assigned = [-1] * len(positions)
-        if self._tracks and len(positions):
+        if self._tracks and len(usable):
             predicted = np.array([t.kf.x[:3] for t in self._tracks])
             gates = np.array([uncertainty_radius(p, t.kf.P) for t in self._tracks])
-            distances = np.linalg.norm(predicted[:, None, :] - positions[None, :, :], axis=2)
+            distances = np.linalg.norm(predicted[:, None, :] - positions[None, usable, :], axis=2)
             outside = distances > gates[:, None]
             from scipy.optimize import linear_sum_assignment
 
@@ -137,13 +155,13 @@ class TrackerCore:
             for row, col in zip(rows, cols):
                 if outside[row, col]:
                     continue
-                track = self._tracks[row]
+                track, col = self._tracks[row], usable[col]
                 cov = None if covariances is None else covariances[col]
                 track.kf.update(positions[col], R=measurement_noise(p, cov))
                 track.detections += 1
                 track.last_detection = max(track.last_detection, stamp_ns)
                 assigned[col] = track.id
-        for col in range(len(positions)):
+        for col in usable:
             if assigned[col] < 0 and len(self._tracks) < p.max_tracks:
                 track = _Track(self._next_id, p, positions[col], stamp_ns)
                 self._next_id += 1
@@ -151,8 +169,15 @@ class TrackerCore:
                 assigned[col] = track.id
         return assigned
 
+    def _drop_diverged(self) -> None:
+        """A filter at inf or NaN never recovers, and one NaN distance fails every association."""
+        finite = [t for t in self._tracks if np.isfinite(t.kf.x).all() and np.isfinite(t.kf.P).all()]
+        self.diverged_tracks += len(self._tracks) - len(finite)
+        self._tracks = finite
+
     def prune(self, now_ns: int) -> list[int]:
-        """Drop the tracks whose uncertainty radius predicted to now_ns exceeds r_max."""
+        """Drop the tracks whose uncertainty radius predicted to now_ns exceeds r_max (and diverged ones)."""
+        self._drop_diverged()
         dropped = [e.id for e in self.estimates(now_ns) if e.uncertainty_radius > self.params.radius_max]
         self._tracks = [t for t in self._tracks if t.id not in dropped]
         return dropped

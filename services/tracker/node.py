@@ -11,6 +11,7 @@ from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, Track, Tracks
 from services.runtime.clock import to_ns
+from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.runtime.warmup import preload
 from services.tracker.core import TrackerCore, TrackerParams
@@ -28,11 +29,15 @@ class TrackerNode(Node):
         self.subscribe(self.topic("detections"), Detections, self.on_detections)
         self._alive_period_ns = to_ns(self.params.alive_period)
         self._last_published_ns: int | None = None
+        self._bad_input = CountedWarnings(self.log)
 
     def on_detections(self, msg: Detections, key: str) -> None:
         positions = to_numpy(msg.positions)
         covariances = to_numpy(msg.covariances) if len(positions) else None
         self.core.update(msg.header.stamp, positions, covariances)
+        self._bad_input.update({"detections with a non-finite position or an impossible covariance dropped":
+                                self.core.rejected_detections,
+                                "tracks dropped whose filter diverged to inf or NaN": self.core.diverged_tracks})
 
     def on_tick(self, now_ns: int) -> None:
         for track_id in self.core.prune(now_ns):

@@ -6,6 +6,7 @@ are C order over `shape`, as in VoxelMap messages.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,12 +21,14 @@ class GridGeometry:
     def __post_init__(self) -> None:
         if len(self.shape) != 3 or min(self.shape) <= 0:
             raise ValueError(f"a voxel grid needs three positive dimensions, got {self.shape}")
-        if not self.voxel_size > 0:
-            raise ValueError(f"voxel size must be positive, got {self.voxel_size}")
+        if not 0 < self.voxel_size < np.inf:
+            raise ValueError(f"voxel size must be positive and finite, got {self.voxel_size}")
+        if not np.all(np.isfinite(self.origin)):
+            raise ValueError(f"a voxel grid needs a finite origin, got {self.origin}")
 
     @property
     def size(self) -> int:
-        return int(np.prod(self.shape))
+        return math.prod(self.shape)  # Python ints: numpy's product of three huge dimensions wraps around
 
     @property
     def corner(self) -> np.ndarray:

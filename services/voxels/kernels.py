@@ -181,6 +181,8 @@ def clusters_near_occupied(points, cluster, n_clusters, candidate, states, corne
         px = (points[i, 0] - corner[0]) / voxel_size
         py = (points[i, 1] - corner[1]) / voxel_size
         pz = (points[i, 2] - corner[2]) / voxel_size
+        if not (-reach <= px < nx + reach and -reach <= py < ny + reach and -reach <= pz < nz + reach):
+            continue  # no voxel within reach; and a far point's int() overflowed into out-of-bounds reads
         vx, vy, vz = int(math.floor(px)), int(math.floor(py)), int(math.floor(pz))
         found = False
         for ax in range(max(vx - reach, 0), min(vx + reach + 1, nx)):

@@ -1,5 +1,6 @@
 """A fully populated instance of any message type, derived from its type annotations so that a
-message added to the contract is covered by the round-trip tests without editing them."""
+message added to the contract is covered by the round-trip tests without editing them; and a key
+that a wildcard subscription matches."""
 from __future__ import annotations
 
 import itertools
@@ -9,6 +10,11 @@ import msgspec.inspect as mi
 import numpy as np
 
 from schemas.arrays import Array, from_numpy
+
+
+def concrete(key_expr: str) -> str:
+    """A key a wildcard subscription matches: uav2's."""
+    return key_expr.replace("**", "uav2/x").replace("*", "uav2")
 
 
 def sample(msg_type: type[msgspec.Struct]) -> msgspec.Struct:
