@@ -148,5 +148,5 @@ def test_paths_are_validated(tmp_path):
     assert error({"path": "spiral", "speed": 1.0}).startswith("paths.toml: drones[0].path: invalid enum value")
     # A target may fly outside the team's arena when an airspace says so.
     outside = {"path": "circle", "center": [0, 0, 5], "radius": 8.0, "speed": 1.0}
-    assert "is outside the arena" in error(outside, arena=[[20, 20], [40, 20], [40, 30]])
-    world(outside, arena=[[20, 20], [40, 20], [40, 30]], airspace=[[-20, -20], [40, -20], [40, 40], [-20, 40]])
+    assert "is outside the arena" in error(outside, arena=[[20, 20], [50, 20], [50, 40]])
+    world(outside, arena=[[20, 20], [50, 20], [50, 40]], airspace=[[-20, -20], [60, -20], [60, 60], [-20, 60]])
