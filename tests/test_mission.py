@@ -68,7 +68,7 @@ def check_separation(summary: dict) -> None:
 @pytest.mark.timeout(600)
 def test_revenge_after_the_partner_is_killed(tmp_path, port):
     faults = '\n[[faults]]\ntime = 20.0\nkind = "kill"\nuav = "uav2"\n'
-    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=120)
+    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=150)
     check_revenge(summary, output, 20.0)
 
 
@@ -86,7 +86,7 @@ def test_a_uav_cut_off_for_good_keeps_flying_and_the_team_stays_apart(tmp_path, 
     partner it lands where it is (lost-link rule), the partners take its area t_s after its last
     status, every balloon is still destroyed and no two flying UAVs come within the safety distance."""
     faults = f'\n[[faults]]\ntime = {cut_at}\nkind = "link_cut"\nuav = "uav2"\n'
-    summary, output = run_mission(tmp_path, port, faults, uavs=uavs, duration=120, lease_ms=1000)
+    summary, output = run_mission(tmp_path, port, faults, uavs=uavs, duration=150, lease_ms=1000)
     assert netns.leftovers(f"f{port}") == []
     decisions = {name: u["decisions"] for name, u in summary["uavs"].items()}
     landing = [(t, reason) for t, state, reason in decisions["uav2"] if state == "LANDING"]
