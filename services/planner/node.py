@@ -11,7 +11,8 @@ pursuit that blends onto a moving target's predicted track, or else a merge that
 goto. The current trajectory is re-published
 every `republish_period` s of mission time with the same start (a restarted simulator or late
 subscriber picks it up) and, like the seed's state machine (§3.4.2), a scan that has been
-flown to its end starts again.
+flown to its end starts again. A job manager that has said nothing for `job_manager_timeout`
+makes it brake to a hover until it speaks again (watchdog.py).
 """
 from __future__ import annotations
 
@@ -21,8 +22,9 @@ import msgspec
 import numpy as np
 
 from schemas.arrays import from_numpy, to_numpy
-from schemas.messages import Header, MissionCommand, Odometry, TrajectoryReference
+from schemas.messages import Header, MissionCommand, Odometry, TrajectoryReference, UavStatus
 from services.planner import core
+from services.planner.watchdog import JobManagerWatchdog
 from services.runtime.clock import NS
 from services.runtime.node import Node
 
@@ -45,6 +47,7 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     rejoin_distance: float = 1.5  # m: a re-plan starts on the current trajectory while this close to it
     republish_period: float = 2.0  # s of mission time
     repeat_scan: bool = True  # sweep again once a scan trajectory has ended
+    job_manager_timeout: float = 1.0  # s without a status of our job manager: brake to a hover (watchdog.py)
 
 
 def unplannable(command: MissionCommand) -> str | None:
@@ -83,7 +86,13 @@ class PlannerNode(Node):
         self.trajectory_pub = self.publisher(self.topic("trajectory"), TrajectoryReference)
         self.subscribe(self.topic("command"), MissionCommand, self.on_command)
         self.subscribe(self.topic("odometry"), Odometry, self.on_odometry)
+        self.subscribe(self.topic("status"), UavStatus, self.on_status)
+        self.watchdog = JobManagerWatchdog(int(self.params.job_manager_timeout * NS))
 
+    def on_status(self, msg: UavStatus, key: str) -> None:
+        if self.watchdog.heard(self.clock.now_ns()):
+            self.log.warning("the job manager speaks again: obeying its commands")
+            self.planned_id = None  # its current command is planned afresh, even one we had planned
     def on_command(self, msg: MissionCommand, key: str) -> None:
         if msg.command_id != self.planned_id:
             self.command = msg  # planned in on_tick, from that tick's position and time
@@ -97,6 +106,12 @@ class PlannerNode(Node):
 
     def on_tick(self, now_ns: int) -> None:
         if self.position is None:
+            return
+        if self.watchdog.silent_too_long(now_ns) and self.trajectory is not None:
+            self.brake(now_ns)
+        if self.watchdog.tripped:
+            if self.trajectory is not None and now_ns - self.published_at >= int(self.params.republish_period * NS):
+                self.publish(now_ns)
             return
         command = self.command
         if command is not None and command.command_id != self.planned_id:
@@ -114,20 +129,27 @@ class PlannerNode(Node):
             self.log.warning("command %d: %s; hovering", command.command_id, err)
             positions, headings = core.hover(self.position, self.heading)
         self.planned_id = command.command_id
-        dt = self.params.dt
-        self.trajectory = TrajectoryReference(
-            header=Header(stamp=now_ns),
-            command_id=command.command_id,
-            start=now_ns,
-            dt=dt,
-            positions=from_numpy(positions),
-            headings=from_numpy(headings),
-            profile=command.profile,
-        )
-        self.trajectory_end = now_ns + int(round((len(positions) - 1) * dt * NS))
+        self.set_trajectory(now_ns, command.command_id, positions, headings, command.profile)
         self.log.info("command %d %s: %d samples, %.1f s", command.command_id, command.action,
-                      len(positions), (len(positions) - 1) * dt)
+                      len(positions), (len(positions) - 1) * self.params.dt)
+
+    def set_trajectory(self, now_ns: int, command_id: int, positions: np.ndarray, headings: np.ndarray,
+                       profile) -> None:
+        dt = self.params.dt
+        self.trajectory = TrajectoryReference(header=Header(stamp=now_ns), command_id=command_id, start=now_ns, dt=dt,
+                                              positions=from_numpy(positions), headings=from_numpy(headings),
+                                              profile=profile)
+        self.trajectory_end = now_ns + int(round((len(positions) - 1) * dt * NS))
         self.publish(now_ns)
+
+    def brake(self, now_ns: int) -> None:
+        """Stop where we are (the job manager has been silent too long): brake along the current
+        velocity at the last trajectory's limits, then hover."""
+        self.log.warning("no status from the job manager for %.1f s: braking to a hover", self.params.job_manager_timeout)
+        profile = self.trajectory.profile
+        positions, headings = core.stop(self.position, self.velocity, profile, self.params.dt, self.heading)
+        self.set_trajectory(now_ns, -1, positions, headings, profile)
+        self.planned_id = None
 
     def start_state(self, now_ns: int) -> tuple[np.ndarray, np.ndarray]:
         """Where a new plan starts: on the current trajectory at `now` while the vehicle follows it
