@@ -37,7 +37,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("falconry/<uav>/tracks", m.Tracks, "tracker", "job_manager, launcher (summary)", "1/tick with tracks, else 1 Hz"),
     Entry("falconry/<uav>/command", m.MissionCommand, "job_manager", "planner", "on change, repeated every 2 s"),
     Entry("falconry/<uav>/trajectory", m.TrajectoryReference, "planner", "simulator (onboard: flight controller)", "on command, re-sent every 2 s"),
-    Entry("falconry/<uav>/status", m.UavStatus, "job_manager", "job_manager (partners: revenge mode, target claims, separation), launcher", "5 Hz"),
+    Entry("falconry/<uav>/status", m.UavStatus, "job_manager", "job_manager (partners: revenge mode, target claims, separation), planner (its own: the job manager watchdog), launcher", "5 Hz"),
     Entry("falconry/<scope>/ack/<service>", m.StepAck, "every service (lockstep only)", "simulator, same-UAV downstream services", "1/tick"),
     Entry("falconry/<scope>/health/<service>", m.ServiceHealth, "every service (queryable)", "`falconry health`; recorder and viewer (CPU and memory plots)", "on query; recorder and viewer ask every second"),
     Entry("falconry/<scope>/alive/<service>", None, "every service (liveliness token)", "simulator, job_manager, every service (its UAV's upstream)", "while alive"),
@@ -62,6 +62,12 @@ def _pattern_regex(pattern: str) -> re.Pattern:
 
 
 _CATALOGUE_REGEXES = [(_pattern_regex(e.key), e) for e in CATALOGUE]
+
+
+def uav_topics() -> list[str]:
+    """The topics of a UAV's own keys (falconry/<uav>/<topic>): "odometry", "points", ..."""
+    prefix = "falconry/<uav>/"
+    return [e.key.removeprefix(prefix) for e in CATALOGUE if e.key.startswith(prefix) and "<" not in e.key[len(prefix):]]
 
 
 def catalogue_entry(key: str) -> Entry | None:

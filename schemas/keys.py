@@ -73,6 +73,11 @@ FAULTS = sim("faults")
 RESUME = sim("resume")
 
 
+def is_ack(key: str) -> bool:
+    parts = key.split("/")
+    return len(parts) == 4 and parts[0] == ROOT and parts[2] == "ack"
+
+
 def parse_alive(key: str) -> tuple[str, str] | None:
     """(scope, service) of a liveliness key, or None when it is not one."""
     parts = key.split("/")

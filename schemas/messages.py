@@ -288,7 +288,8 @@ class SimEvent(msgspec.Struct, kw_only=True):
 
 
 FaultKind = Literal[
-    "lidar_silent", "lidar_nan", "lidar_garbage", "odometry_jump", "kill", "link_cut", "freeze"
+    "lidar_silent", "lidar_nan", "lidar_garbage", "odometry_jump", "kill", "link_cut", "freeze",
+    "duplicate", "reorder", "slow", "clock_jump", "router_restart",
 ]
 
 
@@ -299,9 +300,12 @@ class FaultCommand(msgspec.Struct, kw_only=True):
     header: Header
     kind: FaultKind
     uav: str
-    service: str = ""  # for "kill" / "freeze": one service, or "" for all of the UAV's processes
+    service: str = ""  # "kill", "freeze", "slow", "clock_jump": one service, or "" for all of the UAV's processes
     duration: float = 0.0  # s of mission time; 0 = until the end of the run
     offset: Vec3 = (0.0, 0.0, 0.0)  # for "odometry_jump", m
+    topic: str = ""  # "duplicate" / "reorder": the UAV's topic (e.g. "detections") whose deliveries are disturbed
+    delay: float = 0.0  # "slow": s of extra handling time per message received
+    jump: float = 0.0  # "clock_jump": s the system clock steps (negative: back)
 
 
 class Decision(msgspec.Struct, kw_only=True):
@@ -331,6 +335,10 @@ class ServiceHealth(msgspec.Struct, kw_only=True):
     memory: int = 0  # resident set size, bytes (0 where the platform does not say)
     # a state machine's whole history (the job manager's): what the ground reads after a link cut
     decisions: list[Decision] = []
+    # real-time delivery: messages dropped as duplicates or overtaken by a newer one on their key, and
+    # messages shed unread because newer ones on their key were queued behind them (a slow consumer)
+    dropped_stale: dict[str, int] = {}
+    dropped_backlog: dict[str, int] = {}
 
 
 ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (

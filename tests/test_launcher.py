@@ -14,6 +14,7 @@ import zenoh
 from schemas import keys
 from schemas.messages import SimClock
 from services.launcher.monitor import read_truth_log
+from services.simulator.scenario import SCENARIO_DIR
 from tests.conftest import falconry_argv
 from tests.tools.health import health, wait_healthy
 from tests.tools.run import join_run, processes_mentioning, read_summary
@@ -87,10 +88,10 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
     assert processes_mentioning(f"127.0.0.1:{port}") == [], "launcher left service processes behind"
 
 
-def run_lockstep(tmp_path, name: str, seed: int, duration: float) -> tuple[bytes, dict]:
+def run_lockstep(tmp_path, name: str, seed: int, duration: float, scenario: str = "mbzirc") -> tuple[bytes, dict]:
     truth, summary, digests = tmp_path / f"{name}.truth", tmp_path / f"{name}.json", tmp_path / f"{name}.digests"
     result = subprocess.run(
-        falconry_argv("sim", "mbzirc", "--uavs", "2", "--lockstep", "--seed", str(seed), "--duration", str(duration),
+        falconry_argv("sim", scenario, "--uavs", "2", "--lockstep", "--seed", str(seed), "--duration", str(duration),
                       "--quiet", "--truth-log", str(truth), "--summary-json", str(summary), "--wall-timeout", "240",
                       "--digest-json", str(digests)),
         capture_output=True, text=True, timeout=300)
@@ -98,21 +99,62 @@ def run_lockstep(tmp_path, name: str, seed: int, duration: float) -> tuple[bytes
     return truth.read_bytes(), read_summary(summary)
 
 
-def test_lockstep_runs_with_the_same_seed_give_identical_ground_truth(tmp_path):
+# Messages duplicated and overtaken on the way, and a slow consumer: lockstep delivers by seq and
+# waits for every service, so none of it may change a single message of the run.
+DELIVERY_FAULTS = """
+[[faults]]
+time = 3.0
+kind = "duplicate"
+uav = "uav1"
+topic = "detections"
+duration = 10.0
+
+[[faults]]
+time = 3.0
+kind = "reorder"
+uav = "uav2"
+topic = "points"
+duration = 10.0
+
+[[faults]]
+time = 4.0
+kind = "reorder"
+uav = "uav1"
+topic = "status"
+duration = 10.0
+
+[[faults]]
+time = 5.0
+kind = "slow"
+uav = "uav2"
+service = "mapper"
+delay = 0.02
+duration = 3.0
+"""
+FAULT_KEYS = ("falconry/sim/events", "falconry/sim/faults")  # the faulted run announces its faults
+
+
+def test_lockstep_runs_with_the_same_seed_give_identical_ground_truth_whatever_the_network_does(tmp_path):
     first, s1 = run_lockstep(tmp_path, "a", seed=7, duration=20)
-    second, s2 = run_lockstep(tmp_path, "b", seed=7, duration=20)
+    faulted = tmp_path / "faulted.toml"
+    faulted.write_text((SCENARIO_DIR / "mbzirc.toml").read_text() + DELIVERY_FAULTS)
+    second, s2 = run_lockstep(tmp_path, "b", seed=7, duration=20, scenario=str(faulted))
     # not only the truth: every message every service published (clock aside) is the same
     digests_a, digests_b = (json.loads((tmp_path / f"{n}.digests").read_text()) for n in "ab")
-    differing = sorted(k for k in digests_a.keys() | digests_b.keys() if digests_a.get(k) != digests_b.get(k))
+    differing = sorted(k for k in digests_a.keys() | digests_b.keys()
+                       if digests_a.get(k) != digests_b.get(k) and k not in FAULT_KEYS)
     assert not differing, f"lockstep runs differ on {differing}"
     assert any("/points" in k for k in digests_a) and any("/tracks" in k for k in digests_a)
     print(f"{len(digests_a)} key expressions, {sum(c for c, _ in digests_a.values())} messages identical")
     records = list(read_truth_log(tmp_path / "a.truth"))
     assert len(records) == 401, len(records)  # ticks 0..400 of 50 ms
     assert any(u.airborne for r in records for u in r.uavs), "the UAVs never flew: nothing was compared"
-    print(f"two seeded lockstep runs: {len(first)} bytes of ground truth each, identical={first == second}; "
-          f"wall {s1['wall_time']} s / {s2['wall_time']} s")
+    print(f"two seeded lockstep runs, the second with duplicated, reordered and slowly consumed messages: "
+          f"{len(first)} bytes of ground truth each, identical={first == second}; wall {s1['wall_time']} s / "
+          f"{s2['wall_time']} s; duplicates dropped by the second: {s2['health']['dropped_stale']}")
     assert first == second
+    assert len([f for f in s2["faults"] if "fault_injected" in f]) == 4
+    assert s2["health"]["dropped_stale"] > 100 and s1["health"]["dropped_stale"] == 0  # they were there
 
 
 def test_two_uav_mission_flies_and_reports(tmp_path):

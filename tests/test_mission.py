@@ -5,9 +5,11 @@ from __future__ import annotations
 import subprocess
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from services.launcher import netns
+from services.launcher.monitor import read_truth_log
 from services.simulator.scenario import SCENARIO_DIR
 from tests.conftest import falconry_argv
 from tests.tools.run import processes_mentioning, read_summary
@@ -16,7 +18,7 @@ PARTNER_TIMEOUT = 15.0  # t_s, the job manager's default
 
 
 def run_mission(tmp_path: Path, port: int, faults: str, *, uavs: int, duration: float, seed: int = 1,
-                lease_ms: int | None = None) -> tuple[dict, str]:
+                lease_ms: int | None = None, lockstep: bool = True, extra: tuple[str, ...] = ()) -> tuple[dict, str]:
     """mbzirc with `faults` added, on the oracle detector and a light LiDAR (OS0-32 × 512: these tests are
     about the team's decisions, and the light sensor keeps each run under a minute)."""
     scenario = tmp_path / "mission.toml"
@@ -24,9 +26,9 @@ def run_mission(tmp_path: Path, port: int, faults: str, *, uavs: int, duration: 
     light = tmp_path / "light.toml"
     light.write_text('[sensor_driver]\nmodel = "os0-32-512"\n')
     summary = tmp_path / "summary.json"
-    argv = ["sim", str(scenario), "--uavs", str(uavs), "--lockstep", "--seed", str(seed), "--duration", str(duration),
+    argv = ["sim", str(scenario), "--uavs", str(uavs), "--seed", str(seed), "--duration", str(duration),
             "--detector", "oracle", "--port", str(port), "--quiet", "--progress", "0", "--summary-json", str(summary),
-            "--wall-timeout", "400", "--config", str(light)]
+            "--wall-timeout", "400", "--config", str(light), *(["--lockstep"] if lockstep else []), *extra]
     if lease_ms:
         argv += ["--lease-ms", str(lease_ms)]
     result = subprocess.run(falconry_argv(*argv), capture_output=True, text=True, timeout=480)
@@ -135,4 +137,51 @@ def test_the_partner_keeps_clear_of_a_uav_hovering_after_its_onboard_computer_di
     assert summary["uavs"]["uav2"]["landed_s"] is None, "uav2 should hover to the end"
     assert summary["uavs"]["uav1"]["distance_m"] > 0
     print(f"uav1 took the whole arena at t={took:.1f} s; balloons destroyed at {balloons_destroyed(summary)}")
+    check_separation(summary)
+
+
+def speeds(truth_log: Path, uav: str, start: float, end: float) -> list[float]:
+    """Ground speeds of `uav`, m/s, between mission times `start` and `end`."""
+    return [float(np.linalg.norm(v.velocity)) for record in read_truth_log(truth_log)
+            if start <= record.header.stamp / 1e9 <= end for v in record.uavs if v.name == uav]
+
+
+@pytest.mark.timeout(300)
+def test_a_frozen_job_manager_brakes_its_vehicle_to_a_hover_and_its_partner_keeps_clear(tmp_path, port):
+    """The planner's watchdog: uav2's job manager frozen for 8 s; its planner hears no status for 1 s
+    and brakes to a hover instead of flying the last trajectory on, then obeys again."""
+    faults = '\n[[faults]]\ntime = 20.0\nkind = "freeze"\nuav = "uav2"\nservice = "job_manager"\nduration = 8.0\n'
+    truth, log = tmp_path / "truth.log", tmp_path / "run.log"
+    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=40,
+                                  extra=("--truth-log", str(truth), "--log-file", str(log)))
+    # 1 s of silence, then braking from up to 8 m/s at the profile's 1.5 m/s^2
+    before, frozen, after = (speeds(truth, "uav2", a, b) for a, b in ((15.0, 20.0), (26.5, 28.0), (30.0, 40.0)))
+    print(f"uav2's speed: up to {max(before):.1f} m/s before the freeze, at most {max(frozen):.2f} m/s from 6.5 s "
+          f"into it, up to {max(after):.1f} m/s after it")
+    assert max(before) > 1.0 and max(frozen) < 0.3 and max(after) > 1.0
+    text = log.read_text()
+    assert "uav2/planner" in text and "no status from the job manager for 1.0 s: braking to a hover" in text
+    assert "the job manager speaks again: obeying its commands" in text
+    check_separation(summary)
+
+
+@pytest.mark.timeout(300)
+def test_the_team_rides_out_a_router_restart_and_every_service_comes_back(tmp_path, port):
+    """The router profile's one router killed for 2 s (real time: that is what the profile deploys):
+    every message of the run passes it, so each UAV's LiDAR and odometry fall silent for the
+    downtime and the reconnection; the abort system lands a UAV whose sensors were silent over
+    1 s, and afterwards every service answers again."""
+    faults = '\n[[faults]]\ntime = 12.0\nkind = "router_restart"\nduration = 2.0\n'
+    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=35, lockstep=False)
+    assert "zenoh router" in output and "router_restart: router down for 2 s of wall time" in output, output[-3000:]
+    assert "started sim/router again after its fault ended" in output
+    health = summary["health"]
+    print(f"after the router restart: {health['services_answering']} services answered, "
+          f"{health['handler_errors']} handler errors; decisions: "
+          + "; ".join(f"{u}: {[s for _, s in v['states']][-3:]}" for u, v in summary["uavs"].items()))
+    assert health["services_answering"] == 13 and health["handler_errors"] == 0  # 2 x 6 services + the simulator
+    for name, uav in summary["uavs"].items():
+        landed_by_abort = any("silent" in reason for _, state, reason in uav["decisions"]
+                              if state == "EMERGENCY_LANDING")
+        assert landed_by_abort or uav["final_state"] not in ("EMERGENCY_LANDING", "LANDED"), (name, uav["decisions"])
     check_separation(summary)

@@ -230,7 +230,7 @@ def test_bad_faults_name_the_field(tmp_path):
     assert error_of(tmp_path, fault(time=500.0, kind="freeze", uav="uav1")) == (
         "t.toml: faults[0].time: 500.0 s is outside the mission (0 to duration 120.0 s)")
     assert error_of(tmp_path, fault(time=1.0, kind="lidar_nan", uav="uav1", service="mapper")) == (
-        "t.toml: faults[0].service: only kill and freeze faults target one service")
+        "t.toml: faults[0].service: only kill, freeze, slow, clock_jump faults target one service")
     assert error_of(tmp_path, fault(time=1.0, kind="freeze", uav="uav1", service="mapr")).startswith(
         "t.toml: faults[0].service: unknown service 'mapr' (one of sensor_driver, ")
     assert error_of(tmp_path, fault(time=1.0, kind="odometry_jump", uav="uav1")) == (
@@ -238,6 +238,35 @@ def test_bad_faults_name_the_field(tmp_path):
     assert error_of(tmp_path, fault(time=1.0, kind="kill", uav="uav1", duration=-2.0)) == (
         "t.toml: faults[0].duration: must be >= 0, got -2.0")
     assert error_of(tmp_path, fault(kind="kill", uav="uav1")) == "t.toml: faults[0].time: missing required field"
+    assert error_of(tmp_path, fault(time=1.0, kind="kill")) == (
+        "t.toml: faults[0].uav: '' is not a UAV of a team of at most 3 (uav1..uav3)")
+
+
+def test_the_delivery_clock_and_router_faults_take_their_own_fields_only(tmp_path):
+    from services.simulator.scenario import check_team
+    assert error_of(tmp_path, fault(time=1.0, kind="duplicate", uav="uav1")).startswith(
+        "t.toml: faults[0].topic: a duplicate fault needs one of the UAV's topics (odometry, points, ")
+    assert error_of(tmp_path, fault(time=1.0, kind="reorder", uav="uav1", topic="radio")).endswith(", not 'radio'")
+    assert error_of(tmp_path, fault(time=1.0, kind="kill", uav="uav1", topic="points")) == (
+        "t.toml: faults[0].topic: only duplicate and reorder faults take a topic")
+    assert error_of(tmp_path, fault(time=1.0, kind="slow", uav="uav1", delay=2.0)) == (
+        "t.toml: faults[0].delay: a slow fault needs 0 < delay <= 1 s per message (a longer one is a freeze)")
+    assert error_of(tmp_path, fault(time=1.0, kind="freeze", uav="uav1", delay=0.1)) == (
+        "t.toml: faults[0].delay: only slow faults take a delay")
+    assert error_of(tmp_path, fault(time=1.0, kind="clock_jump", uav="uav1")) == (
+        "t.toml: faults[0].jump: a clock_jump needs a non-zero finite jump, s")
+    assert error_of(tmp_path, fault(time=1.0, kind="router_restart", uav="uav1", duration=2.0)) == (
+        "t.toml: faults[0].uav: a router_restart concerns the run's router, not one UAV")
+    assert error_of(tmp_path, fault(time=1.0, kind="router_restart")) == (
+        "t.toml: faults[0].duration: a router_restart needs the time the router stays down (> 0 s)")
+    good = [fault(time=1.0, kind="duplicate", uav="uav1", topic="detections", duration=2.0),
+            fault(time=2.0, kind="slow", uav="uav2", service="tracker", delay=0.2),
+            fault(time=3.0, kind="clock_jump", uav="uav1", jump=-3600.0),
+            fault(time=4.0, kind="router_restart", duration=1.5)]
+    s = load_scenario(write(tmp_path, GOOD + "".join(g.removeprefix(GOOD) for g in good)))
+    commands = [f.command() for f in s.faults]
+    assert (commands[0].topic, commands[1].delay, commands[2].jump, commands[3].uav) == ("detections", 0.2, -3600.0, "")
+    check_team(s, ["uav1", "uav2"])  # the router is nobody's UAV
 
 
 def test_bad_wind_and_capture(tmp_path):

@@ -32,7 +32,7 @@ class ClassifierNode(Node):
         self.labels_pub = self.publisher(self.topic("labels"), LabelSet)
         # Lockstep releases a tick's inputs in subscription order: map updates first, so each
         # scan is classified against the freshest map.
-        self.subscribe(self.topic("map"), VoxelMap, self.on_map)
+        self.subscribe(self.topic("map"), VoxelMap, self.on_map, keep=None)  # deltas: each one counts
         self.subscribe(self.topic("points"), PointCloud, self.on_points)
         self._ignored_deltas = 0
         self._refused_maps = 0

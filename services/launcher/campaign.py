@@ -13,8 +13,9 @@ import numpy as np
 
 # Each kind of single fault a campaign draws from; the job managers must stay apart under any one.
 KINDS = ("link_cut", "kill_hold", "kill_land", "kill_service", "freeze_service", "lidar_silent", "lidar_nan",
-         "odometry_jump")
+         "odometry_jump", "duplicate", "reorder", "slow_service")
 SERVICES = ("sensor_driver", "mapper", "tracker", "job_manager", "planner")  # present whatever the detector
+TOPICS = ("odometry", "detections", "tracks", "command", "status")  # what duplicate and reorder disturb
 EARLIEST = 10.0  # s: faults hit flying UAVs (take-off is over by then)
 LATEST_BEFORE_END = 25.0  # s before the end: the team still has time to react before the mission timer
 
@@ -28,6 +29,8 @@ class Fault:
     service: str = ""
     failsafe: str = "land"
     offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    topic: str = ""
+    delay: float = 0.0
 
     def toml(self) -> str:
         lines = ["[[faults]]", f"time = {self.time:.2f}", f'kind = "{self.kind}"', f'uav = "{self.uav}"']
@@ -39,11 +42,15 @@ class Fault:
             lines.append(f'failsafe = "{self.failsafe}"')
         if any(self.offset):
             lines.append("offset = [" + ", ".join(f"{v:.2f}" for v in self.offset) + "]")
+        if self.topic:
+            lines.append(f'topic = "{self.topic}"')
+        if self.delay:
+            lines.append(f"delay = {self.delay:.3f}")
         return "\n".join(lines) + "\n"
 
     def label(self) -> str:
         what = self.kind + (f"({self.failsafe})" if self.kind == "kill" and not self.service else "")
-        subject = "/".join(filter(None, (self.uav, self.service)))
+        subject = "/".join(filter(None, (self.uav, self.service, self.topic)))
         return f"{what} {subject} t={self.time:.0f}" + (f"+{self.duration:.0f}s" if self.duration else "")
 
 
@@ -89,6 +96,11 @@ def _draw(rng: np.random.Generator, uavs: int, duration: float, kinds: tuple[str
     if kind == "odometry_jump":
         offset = tuple(round(float(v), 2) for v in rng.uniform(-3.0, 3.0, 3))
         return Fault(time, "odometry_jump", uav, round(float(rng.uniform(2.0, 6.0)), 2), offset=offset)
+    if kind in ("duplicate", "reorder"):
+        return Fault(time, kind, uav, round(float(rng.uniform(2.0, 10.0)), 2), topic=TOPICS[int(rng.integers(len(TOPICS)))])
+    if kind == "slow_service":
+        return Fault(time, "slow", uav, round(float(rng.uniform(2.0, 8.0)), 2),
+                     service=SERVICES[int(rng.integers(len(SERVICES)))], delay=round(float(rng.uniform(0.01, 0.05)), 3))
     return Fault(time, kind, uav, round(float(rng.uniform(0.5, 3.0)), 2))  # lidar_silent, lidar_nan
 
 

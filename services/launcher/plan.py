@@ -15,19 +15,29 @@ class RunPlan:
     hub_settings: ZenohSettings
     hub_label: str
     children: dict[str, list[str]] = field(default_factory=dict)  # name -> argv
+    router: list[str] | None = None  # argv of the run's own Zenoh router (router profile without --connect)
     viewer: list[str] | None = None  # argv of `falconry view` drawing the run (--viz / --rrd)
+
+
+def own_router_wanted(args: argparse.Namespace) -> bool:
+    """The router profile with no router named: the run brings its own."""
+    return args.zenoh_profile == "router" and not args.connect and not args.zenoh_config
 
 
 def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: float, port: int,
              network: UavNetwork | None) -> RunPlan:
     embedded = args.zenoh_profile == "embedded" and not args.zenoh_config
     loopback_hub = f"tcp/127.0.0.1:{port}"
+    own_router = own_router_wanted(args)
+    connect = [loopback_hub] if own_router else list(args.connect)
     if embedded:
         listen = [loopback_hub] + ([f"tcp/{network.host_address}:{port}"] if network else [])
         hub_label = " and ".join(listen)
+    elif own_router:
+        listen, hub_label = [], f"router {loopback_hub} (the run's own, `falconry router`)"
     else:
         listen, hub_label = list(args.listen), args.zenoh_profile
-    hub_settings = ZenohSettings(profile=args.zenoh_profile, connect=list(args.connect), listen=listen,
+    hub_settings = ZenohSettings(profile=args.zenoh_profile, connect=connect, listen=listen,
                                  config_file=args.zenoh_config, lease_ms=args.lease_ms,
                                  # the launcher carries no bulk data, and its process-wide segments
                                  # would outlive the run's clean-up
@@ -36,13 +46,16 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
                                  connect_timeout=0 if embedded else None)
 
     def zenoh_args(connect: list[str], listen: list[str], gossip_connect: bool = True) -> list[str]:
-        return ZenohSettings(profile=args.zenoh_profile, connect=connect if embedded else list(args.connect),
+        return ZenohSettings(profile=args.zenoh_profile, connect=connect if embedded or own_router else list(args.connect),
                              listen=listen if embedded else [], config_file=args.zenoh_config,
                              lease_ms=args.lease_ms, gossip_connect=gossip_connect).as_args()
 
     base = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "run"]
     extra = ["--exit-with-parent"] + (["--config", args.config] if args.config else [])
     plan = RunPlan(hub_settings, hub_label)
+    if own_router:
+        plan.router = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "router",
+                       "--exit-with-parent", "--listen", loopback_hub]
     # With namespaces, the simulator is reached by each UAV over that UAV's airframe link only (never
     # over the radio bridge, which a link_cut takes down), and by the ground over loopback.
     sim_listen = ["tcp/127.0.0.1:0"] + [f"tcp/{network.sim_address(u)}:{port}" for u in uavs] if network else []

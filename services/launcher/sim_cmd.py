@@ -20,7 +20,7 @@ from schemas import keys
 from schemas.messages import FaultCommand, Header, ServiceHealth, SimEvent
 from services.launcher import netns
 from services.launcher.common import CliError, add_zenoh_options
-from services.launcher.faults import FaultExecutor
+from services.launcher.faults import ROUTER, FaultExecutor
 from services.launcher.monitor import RunMonitor
 from services.launcher.params import ParamsError, params_for, read_tables
 from services.launcher.plan import plan_run
@@ -65,7 +65,8 @@ def add_parser(commands) -> None:
     run.add_argument("--log-file", metavar="FILE", help="write every service's log lines to FILE")
     run.add_argument("--digest-json", metavar="FILE",
                      help="write, per key expression, the count and SHA-256 of every payload published in the run "
-                          "(the clock excepted): two seeded lockstep runs must match")
+                          "(clock ticks and acknowledgements excepted: a tick re-sent after a lost acknowledgement "
+                          "repeats both): two seeded lockstep runs must match")
     run.add_argument("--quiet", action="store_true",
                      help="do not echo service logs (progress, restarts and the summary still print)")
     run.add_argument("--progress", type=float, default=10.0, metavar="S",
@@ -119,6 +120,11 @@ class SimRun:
         self.duration = args.duration if args.duration is not None else self.scenario.duration
         self.seed = args.seed if args.seed is not None else self.scenario.seed
         needs_network = args.isolate or any(f.kind == "link_cut" for f in getattr(self.scenario, "faults", []))
+        if any(f.kind == "router_restart" for f in self.scenario.faults):
+            if args.connect or args.zenoh_config or needs_network:
+                raise CliError("the scenario schedules router_restart faults, which need the run's own router: "
+                               "leave out --connect, --zenoh-config, --isolate and link_cut faults")
+            args.zenoh_profile = "router"  # the run's own router, which the fault restarts
         if needs_network and (why := netns.available()):
             raise CliError(f"{'--isolate' if args.isolate else 'the scenario schedules link_cut faults, which'} "
                            f"needs per-UAV network namespaces, but {why}")
@@ -147,6 +153,8 @@ class SimRun:
         if self.network:
             self.network.setup()
         init_logging()
+        if plan.router:  # the hub is one of its clients: it comes first
+            self.supervisor.start(ROUTER, plan.router)
         self.session = open_session(plan.hub_settings)
         self.subscribers = [
             self.session.declare_subscriber(k, lambda s: self.inbox.put((str(s.key_expr), s.payload.to_bytes())))
@@ -232,7 +240,8 @@ class SimRun:
             # where the run's CPU went and what the job managers decided, asked while every service still
             # lives (not after Ctrl-C: no waiting then); a link just restored needs a moment to reconnect
             self.usage = self._ask_health(wait=RECONNECT_S if restored else 0.0)
-        self.killed = self.supervisor.stop_all(last={VIEWER: DRAIN_S + 10.0})
+        # the router last but one: the others stop cleanly while they still reach each other
+        self.killed = self.supervisor.stop_all(last={ROUTER: 2.0, VIEWER: DRAIN_S + 10.0})
         viewer = self.supervisor.children.get(VIEWER)
         if viewer is not None and viewer.process is not None and viewer.process.returncode not in (0, None):
             viewer.failed = True  # e.g. a live viewer that went away: its own log line says what it missed
@@ -389,14 +398,18 @@ def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[st
 
 def health_totals(usage: list[ServiceHealth]) -> dict[str, int]:
     """What every service counted by the end of the run: payloads it could not decode, handler
-    errors, lockstep waits given up, and messages of its own UAV's publishers it never received
-    (per subscriber: published - received on a key of its own UAV; a restart also shows here)."""
+    errors, lockstep waits given up, messages of its own UAV's publishers it never received
+    (per subscriber: published - received on a key of its own UAV; a restart also shows here, and
+    so do messages shed unread), messages it shed unread behind newer ones (a slow consumer in
+    real time), and duplicates or overtaken messages it dropped."""
     published = {key: n for h in usage for key, n in h.published.items()}
     lost = sum(max(0, published[key] - n) for h in usage for key, n in h.received.items()
                if key in published and key.startswith(f"falconry/{h.uav}/"))
     return {"decode_errors": sum(sum(h.decode_errors.values()) for h in usage),
             "handler_errors": sum(h.handler_errors for h in usage),
             "lockstep_timeouts": sum(h.lockstep_timeouts for h in usage), "lost_own_uav": lost,
+            "dropped_backlog": sum(sum(h.dropped_backlog.values()) for h in usage),
+            "dropped_stale": sum(sum(h.dropped_stale.values()) for h in usage),
             "services_answering": len(usage)}
 
 
@@ -435,7 +448,8 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         h = s["health"]
         lines.append(f"service counters ({h['services_answering']} answered): {h['decode_errors']} undecodable, "
                      f"{h['handler_errors']} handler errors, {h['lockstep_timeouts']} lockstep waits given up, "
-                     f"{h['lost_own_uav']} own-UAV messages not received")
+                     f"{h['lost_own_uav']} own-UAV messages not received, {h['dropped_backlog']} shed by slow "
+                     f"consumers, {h['dropped_stale']} duplicates or overtaken dropped")
     if s["failed_services"]:
         lines.append("gave up on: " + ", ".join(s["failed_services"]))
     if s["killed_at_shutdown"]:

@@ -1,7 +1,8 @@
 """Injected clocks. Cores never read time themselves; nodes hand them `clock.now_ns()`.
 
 MissionClock follows the simulator's ticks; WallClock is for onboard runs, where mission
-time is the (synchronised) system time; ManualClock is for tests.
+time is the (synchronised) system time at start carried on by the monotonic clock; ManualClock
+is for tests.
 """
 from __future__ import annotations
 
@@ -29,8 +30,32 @@ class MissionClock:
 
 
 class WallClock:
+    """Mission time onboard: the system time read once at start, carried on by the monotonic
+    clock. A step of the system clock in flight (an NTP correction, a hand-set date) would expire
+    every timer at once going forward (forbidden zones, a partner's silence: revenge mode on a
+    partner that is flying) and freeze them going back; the monotonic clock never steps (NTP slews
+    it like the system clock, so UAVs synchronised at start stay so). `system_step_ns` tells how far
+    the system clock has moved against it; `inject_step` moves this process's view of the system
+    clock (the `clock_jump` fault)."""
+
+    def __init__(self, system_ns=time.time_ns, monotonic_ns=time.monotonic_ns) -> None:
+        self._system_ns = system_ns
+        self._monotonic_ns = monotonic_ns
+        self._injected_ns = 0
+        self._start_system = system_ns()
+        self._start_monotonic = monotonic_ns()
+
     def now_ns(self) -> int:
-        return time.time_ns()
+        return self._start_system + self._monotonic_ns() - self._start_monotonic
+
+    def system_ns(self) -> int:
+        return self._system_ns() + self._injected_ns
+
+    def system_step_ns(self) -> int:
+        return self.system_ns() - self.now_ns()
+
+    def inject_step(self, seconds_: float) -> None:
+        self._injected_ns += int(round(seconds_ * NS))
 
 
 class ManualClock:

@@ -39,8 +39,9 @@ class LockstepGate(Generic[Item]):
         self.step: int | None = None
         self._clock_bounds: dict[str, int] = {}
         self._acks: dict[str, dict[int, dict[str, int]]] = {}
-        self._fifo: dict[str, deque[tuple[int, Item]]] = {}
+        self._fifo: dict[str, deque[tuple[int, int | None, Item]]] = {}
         self._released: dict[str, int] = {}
+        self._released_mark: dict[str, tuple[int, int]] = {}  # key -> (seq, stamp) of the last released
         # Per key, the bound in force when we (re)joined: messages up to it were sent before we
         # could receive them, so no later tick waits for them either.
         self._floor: dict[str, int] = {}
@@ -51,13 +52,29 @@ class LockstepGate(Generic[Item]):
         self._reconnecting: set[str] = set()  # keys whose link is back but nothing came through yet
 
     # -- inputs -------------------------------------------------------------
-    def hold(self, key: str, seq: int, item: Item) -> None:
+    def hold(self, key: str, seq: int, item: Item, stamp: int | None = None) -> bool:
+        """Keep a received message for the tick it belongs to. With its `stamp`, a duplicate (the
+        same seq and stamp again) is dropped, a message overtaken in transit (a lower seq and no
+        later stamp than one held) goes back before it, and one whose successor was released
+        already is too late and dropped. False when dropped. (A restarted publisher counts from 1
+        again, but its stamps are later: its messages are news, not stragglers.)"""
         if key in self._reconnecting and not self._cut(key):
             self._reconnecting.discard(key)  # the first message over the restored link
             self._floor[key] = seq - 1
-        if seq < self._floor.get(key, 0) and not self._fifo.get(key):
+        fifo = self._fifo.setdefault(key, deque())
+        if seq < self._floor.get(key, 0) and not fifo:
             del self._floor[key]  # its publisher restarted: the new numbers are all news to us
-        self._fifo.setdefault(key, deque()).append((seq, item))
+        at = len(fifo)
+        if stamp is not None:
+            last = self._released_mark.get(key)
+            if last is not None and seq <= last[0] and stamp <= last[1]:
+                return False
+            if any(s == seq and t == stamp for s, t, _ in fifo):
+                return False
+            while at > 0 and fifo[at - 1][0] > seq and fifo[at - 1][1] is not None and fifo[at - 1][1] >= stamp:
+                at -= 1
+        fifo.insert(at, (seq, stamp, item))
+        return True
 
     def begin(self, step: int, clock_bounds: dict[str, int], cut: Callable[[str], bool] | None = None) -> None:
         """Tick `step` with the simulator's bounds; `cut(key)`: the key comes over a radio link
@@ -109,7 +126,7 @@ class LockstepGate(Generic[Item]):
             # publisher restarted and counts from 1 again: its message `bound` is a new one.
             if bound == self._released.get(key, 0) or bound <= self._floor.get(key, 0):
                 continue
-            if not any(seq == bound for seq, _ in self._fifo.get(key, ())):
+            if not any(seq == bound for seq, _, _ in self._fifo.get(key, ())):
                 waits.append(f"{key}#{bound}")
         return waits
 
@@ -127,15 +144,17 @@ class LockstepGate(Generic[Item]):
                 take = len(fifo)
             else:
                 take = 0
-                for i, (seq, _) in enumerate(fifo):
+                for i, (seq, _, _) in enumerate(fifo):
                     if seq == bound:
                         take = i + 1  # a restarted publisher counts from 1 again
                 if take == 0:
                     while take < len(fifo) and fifo[take][0] <= bound:
                         take += 1
             for _ in range(take):
-                seq, item = fifo.popleft()
+                seq, stamp, item = fifo.popleft()
                 self._released[key] = seq
+                if stamp is not None:
+                    self._released_mark[key] = (seq, stamp)
                 out.append((key, item))
         self.joining = False
         return out

@@ -32,12 +32,16 @@ import zenoh
 from schemas import keys
 from schemas.messages import Decision, FaultCommand, Header, ServiceHealth, SimClock, StepAck
 from services.runtime.clock import MissionClock, WallClock
+from services.runtime.delivery import DeliveryFaults, Freshness, Reorderer
 from services.runtime.health import process_usage
 from services.runtime.lockstep import FaultWindows, LockstepGate
 from services.runtime.typed import Counters, M, Subscription, TypedPublisher
 from services.runtime.zenoh_config import OpenCancelled, ZenohSettings, init_logging, open_session, undeclare_all
 
 POLL_S = 0.1  # how often the loop looks at stop requests when idle
+KEEP = 10  # real time: per key, at most this many messages wait unread; older ones are shed
+MAX_CLOCK_JUMP_S = 1e9  # s (~30 years): a clock_jump beyond is not a clock (NaN and infinity included)
+CLOCK_STEP_WARN_S = 0.5  # a system clock moved this far against the monotonic one is reported
 LOCKSTEP_TIMEOUT_S = 5.0
 
 
@@ -103,8 +107,15 @@ class Node:
         self.session: zenoh.Session | None = None
         self._declared = False
         self._deferred_clock: SimClock | None = None
+        self._last_ack: StepAck | None = None
         self._warned_no_clock = False
         self._fault_windows = FaultWindows()
+        self._delivery_faults = DeliveryFaults(self.scope, self.service)
+        self._reorderer: Reorderer = Reorderer()
+        self._freshness = Freshness()
+        self._queued: dict[str, int] = {}  # key -> samples in the inbox (Zenoh threads add, the loop takes)
+        self._queued_lock = threading.Lock()
+        self._reported_clock_step = 0
         self._decode_log_budget = 20
 
     # ------------------------------------------------------------------ API
@@ -126,8 +137,12 @@ class Node:
         """Key expression of a per-UAV topic of this node's UAV (or another one)."""
         return keys.uav(uav or self.uav, name)
 
-    def subscribe(self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None]) -> None:
-        self._add_subscription(key_expr, msg_type, handler, internal=False)
+    def subscribe(self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None],
+                  keep: int | None = KEEP) -> None:
+        """handler(msg, key) for every message on key_expr. In real time, when a slow loop lets more
+        than `keep` messages of one key queue up, the older ones are shed unread and counted
+        (None: never shed, for streams of increments such as map deltas)."""
+        self._add_subscription(key_expr, msg_type, handler, internal=False, keep=keep)
 
     def on_liveliness(self, key_expr: str, handler: Callable[[str, bool], None], internal: bool = False) -> None:
         """handler(key, alive) for every token matching key_expr, current ones included.
@@ -136,6 +151,32 @@ class Node:
         self._liveliness_handlers.append((key_expr, handler, internal))
         if self._declared:
             self._declare_liveliness_subscriber(key_expr, handler, internal)
+
+    def subscribe_runtime(self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None]) -> None:
+        """A subscription to run plumbing (acknowledgements and the like): handled as it arrives,
+        never held for a tick, shed or filtered."""
+        self._add_subscription(key_expr, msg_type, handler, internal=True)
+
+    def drive_clock(self, lockstep: bool) -> LockstepGate:
+        """Make this node the run's clock master (the simulator) instead of a follower of the clock:
+        it subscribes to no clock, and in lockstep its inputs wait in the returned gate until the
+        master releases them for the tick they belong to (`begin`, `missing`, `release`)."""
+        if self._declared:
+            raise RuntimeError("drive_clock must be called before the node declares its subscriptions")
+        self._clock_kind = "master"
+        self._lockstep = lockstep
+        self._gate = LockstepGate((), self._wants, self._order, joining=False)
+        return self._gate
+
+    def handle_released(self, released: list[tuple[str, tuple[Subscription, Any]]]) -> None:
+        """The clock master's side of `drive_clock`: handle what its gate released for a tick."""
+        for key, (sub, msg) in released:
+            self._call(sub.handler, msg, key)
+
+    @property
+    def fault_windows(self) -> FaultWindows:
+        """Which services the scheduled faults announced so far silence, and which radios they cut."""
+        return self._fault_windows
 
     def stop(self) -> None:
         self._stop.set()
@@ -146,18 +187,22 @@ class Node:
         return bool(self._lockstep)
 
     # ------------------------------------------------------------ plumbing
-    def _add_subscription(self, key_expr, msg_type, handler, internal: bool) -> None:
-        sub = Subscription(len(self._subs), key_expr, msgspec.msgpack.Decoder(msg_type), handler, internal)
+    def _add_subscription(self, key_expr, msg_type, handler, internal: bool, keep: int | None = None) -> None:
+        sub = Subscription(len(self._subs), key_expr, msgspec.msgpack.Decoder(msg_type), handler, internal, keep)
         self._subs.append(sub)
         self._wants_cache.clear()
         if self._declared:
             self._declare_subscriber(sub)
 
     def _declare_subscriber(self, sub: Subscription) -> None:
-        inbox = self._inbox
+        inbox, queued, lock = self._inbox, self._queued, self._queued_lock
 
         def on_sample(sample: zenoh.Sample, sub=sub) -> None:
-            inbox.put(("data", sub, str(sample.key_expr), sample.payload.to_bytes()))
+            key = str(sample.key_expr)
+            if not sub.internal:
+                with lock:
+                    queued[key] = queued.get(key, 0) + 1
+            inbox.put(("data", sub, key, sample.payload.to_bytes()))
 
         self._zenoh_handles.append(self.session.declare_subscriber(sub.key_expr, on_sample))
 
@@ -256,13 +301,27 @@ class Node:
 
     def pump(self, timeout: float) -> bool:
         """Handle at most one queued input; False when none came within `timeout`."""
-        try:
-            item = self._inbox.get(timeout=max(0.0, timeout))
-        except queue.Empty:
+        item = self._next_item(timeout)
+        if item is None:
             self._check_parent()
             return False
         self._dispatch(item)
         return True
+
+    def _next_item(self, timeout: float) -> tuple | None:
+        """The next inbox item, or None after `timeout`. A sample a reorder fault holds back is let
+        go as soon as nothing else waits."""
+        if self._reorderer:
+            try:
+                return self._inbox.get_nowait()
+            except queue.Empty:
+                for sample in self._reorderer.flush():
+                    self._deliver(*sample)
+                return None
+        try:
+            return self._inbox.get(timeout=max(0.0, timeout))
+        except queue.Empty:
+            return None
 
     @property
     def stopping(self) -> bool:
@@ -274,16 +333,14 @@ class Node:
             timeout = POLL_S
             if self._clock_kind == "wall":
                 timeout = max(0.0, min(POLL_S, next_wall_tick - time.monotonic()))
-            try:
-                item = self._inbox.get(timeout=timeout)
-            except queue.Empty:
-                item = None
+            item = self._next_item(timeout)
             if item is not None:
                 self._dispatch(item)
             if self._clock_kind == "wall" and time.monotonic() >= next_wall_tick:
                 next_wall_tick += self._tick_period_ns / 1e9
                 self._lockstep = False
                 self._flush_pending()
+                self._watch_system_clock()
                 self._tick(self.clock.now_ns())
             self._check_parent()
 
@@ -305,17 +362,18 @@ class Node:
         kind = item[0]
         if kind == "data":
             _, sub, key, payload = item
-            msg = self._decode(sub, key, payload)
-            if msg is None:
-                return
             if sub.internal:
-                self._call(sub.handler, msg, key)
-            elif self._lockstep:
-                self._gate.hold(key, msg.header.seq, (sub, msg))
-            elif self._lockstep is None:
-                self._hold_until_clock(sub, key, msg)
-            else:
-                self._call(sub.handler, msg, key)
+                msg = self._decode(sub, key, payload)
+                if msg is not None:
+                    self._call(sub.handler, msg, key)
+                return
+            with self._queued_lock:
+                behind = self._queued[key] = self._queued.get(key, 1) - 1
+            if self._lockstep is False and sub.keep is not None and behind >= sub.keep:
+                self._count(self.counters.dropped_backlog, key)  # newer ones wait: this one is history
+                return
+            for sample in self._through_network(sub, key, payload):
+                self._deliver(*sample)
         elif kind == "live":
             _, handler, key, alive, internal = item
             if internal or self._lockstep is False:
@@ -324,6 +382,42 @@ class Node:
                 self._pending_live.append((handler, key, alive))
         elif kind == "query":
             self._answer_health(item[1])
+
+    def _through_network(self, sub: Subscription, key: str, payload: bytes) -> list[tuple]:
+        """What the network hands over of one sample while a scheduled fault disturbs its key."""
+        sample = (sub, key, payload)
+        disturbance = self._delivery_faults.disturbance(key, self.clock.now_ns() / 1e9)
+        if disturbance == "duplicate":
+            return [sample, sample]
+        if disturbance == "reorder":
+            return self._reorderer.pass_through(key, sample)
+        return [sample]
+
+    def _deliver(self, sub: Subscription, key: str, payload: bytes) -> None:
+        msg = self._decode(sub, key, payload)
+        if msg is None:
+            return
+        delay = self._delivery_faults.delay(self.clock.now_ns() / 1e9)
+        if delay > 0:
+            time.sleep(delay)  # a `slow` fault: this computer takes longer over every message
+        if self._lockstep:
+            if not self._gate.hold(key, msg.header.seq, (sub, msg), msg.header.stamp):
+                self._count(self.counters.dropped_stale, key)
+        elif self._lockstep is None:
+            self._hold_until_clock(sub, key, msg)
+        else:
+            self._handle(sub, key, msg)
+
+    def _handle(self, sub: Subscription, key: str, msg: Any) -> None:
+        """Real time: the newest message of a key wins; a duplicate or an overtaken one is dropped."""
+        if self._freshness.fresh(key, msg.header.seq, msg.header.stamp):
+            self._call(sub.handler, msg, key)
+        else:
+            self._count(self.counters.dropped_stale, key)
+
+    @staticmethod
+    def _count(counter: dict[str, int], key: str) -> None:
+        counter[key] = counter.get(key, 0) + 1
 
     def _decode(self, sub: Subscription, key: str, payload: bytes):
         try:
@@ -361,9 +455,9 @@ class Node:
         pending, self._pending = self._pending, []
         for sub, key, msg in pending:
             if self._lockstep:
-                self._gate.hold(key, msg.header.seq, (sub, msg))
+                self._gate.hold(key, msg.header.seq, (sub, msg), msg.header.stamp)
             else:
-                self._call(sub.handler, msg, key)
+                self._handle(sub, key, msg)
 
     # ------------------------------------------------------------- clock
     def _on_clock(self, tick: SimClock, key: str) -> None:
@@ -373,6 +467,8 @@ class Node:
 
     def _process_tick(self, tick: SimClock) -> None:
         if tick.step <= self._last_step:
+            if tick.step == self._last_step and tick.lockstep and self._last_ack is not None:
+                self._ack_pub.put(self._last_ack)  # re-sent because our ack was lost (a router restart)
             return  # a re-sent tick we already processed
         first = self._lockstep is None
         self._lockstep = tick.lockstep
@@ -396,8 +492,13 @@ class Node:
         self._tick(tick.header.stamp)
         # every key, even those still at 0: a downstream then holds a restarted publisher's
         # first messages until an ack names them
-        published = {p.key: p.seq for p in self._publishers if p is not self._ack_pub}
-        self._ack_pub.put(StepAck(header=Header(stamp=tick.header.stamp), step=tick.step, published=published))
+        self._last_ack = StepAck(header=Header(stamp=tick.header.stamp), step=tick.step,
+                                 published=self.published_seqs())
+        self._ack_pub.put(self._last_ack)
+
+    def published_seqs(self) -> dict[str, int]:
+        """Per key this node publishes on (acknowledgements excepted), the seq of its last message."""
+        return {p.key: p.seq for p in self._publishers if p is not self._ack_pub}
 
     def _wait_for_gate(self, step: int) -> None:
         deadline = time.monotonic() + LOCKSTEP_TIMEOUT_S
@@ -409,9 +510,8 @@ class Node:
                 self.counters.lockstep_timeouts += 1
                 self.log.warning("tick %d: gave up waiting for %s", step, ", ".join(missing[:5]))
                 return
-            try:
-                item = self._inbox.get(timeout=min(remaining, POLL_S))
-            except queue.Empty:
+            item = self._next_item(min(remaining, POLL_S))
+            if item is None:
                 self._check_parent()
                 continue
             if item[0] == "data" and item[1].key_expr == keys.CLOCK:
@@ -451,6 +551,24 @@ class Node:
 
     def _on_fault(self, command: FaultCommand, key: str) -> None:
         self._fault_windows.add(command)  # a partner's cut radio parts us too
+        if self._delivery_faults.add(command, self._wants):
+            self.log.warning("fault %s%s from %.2f s%s", command.kind, f" on {command.topic}" if command.topic else "",
+                             command.header.stamp / 1e9, f" for {command.duration:g} s" if command.duration else "")
+        if command.kind == "clock_jump" and command.uav == self.scope and command.service in ("", self.service) \
+                and abs(command.jump) < MAX_CLOCK_JUMP_S:
+            if isinstance(self.clock, WallClock):
+                self.clock.inject_step(command.jump)  # as an NTP step or a hand-set date would move it
+            else:
+                self.log.info("clock_jump: this service follows the simulator's clock, not the system's")
+
+    def _watch_system_clock(self) -> None:
+        """Mission time onboard follows the monotonic clock (WallClock): a step of the system clock
+        moves no timer, and is reported once per step."""
+        step = self.clock.system_step_ns()
+        if abs(step - self._reported_clock_step) > CLOCK_STEP_WARN_S * 1e9:
+            self.log.warning("the system clock moved %+.3f s against the monotonic clock; mission time keeps "
+                             "to the monotonic one", (step - self._reported_clock_step) / 1e9)
+            self._reported_clock_step = step
 
     def _answering_upstream(self) -> set[str]:
         """Upstream services that are alive and not silenced by a scheduled fault right now."""
@@ -469,6 +587,7 @@ class Node:
             self._last_step = -1
             self._gate.rejoin()
             self.clock = MissionClock()
+            self._freshness = Freshness()  # its mission time may start again from 0
 
     # ------------------------------------------------------------- health
     def health(self) -> ServiceHealth:
@@ -490,6 +609,8 @@ class Node:
             cpu_time=cpu_time,
             memory=memory,
             decisions=self.decisions(),
+            dropped_stale=dict(c.dropped_stale),
+            dropped_backlog=dict(c.dropped_backlog),
         )
 
     def decisions(self) -> list[Decision]:

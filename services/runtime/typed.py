@@ -62,6 +62,7 @@ class Subscription:
     decoder: msgspec.msgpack.Decoder
     handler: Callable[[Any, str], None]
     internal: bool  # runtime plumbing (clock, acks): never gated
+    keep: int | None = None  # real time: shed older messages of a key once more than this wait unread
 
 
 class Counters:
@@ -71,3 +72,5 @@ class Counters:
         self.decode_errors: dict[str, int] = {}
         self.handler_errors = 0
         self.lockstep_timeouts = 0
+        self.dropped_stale: dict[str, int] = {}  # duplicates and overtaken messages, per key
+        self.dropped_backlog: dict[str, int] = {}  # shed unread behind newer ones (slow consumer), per key

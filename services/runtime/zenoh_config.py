@@ -17,7 +17,8 @@ ZenohUnreachable, a runtime failure (exit 75) that supervisors restart. How Zeno
 with an endpoint that is down:
 - client (router profile): `zenoh.open` fails at once ("Unable to connect to any of [...]";
   connect/timeout_ms is 0 for clients), so the retrying is ours. Once connected, a client whose
-  router goes away reconnects by itself when it returns.
+  router goes away reconnects by itself when it returns: within CLIENT_RETRY_MAX_MS (Zenoh's
+  default back-off grows to 4 s, and every message of the UAV waits on it, its LiDAR's included).
 - peer (embedded profile): `zenoh.open` succeeds regardless (connect/exit_on_failure is false
   for peers) and Zenoh itself retries the connect endpoints in the background, every 1 s doubling
   to 4 s (connect/retry); only a listen endpoint that cannot be bound makes it fail.
@@ -41,6 +42,7 @@ import zenoh
 from services.runtime.errors import RuntimeFailure, UsageError
 
 PROFILES = ("embedded", "router")
+CLIENT_RETRY_FIRST_MS, CLIENT_RETRY_MAX_MS = 250, 1000  # a router profile client's reconnection attempts
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 RETRY_FIRST_S = 0.5  # back-off between attempts to open a session: doubling up to RETRY_MAX_S
 RETRY_MAX_S = 5.0
@@ -168,6 +170,8 @@ def build(settings: ZenohSettings) -> zenoh.Config:
         else:
             _insert(config, "mode", "client")
             _insert(config, "scouting/multicast/enabled", False)
+            _insert(config, "connect/retry", {"period_init_ms": CLIENT_RETRY_FIRST_MS,
+                                              "period_max_ms": CLIENT_RETRY_MAX_MS, "period_increase_factor": 2})
     if settings.connect:
         _insert(config, "connect/endpoints", settings.connect)
     elif settings.profile == "router" and not config_file:

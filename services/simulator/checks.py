@@ -11,6 +11,8 @@ import re
 import numpy as np
 
 from schemas import keys
+from schemas.catalogue import uav_topics
+from services.runtime.delivery import MAX_DELAY_S
 from services.geometry import deepest_point, point_in_polygon, polygon_self_intersection, signed_area
 from services.lidar.models import lidar_model
 from services.simulator import paths
@@ -29,6 +31,7 @@ from services.simulator.specs import (
 
 START_SPACING = 10.0  # m: twice the job manager's safety distance, so a take-off is no separation violation
 FAULT_SERVICES = keys.UAV_SERVICES + (keys.ORACLE,)
+SERVICE_FAULTS = ("kill", "freeze", "slow", "clock_jump")  # the kinds that may target one service
 _UAV_NAME = re.compile(r"^uav([1-9][0-9]*)$")
 
 
@@ -75,7 +78,7 @@ def validated(s: Scenario) -> Scenario:
 
 def check_team(s: Scenario, uav_names: list[str]) -> None:
     """The run's team (the command line may change its size) holds every UAV the scenario names."""
-    named = [(f"faults[{i}].uav", f.uav) for i, f in enumerate(s.faults)]
+    named = [(f"faults[{i}].uav", f.uav) for i, f in enumerate(s.faults) if f.uav]
     named += [(f"uav.overrides.{name}", name) for name in s.uav.overrides]
     for field, name in named:
         if name not in uav_names:
@@ -265,6 +268,27 @@ def _check_uav_table(s: Scenario) -> None:
         _check_uav_settings(override, f"uav.overrides.{name}")
 
 
+def _check_fault_fields(f, where: str) -> None:
+    """topic, delay and jump: required by their kind, refused on any other."""
+    if f.kind in ("duplicate", "reorder"):
+        if f.topic not in uav_topics():
+            raise ScenarioError(f"{where}.topic: a {f.kind} fault needs one of the UAV's topics "
+                                f"({', '.join(uav_topics())}), not {f.topic!r}")
+    elif f.topic:
+        raise ScenarioError(f"{where}.topic: only duplicate and reorder faults take a topic")
+    if f.kind == "slow":
+        if not 0 < f.delay <= MAX_DELAY_S:
+            raise ScenarioError(f"{where}.delay: a slow fault needs 0 < delay <= {MAX_DELAY_S:g} s per message "
+                                f"(a longer one is a freeze)")
+    elif f.delay:
+        raise ScenarioError(f"{where}.delay: only slow faults take a delay")
+    if f.kind == "clock_jump":
+        if not (math.isfinite(f.jump) and f.jump != 0):
+            raise ScenarioError(f"{where}.jump: a clock_jump needs a non-zero finite jump, s")
+    elif f.jump:
+        raise ScenarioError(f"{where}.jump: only clock_jump faults take a jump")
+
+
 def _check_uav_name(name: str, field: str) -> None:
     match = _UAV_NAME.match(name)
     if not match or int(match.group(1)) > MAX_UAVS:
@@ -272,13 +296,20 @@ def _check_uav_name(name: str, field: str) -> None:
 
 
 def _check_fault(s: Scenario, f, where: str) -> None:
-    _check_uav_name(f.uav, f"{where}.uav")
+    if f.kind == "router_restart":
+        if f.uav:
+            raise ScenarioError(f"{where}.uav: a router_restart concerns the run's router, not one UAV")
+        if f.duration <= 0:
+            raise ScenarioError(f"{where}.duration: a router_restart needs the time the router stays down (> 0 s)")
+    else:
+        _check_uav_name(f.uav, f"{where}.uav")
     if not 0 <= f.time <= s.duration:
         raise ScenarioError(f"{where}.time: {f.time} s is outside the mission (0 to duration {s.duration} s)")
     _not_negative(f.duration, f"{where}.duration")
+    _check_fault_fields(f, where)
     if f.service:
-        if f.kind not in ("kill", "freeze"):
-            raise ScenarioError(f"{where}.service: only kill and freeze faults target one service")
+        if f.kind not in SERVICE_FAULTS:
+            raise ScenarioError(f"{where}.service: only {', '.join(SERVICE_FAULTS)} faults target one service")
         if f.service not in FAULT_SERVICES:
             raise ScenarioError(f"{where}.service: unknown service {f.service!r} "
                                 f"(one of {', '.join(FAULT_SERVICES)})")

@@ -37,7 +37,7 @@ from schemas.messages import (
 from services.runtime.clock import seconds, to_ns
 from services.runtime.errors import UsageError
 from services.runtime.counted import CountedWarnings
-from services.runtime.lockstep import FaultWindows, LockstepGate
+from services.runtime.lockstep import LockstepGate
 from services.runtime.node import Node
 from services.simulator.core import Simulation
 from services.simulator.checks import check_team
@@ -78,17 +78,16 @@ class SimulatorNode(Node):
         self.tick_s = float(getattr(opts, "tick", 0.05) or 0.05)
         if self.duration <= 0 or self.rtf <= 0 or self.tick_s <= 0:
             raise UsageError("--duration, --rtf and --tick must be positive")
-        self._clock_kind = "master"  # this node makes the clock; it never follows one
         check_team(self.scenario, self.uav_names)
         self.sim = Simulation(self.scenario, self.uav_names, self.seed)
         self._alive: set[str] = set()
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
-        self._fault_windows = FaultWindows()
         self._refused_references = 0
         self._bad_input = CountedWarnings(self.log)
         self._undo_jumps: list[tuple[int, str, np.ndarray]] = []  # (mission ns, uav, offset)
         self._acks: dict[str, StepAck] = {}
-        self._sim_gate: LockstepGate = LockstepGate((), self._wants, self._order, joining=False)
+        # this node makes the clock; in lockstep trajectories wait for the tick they belong to
+        self.inputs: LockstepGate = self.drive_clock(self.run_lockstep)
 
     # -------------------------------------------------------------- wiring
     def setup(self) -> None:
@@ -100,7 +99,7 @@ class SimulatorNode(Node):
         self.odometry_pubs = {u: self.publisher(keys.uav(u, "odometry"), Odometry) for u in self.uav_names}
         for u in self.uav_names:
             self.subscribe(keys.uav(u, "trajectory"), TrajectoryReference, self.on_trajectory)
-        self._add_subscription(keys.ALL_ACKS, StepAck, self._on_ack, internal=True)
+        self.subscribe_runtime(keys.ALL_ACKS, StepAck, self._on_ack)
         self.on_liveliness(keys.ALL_ALIVE, self._on_alive, internal=True)
 
     def _on_alive(self, key: str, alive: bool) -> None:
@@ -138,7 +137,6 @@ class SimulatorNode(Node):
         return {f"{u}/{s}" for u in self.uav_names for s in keys.uav_services(detector)}
 
     def serve(self) -> None:
-        self._lockstep = self.run_lockstep  # trajectories are gated by acknowledgements in lockstep
         first_step = self.resume_from_launcher()
         if not self.wait_for_team():
             return
@@ -151,8 +149,7 @@ class SimulatorNode(Node):
             if self.stopping:
                 return
             if step > 0:
-                for key, (sub, msg) in self._sim_gate.release(self._alive):
-                    self._call(sub.handler, msg, key)
+                self.handle_released(self.inputs.release(self._alive))
                 for kind, subject, detail in self.sim.step(self.tick_s):
                     self.event(kind, subject, detail)
             now = to_ns(step * self.tick_s)
@@ -216,9 +213,7 @@ class SimulatorNode(Node):
         merged: dict[str, int] = {}
         for name in sorted(self._acks):
             merged.update(self._acks[name].published)
-        for pub in self._publishers:
-            if pub.seq and pub is not self.clock_pub and pub is not self._ack_pub:
-                merged[pub.key] = pub.seq
+        merged.update({key: seq for key, seq in self.published_seqs().items() if seq and key != keys.CLOCK})
         return merged
 
     def wait_for_acks(self, tick: SimClock) -> None:
@@ -226,7 +221,7 @@ class SimulatorNode(Node):
         resend = started + RESEND_S
         while True:
             # a frozen, cut-off or killed service cannot answer: not waiting is part of the fault
-            expected = self._fault_windows.unaffected(self._alive, seconds(tick.header.stamp))
+            expected = self.fault_windows.unaffected(self._alive, seconds(tick.header.stamp))
             waiting = [n for n in sorted(expected) if (a := self._acks.get(n)) is None or a.step < tick.step]
             if not waiting or self.stopping:
                 break
@@ -239,9 +234,9 @@ class SimulatorNode(Node):
                 self.clock_pub.put(tick)
                 resend = now + RESEND_S
             self.pump(0.05)
-        self._sim_gate.begin(tick.step + 1, self.bounds())
+        self.inputs.begin(tick.step + 1, self.bounds())
         deadline = time.monotonic() + ACK_TIMEOUT_S
-        while self._sim_gate.missing(set()) and not self.stopping and time.monotonic() < deadline:
+        while self.inputs.missing(set()) and not self.stopping and time.monotonic() < deadline:
             self.pump(0.05)
 
     def pace(self, wall_deadline: float) -> None:
@@ -250,14 +245,6 @@ class SimulatorNode(Node):
             if remaining <= 0:
                 break
             self.pump(min(remaining, 0.05))
-
-    def _dispatch(self, item: tuple) -> None:
-        if item[0] == "data" and not item[1].internal and self._lockstep:
-            msg = self._decode(item[1], item[2], item[3])
-            if msg is not None:
-                self._sim_gate.hold(item[2], msg.header.seq, (item[1], msg))
-            return
-        super()._dispatch(item)
 
     # ------------------------------------------------------------ faults
     def inject_faults(self, now: int) -> None:
@@ -268,7 +255,7 @@ class SimulatorNode(Node):
         while self._pending_faults and to_ns(self._pending_faults[0].time) <= now:
             spec = self._pending_faults.pop(0)
             command = spec.command()
-            self._fault_windows.add(command)
+            self.fault_windows.add(command)  # before this tick's wait, not when it comes back to us
             if spec.kind == "odometry_jump":
                 offset = np.asarray(spec.offset, dtype=float)
                 self.sim.jump_odometry(spec.uav, offset)
@@ -281,9 +268,10 @@ class SimulatorNode(Node):
                     self.sim.hold_position(spec.uav, "onboard computer lost")
                 else:
                     self.sim.emergency_land(spec.uav, "onboard computer lost")
-            self.faults_pub.put(command)
-            target = "/".join(filter(None, (spec.uav, spec.service)))
+            target = "/".join(filter(None, (spec.uav, spec.service))) or "router"
+            # the event first: the command may take the router (and with it every event) down
             self.event("fault_injected", target, spec.kind + (f" for {spec.duration:g} s" if spec.duration else ""))
+            self.faults_pub.put(command)
 
     # ------------------------------------------------------------ output
     def publish_world(self) -> None:

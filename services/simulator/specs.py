@@ -134,16 +134,20 @@ class UavTable(UavSpec, kw_only=True):
 class FaultSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     time: float
     kind: FaultKind
-    uav: str
+    uav: str = ""  # every kind but router_restart (the run's router) names one
     service: str = ""
     duration: float = 0.0
     offset: Vec3 = (0.0, 0.0, 0.0)
     failsafe: Literal["land", "hold"] = "land"  # a whole-UAV kill: what the flight controller does then
+    topic: str = ""  # duplicate / reorder: the UAV's topic whose deliveries are disturbed
+    delay: float = 0.0  # slow: s of extra handling time per message
+    jump: float = 0.0  # clock_jump: s the system clock steps
 
     def command(self) -> FaultCommand:
         """The FaultCommand announcing this fault, stamped with its mission time."""
         return FaultCommand(header=Header(stamp=int(round(self.time * NS))), kind=self.kind, uav=self.uav,
-                            service=self.service, duration=self.duration, offset=self.offset)
+                            service=self.service, duration=self.duration, offset=self.offset, topic=self.topic,
+                            delay=self.delay, jump=self.jump)
 
 
 class Scenario(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):

@@ -1,0 +1,109 @@
+"""A real service on the wall clock (an onboard `falconry run`) under the delivery and clock faults:
+duplicated and reordered messages are dropped and counted, never handled twice or backwards; a
+slow consumer sheds what newer messages made history instead of falling ever further behind; a
+step of the system clock moves none of its stamps. The test publishes the detections and the
+fault commands itself, as a detector and a fault injector would."""
+from __future__ import annotations
+
+import queue
+import time
+
+import msgspec
+import numpy as np
+
+from schemas import keys
+from schemas.arrays import from_numpy
+from schemas.messages import Detections, FaultCommand, Header, Tracks
+from tests.tools.health import health, wait_healthy
+
+DETECTIONS = keys.uav("uav1", "detections")
+SENDER = "uav1/test_detector"
+encode = msgspec.msgpack.Encoder().encode
+
+
+class Detector:
+    """Publishes empty detections with its own seq, stamped with the wall clock."""
+
+    def __init__(self, session) -> None:
+        self.session = session
+        self.seq = 0
+
+    def send(self, count: int, every: float = 0.0) -> None:
+        for _ in range(count):
+            self.seq += 1
+            self.session.put(DETECTIONS, encode(Detections(
+                header=Header(sender=SENDER, seq=self.seq, stamp=time.time_ns()), detector="classifier",
+                positions=from_numpy(np.zeros((0, 3))), covariances=from_numpy(np.zeros((0, 3, 3))),
+                point_counts=from_numpy(np.zeros(0, np.int32)), extents=from_numpy(np.zeros(0, np.float32)))))
+            if every:
+                time.sleep(every)
+
+
+def inject(session, kind: str, seconds: float = 0.0, **fields) -> None:
+    session.put(keys.FAULTS, encode(FaultCommand(header=Header(sender="sim/test", stamp=time.time_ns()), kind=kind,
+                                                 uav="uav1", duration=seconds, **fields)))
+    time.sleep(0.3)  # the command travels on its own key: let it arrive before what it disturbs
+
+
+def counters(session) -> tuple[int, int, int]:
+    """(received, dropped as duplicate or overtaken, shed unread) of the tracker's detections."""
+    h = health(session, "uav1", "tracker", timeout=5.0)
+    assert h is not None, "the tracker did not answer"
+    return h.received.get(DETECTIONS, 0), h.dropped_stale.get(DETECTIONS, 0), h.dropped_backlog.get(DETECTIONS, 0)
+
+
+def test_duplicates_reorders_a_slow_consumer_and_a_clock_step_on_a_wall_clock_service(hub, processes):
+    session, endpoint = hub
+    stamps: queue.SimpleQueue = queue.SimpleQueue()
+    tracks = session.declare_subscriber(keys.uav("uav1", "tracks"), lambda s: stamps.put(
+        (time.time_ns(), msgspec.msgpack.decode(s.payload.to_bytes(), type=Tracks).header.stamp)))
+    try:
+        tracker = processes.start("run", "tracker", "--uav", "uav1", "--clock", "wall", "--connect", endpoint)
+        wait_healthy(session, [("uav1", "tracker")])
+        detector = Detector(session)
+
+        detector.send(10, every=0.02)
+        assert counters(session) == (10, 0, 0)
+
+        inject(session, "duplicate", 1.5, topic="detections")
+        detector.send(20, every=0.02)
+        received, stale, shed = counters(session)
+        print(f"duplicate: 20 sent, {received - 10} received, {stale} dropped")
+        assert (received, stale, shed) == (50, 20, 0)  # each twice, the copies dropped
+        time.sleep(1.5)  # the window is over
+
+        # a slow consumer with a burst queued behind: without shedding it would be 0.05 s x 300 behind
+        inject(session, "slow", 2.0, delay=0.05)
+        detector.send(300)
+        sent_at = time.monotonic()
+        received, stale, shed = counters(session)
+        answered = time.monotonic() - sent_at
+        print(f"slow consumer: 300 sent at once, {shed} shed, {received - 50} handled; health answered "
+              f"{answered:.2f} s after the burst (handling all would take 15 s)")
+        assert shed >= 250 and received - 50 + shed == 300 and answered < 3.0
+        time.sleep(2.0)
+
+        # reordered on the way: with messages queued (the consumer slowed again), neighbours swap
+        inject(session, "slow", 1.5, delay=0.01)
+        inject(session, "reorder", 1.5, topic="detections")
+        before = counters(session)
+        detector.send(40)
+        time.sleep(1.0)
+        received, stale, shed = counters(session)
+        print(f"reorder: 40 sent, {stale - before[1]} overtaken and dropped, {shed - before[2]} shed")
+        assert stale - before[1] >= 2 and (received - before[0]) + (shed - before[2]) == 40
+        time.sleep(1.0)
+
+        while not stamps.empty():
+            stamps.get()
+        inject(session, "clock_jump", jump=3600.0)  # an NTP step of an hour
+        wall, stamp = stamps.get(timeout=5)
+        wall, stamp = stamps.get(timeout=5)  # one published wholly after the step
+        print(f"after a +3600 s system clock step the tracker stamps {abs(stamp - wall) / 1e9:.3f} s off the wall")
+        assert abs(stamp - wall) < 1e9
+    finally:
+        tracks.undeclare()
+    tracker.terminate()
+    output, _ = tracker.communicate(timeout=10)
+    assert "the system clock moved +3600.000 s against the monotonic clock" in output, output[-2000:]
+    assert "Traceback" not in output
