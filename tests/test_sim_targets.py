@@ -80,9 +80,12 @@ def test_fast_pass_does_not_capture_but_a_slow_approach_does():
     assert not [e for e in events if e[0] == "target_captured"]
     assert max(np.linalg.norm(v.velocity) for v in sim.vehicles()) < 5.0 + 1e-9
     # Back, slowly, to the drone: captured, and it drops to the ground.
-    sim.set_reference("uav1", sim.time_ns, 20.0, np.array([[40.0, 0.5, 5.0], [20.0, 0.5, 5.0]]), np.zeros(2),
-                      **LIMITS)
-    events = [e for _ in range(600) for e in sim.step(0.05)]
+    back, start = np.array([[40.0, 0.5, 5.0], [20.0, 0.5, 5.0]]), sim.time_ns
+    events = []
+    for k in range(600):
+        if k % 40 == 0:  # re-sent every 2 s, as the planner does (the offboard failsafe stops it otherwise)
+            sim.set_reference("uav1", start, 20.0, back, np.zeros(2), **LIMITS)
+        events += sim.step(0.05)
     assert [e for e in events if e[0] == "target_captured"] == [("target_captured", "hoverer", "uav1")]
     drone = next(t for t in sim.targets() if t.kind == "drone")
     assert drone.destroyed and np.allclose(drone.position, [20.0, 0.5, 0.325]) and np.allclose(drone.velocity, 0)

@@ -18,8 +18,13 @@ def world(**extra):
 
 
 def hovering(sim: Simulation, uav: str = "uav1", at=(0.0, 0.0, 5.0), seconds: float = 7.0) -> list:
-    sim.set_reference(uav, sim.time_ns, 1.0, np.array([at]), np.array([0.5]), **LIMITS)
-    return [e for _ in range(int(seconds / DT)) for e in sim.step(DT)]
+    """Hover at `at`, the reference re-sent every 2 s as the planner does."""
+    events = []
+    for k in range(int(seconds / DT)):
+        if k % int(2.0 / DT) == 0:
+            sim.set_reference(uav, sim.time_ns, 1.0, np.array([at]), np.array([0.5]), **LIMITS)
+        events += sim.step(DT)
+    return events
 
 
 def test_odometry_noise_matches_its_sigmas_and_is_deterministic():
@@ -118,3 +123,19 @@ def test_position_hold_hovers_where_it_is_and_ignores_every_reference():
     state = sim.vehicles()[0]
     assert state.airborne and np.linalg.norm(state.position - held) < 2.0  # braked from its speed, then still
     assert np.linalg.norm(state.velocity) < 0.05
+
+
+def test_a_uav_whose_planner_falls_silent_holds_its_position_until_the_next_reference():
+    """The offboard failsafe: a reference flown on with nobody re-sending it for 5 s is dropped."""
+    sim = Simulation(world(), ["uav1", "uav2"], seed=3)
+    line = np.array([[0.0, 0.0, 5.0], [400.0, 0.0, 5.0]])  # 400 s of flight at 1 m/s samples
+    sim.set_reference("uav1", sim.time_ns, 100.0, line, np.zeros(2), **LIMITS)
+    events = [e for _ in range(int(14.0 / DT)) for e in sim.step(DT)]
+    assert ("offboard_lost", "uav1", "no trajectory reference for 5 s: position hold until the next") in events
+    state = sim.vehicles()[0]
+    assert state.airborne and np.linalg.norm(state.velocity) < 0.05, state.velocity
+    held = state.position.copy()
+    sim.set_reference("uav1", sim.time_ns, 1.0, np.array([held, held + (0.0, 5.0, 0.0)]), np.zeros(2), **LIMITS)
+    for _ in range(int(4.0 / DT)):
+        sim.step(DT)
+    assert np.linalg.norm(sim.vehicles()[0].position - (held + (0.0, 5.0, 0.0))) < 0.5  # obeys the next one

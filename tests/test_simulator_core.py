@@ -26,10 +26,14 @@ def scenario(**extra):
     return parse_scenario(data, "unit.toml")
 
 
-def fly(sim: Simulation, seconds: float):
-    """Step the sim; returns (positions (T, 3), velocities (T, 3), headings (T,), events) of uav1."""
+def fly(sim: Simulation, seconds: float, resend=None):
+    """Step the sim; returns (positions (T, 3), velocities (T, 3), headings (T,), events) of uav1.
+    `resend()` is called every 2 s, as the planner re-sends its trajectory (else the flight
+    controller's offboard failsafe stops a vehicle still on a reference after 5 s)."""
     positions, velocities, headings, events = [], [], [], []
-    for _ in range(int(round(seconds / DT))):
+    for k in range(int(round(seconds / DT))):
+        if resend is not None and k > 0 and k % int(round(2.0 / DT)) == 0:
+            resend()
         events += sim.step(DT)
         v = sim.vehicles()[0]
         positions.append(v.position)
@@ -93,8 +97,10 @@ def test_flying_through_balloon_destroys_it_once():
     sim.set_reference("uav1", 0, 1.0, path[:1], np.zeros(1), **LIMITS)
     fly(sim, 8.0)
     assert not sim.targets()[0].destroyed
-    sim.set_reference("uav1", sim.time_ns, 10.0, path, np.zeros(2), **LIMITS)  # 3 m/s through the balloon
-    _, _, _, events = fly(sim, 15.0)
+    start = sim.time_ns
+    sim.set_reference("uav1", start, 10.0, path, np.zeros(2), **LIMITS)  # 3 m/s through the balloon
+    _, _, _, events = fly(sim, 15.0, resend=lambda: sim.set_reference("uav1", start, 10.0, path, np.zeros(2),
+                                                                       **LIMITS))
     assert events == [("target_destroyed", "red", "uav1")]
     balloon = next(t for t in sim.targets() if t.id == "red")
     assert balloon.destroyed and balloon.kind == "balloon"

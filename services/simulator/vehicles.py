@@ -17,6 +17,12 @@ white noise (position and heading, σ from the scenario) is drawn from a generat
 
 Emergency landing ignores the reference for good: brake horizontally and descend at
 EMERGENCY_DESCENT (capped by the vertical limit) until on the ground.
+
+Offboard loss: an airborne UAV that has received no trajectory reference for OFFBOARD_TIMEOUT_S
+(its planner re-sends the current one every 2 s) while that reference still moves it brakes and
+holds its position until the next one arrives, as a flight controller's offboard failsafe does
+(PX4's COM_OF_LOSS_T), instead of flying a dead planner's last reference to its end. (A reference
+flown to its end holds its last point anyway.)
 """
 from __future__ import annotations
 
@@ -38,6 +44,7 @@ TAKEOFF_HEIGHT = 0.2  # above ground: airborne
 LANDED_HEIGHT = 0.05  # above ground: landed again (hysteresis against chatter)
 GRAVITY = 9.81
 EMERGENCY_DESCENT = 1.0  # m/s
+OFFBOARD_TIMEOUT_S = 5.0  # s without a trajectory reference before an airborne UAV holds its position
 MIN_VARIANCE = 1e-6  # reported for a noiseless estimate, so the covariance stays invertible
 ODOMETRY_SALT = zlib.crc32(b"odometry")
 
@@ -75,6 +82,9 @@ class _Reference:
     velocities: np.ndarray  # (N, 3): velocity on the interval starting at sample i (0 for the last)
     headings: np.ndarray  # (N,) unwrapped, so interpolation turns the short way
 
+    def end_ns(self) -> int:
+        return self.start_ns + int(round((len(self.positions) - 1) * self.dt * NS))
+
     def at(self, t_ns: int) -> tuple[np.ndarray, np.ndarray, float]:
         u = (t_ns - self.start_ns) / NS / self.dt if self.dt > 0 else 0.0
         last = len(self.positions) - 1
@@ -105,6 +115,8 @@ class Fleet:
         self.holding = np.zeros(count, dtype=bool)  # position hold by the flight controller
         self.hold = self.position.copy()  # reference until the first trajectory arrives
         self.references: list[_Reference | None] = [None] * count
+        self.now_ns = 0  # mission time of the last integration step
+        self.reference_at = np.zeros(count, dtype=np.int64)  # when each UAV's last reference arrived
         specs = [scenario.uav_spec(n) for n in self.names]
         # Columns: max_speed, max_acceleration, max_heading_rate, max_vertical_speed.
         self.envelope = np.array([_limits(s.envelope()) for s in specs]).reshape(count, 4)
@@ -124,6 +136,7 @@ class Fleet:
         if self.holding[i]:
             return
         self.references[i] = reference
+        self.reference_at[i] = self.now_ns
         self.limits[i] = np.minimum(np.maximum(limits, 0.0), self.envelope[i])
 
     def hold_position(self, i: int) -> bool:
@@ -145,6 +158,8 @@ class Fleet:
     # ------------------------------------------------------------ physics
     def integrate(self, t_ns: int, h: float, events: list) -> None:
         count = len(self.names)
+        self.now_ns = t_ns
+        self._offboard_failsafe(t_ns, events)
         p_ref = self.hold.copy()
         v_ref = np.zeros((count, 3))
         heading_ref = self.heading.copy()
@@ -204,6 +219,19 @@ class Fleet:
                 self.hold[i] = position[i]
                 detail = "crashed" if not self.alive[i] else "emergency" if self.emergency[i] else ""
                 events.append(("landed", name, detail))
+
+    def _offboard_failsafe(self, t_ns: int, events: list) -> None:
+        for i, name in enumerate(self.names):
+            reference = self.references[i]
+            if reference is not None and self.airborne[i] and t_ns < reference.end_ns() and \
+                    t_ns - self.reference_at[i] > OFFBOARD_TIMEOUT_S * NS:
+                # brake to a stop and hold there (where its own estimate says), not back to where it was
+                speed = float(np.linalg.norm(self.velocity[i]))
+                stopping = self.velocity[i] * speed / (2.0 * BRAKING_MARGIN * max(self.limits[i][1], 1e-9))
+                self.references[i] = None
+                self.hold[i] = self.position[i] + self.offset[i] + stopping
+                events.append(("offboard_lost", name, f"no trajectory reference for {OFFBOARD_TIMEOUT_S:g} s: "
+                                                      f"position hold until the next"))
 
     # ------------------------------------------------------------ outputs
     def odometry(self, i: int, t_ns: int) -> OdometryReading:
