@@ -1,8 +1,9 @@
 """A real service on the wall clock (an onboard `falconry run`) under the delivery and clock faults:
-duplicated and reordered messages are dropped and counted, never handled twice or backwards; a
-slow consumer sheds what newer messages made history instead of falling ever further behind; a
-step of the system clock moves none of its stamps. The test publishes the detections and the
-fault commands itself, as a detector and a fault injector would."""
+duplicated messages are dropped and counted, never handled twice; a slow consumer sheds what newer
+messages made history instead of falling ever further behind; a step of the system clock moves
+none of its stamps. The test publishes the detections and the fault commands itself, as a detector
+and a fault injector would. (A reorder needs two messages of a key queued at once, which keep-last
+sheds in real time; the lockstep test in test_launcher.py shows the gate putting them in order.)"""
 from __future__ import annotations
 
 import queue
@@ -52,7 +53,7 @@ def counters(session) -> tuple[int, int, int]:
     return h.received.get(DETECTIONS, 0), h.dropped_stale.get(DETECTIONS, 0), h.dropped_backlog.get(DETECTIONS, 0)
 
 
-def test_duplicates_reorders_a_slow_consumer_and_a_clock_step_on_a_wall_clock_service(hub, processes):
+def test_duplicates_a_slow_consumer_and_a_clock_step_on_a_wall_clock_service(hub, processes):
     session, endpoint = hub
     stamps: queue.SimpleQueue = queue.SimpleQueue()
     tracks = session.declare_subscriber(keys.uav("uav1", "tracks"), lambda s: stamps.put(
@@ -76,23 +77,14 @@ def test_duplicates_reorders_a_slow_consumer_and_a_clock_step_on_a_wall_clock_se
         inject(session, "slow", 2.0, delay=0.05)
         detector.send(300)
         sent_at = time.monotonic()
-        received, stale, shed = counters(session)
-        answered = time.monotonic() - sent_at
-        print(f"slow consumer: 300 sent at once, {shed} shed, {received - 50} handled; health answered "
-              f"{answered:.2f} s after the burst (handling all would take 15 s)")
-        assert shed >= 250 and received - 50 + shed == 300 and answered < 3.0
+        while (counts := counters(session)) and counts[0] - 50 + counts[2] < 300:
+            assert time.monotonic() - sent_at < 5.0, f"not through the burst after 5 s: {counts}"
+        caught_up = time.monotonic() - sent_at
+        received, stale, shed = counts
+        print(f"slow consumer: 300 sent at once, {shed} shed, {received - 50} handled; through them "
+              f"{caught_up:.2f} s after the burst (handling all would take 15 s)")
+        assert shed >= 250 and received - 50 + shed == 300 and caught_up < 1.5
         time.sleep(2.0)
-
-        # reordered on the way: with messages queued (the consumer slowed again), neighbours swap
-        inject(session, "slow", 1.5, delay=0.01)
-        inject(session, "reorder", 1.5, topic="detections")
-        before = counters(session)
-        detector.send(40)
-        time.sleep(1.0)
-        received, stale, shed = counters(session)
-        print(f"reorder: 40 sent, {stale - before[1]} overtaken and dropped, {shed - before[2]} shed")
-        assert stale - before[1] >= 2 and (received - before[0]) + (shed - before[2]) == 40
-        time.sleep(1.0)
 
         while not stamps.empty():
             stamps.get()

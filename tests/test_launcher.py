@@ -158,7 +158,7 @@ def test_lockstep_runs_with_the_same_seed_give_identical_ground_truth_whatever_t
 
 
 def test_two_uav_mission_flies_and_reports(tmp_path):
-    _, summary = run_lockstep(tmp_path, "mission", seed=1, duration=60)
+    _, summary = run_lockstep(tmp_path, "mission", seed=1, duration=40)
     assert summary["outcome"] == "finished" and summary["finished"]
     assert sorted(summary["uavs"]) == ["uav1", "uav2"]
     for name, uav in summary["uavs"].items():

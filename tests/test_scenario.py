@@ -249,8 +249,8 @@ def test_the_delivery_clock_and_router_faults_take_their_own_fields_only(tmp_pat
     assert error_of(tmp_path, fault(time=1.0, kind="reorder", uav="uav1", topic="radio")).endswith(", not 'radio'")
     assert error_of(tmp_path, fault(time=1.0, kind="kill", uav="uav1", topic="points")) == (
         "t.toml: faults[0].topic: only duplicate and reorder faults take a topic")
-    assert error_of(tmp_path, fault(time=1.0, kind="slow", uav="uav1", delay=2.0)) == (
-        "t.toml: faults[0].delay: a slow fault needs 0 < delay <= 1 s per message (a longer one is a freeze)")
+    assert error_of(tmp_path, fault(time=1.0, kind="slow", uav="uav1", delay=0.2)) == (
+        "t.toml: faults[0].delay: a slow fault needs 0 < delay <= 0.1 s per message (a longer one is a freeze)")
     assert error_of(tmp_path, fault(time=1.0, kind="freeze", uav="uav1", delay=0.1)) == (
         "t.toml: faults[0].delay: only slow faults take a delay")
     assert error_of(tmp_path, fault(time=1.0, kind="clock_jump", uav="uav1")) == (
@@ -260,12 +260,12 @@ def test_the_delivery_clock_and_router_faults_take_their_own_fields_only(tmp_pat
     assert error_of(tmp_path, fault(time=1.0, kind="router_restart")) == (
         "t.toml: faults[0].duration: a router_restart needs the time the router stays down (> 0 s)")
     good = [fault(time=1.0, kind="duplicate", uav="uav1", topic="detections", duration=2.0),
-            fault(time=2.0, kind="slow", uav="uav2", service="tracker", delay=0.2),
+            fault(time=2.0, kind="slow", uav="uav2", service="tracker", delay=0.05),
             fault(time=3.0, kind="clock_jump", uav="uav1", jump=-3600.0),
             fault(time=4.0, kind="router_restart", duration=1.5)]
     s = load_scenario(write(tmp_path, GOOD + "".join(g.removeprefix(GOOD) for g in good)))
     commands = [f.command() for f in s.faults]
-    assert (commands[0].topic, commands[1].delay, commands[2].jump, commands[3].uav) == ("detections", 0.2, -3600.0, "")
+    assert (commands[0].topic, commands[1].delay, commands[2].jump, commands[3].uav) == ("detections", 0.05, -3600.0, "")
     check_team(s, ["uav1", "uav2"])  # the router is nobody's UAV
 
 

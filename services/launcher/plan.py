@@ -19,6 +19,9 @@ class RunPlan:
     viewer: list[str] | None = None  # argv of `falconry view` drawing the run (--viz / --rrd)
 
 
+OWN_ROUTER_TIMEOUT_S = 20.0
+
+
 def own_router_wanted(args: argparse.Namespace) -> bool:
     """The router profile with no router named: the run brings its own."""
     return args.zenoh_profile == "router" and not args.connect and not args.zenoh_config
@@ -42,8 +45,9 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
                                  # the launcher carries no bulk data, and its process-wide segments
                                  # would outlive the run's clean-up
                                  shared_memory=False,
-                                 # an embedded hub only listens: a busy --port is one clear error, not a wait
-                                 connect_timeout=0 if embedded else None)
+                                 # an embedded hub only listens: a busy --port is one clear error, not a wait;
+                                 # our own router is up in a second, or it failed (a busy port)
+                                 connect_timeout=0 if embedded else OWN_ROUTER_TIMEOUT_S if own_router else None)
 
     def zenoh_args(connect: list[str], listen: list[str], gossip_connect: bool = True) -> list[str]:
         return ZenohSettings(profile=args.zenoh_profile, connect=connect if embedded or own_router else list(args.connect),

@@ -23,7 +23,7 @@ from services.launcher.common import CliError, add_zenoh_options
 from services.launcher.faults import ROUTER, FaultExecutor
 from services.launcher.monitor import RunMonitor
 from services.launcher.params import ParamsError, params_for, read_tables
-from services.launcher.plan import plan_run
+from services.launcher.plan import own_router_wanted, plan_run
 from services.launcher.registry import node_class
 from services.launcher.supervisor import Supervisor, describe_exit
 from services.launcher.view_cmd import DRAIN_S, add_view_options, check_view_options
@@ -124,7 +124,15 @@ class SimRun:
             if args.connect or args.zenoh_config or needs_network:
                 raise CliError("the scenario schedules router_restart faults, which need the run's own router: "
                                "leave out --connect, --zenoh-config, --isolate and link_cut faults")
+            if args.lockstep:
+                # a client that loses its router sees every other token go: the simulator would tick on
+                # unpaced with nobody to wait for, for the whole downtime
+                raise CliError("router_restart faults need a real-time run (leave out --lockstep): while the "
+                               "router is down the simulator cannot tell a paused team from a gone one")
             args.zenoh_profile = "router"  # the run's own router, which the fault restarts
+        if own_router_wanted(args) and needs_network:
+            raise CliError("--zenoh-profile router without --connect runs the run's own router on loopback, "
+                           "which UAVs in network namespaces (--isolate, link_cut faults) cannot reach")
         if needs_network and (why := netns.available()):
             raise CliError(f"{'--isolate' if args.isolate else 'the scenario schedules link_cut faults, which'} "
                            f"needs per-UAV network namespaces, but {why}")
@@ -259,7 +267,7 @@ class SimRun:
 
     def _ask_health(self, wait: float) -> list[ServiceHealth]:
         expected = {name for name, child in self.supervisor.children.items()
-                    if name != VIEWER and not child.held and not child.failed}
+                    if name not in (VIEWER, ROUTER) and not child.held and not child.failed}
         deadline = time.monotonic() + wait
         while True:
             usage = query_health(self.session, timeout=1.0)

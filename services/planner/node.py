@@ -87,13 +87,20 @@ class PlannerNode(Node):
         self.subscribe(self.topic("command"), MissionCommand, self.on_command)
         self.subscribe(self.topic("odometry"), Odometry, self.on_odometry)
         self.subscribe(self.topic("status"), UavStatus, self.on_status)
-        self.watchdog = JobManagerWatchdog(int(self.params.job_manager_timeout * NS))
+        timeout = self.params.job_manager_timeout
+        self.watchdog = JobManagerWatchdog(int(timeout * NS)) if 0 < timeout < math.inf else None
+        self.command_seq = 0
 
     def on_status(self, msg: UavStatus, key: str) -> None:
-        if self.watchdog.heard(self.clock.now_ns()):
-            self.log.warning("the job manager speaks again: obeying its commands")
-            self.planned_id = None  # its current command is planned afresh, even one we had planned
+        if self.watchdog is not None and self.watchdog.heard(msg.header.stamp):
+            # what it said before it fell silent is history: hover until it commands again
+            self.log.warning("the job manager speaks again: waiting for its next command")
+            self.command = self.planned_id = None
+
     def on_command(self, msg: MissionCommand, key: str) -> None:
+        if msg.header.seq < self.command_seq:
+            self.planned_id = None  # a restarted job manager numbers its commands from 1 again
+        self.command_seq = msg.header.seq
         if msg.command_id != self.planned_id:
             self.command = msg  # planned in on_tick, from that tick's position and time
 
@@ -107,9 +114,7 @@ class PlannerNode(Node):
     def on_tick(self, now_ns: int) -> None:
         if self.position is None:
             return
-        if self.watchdog.silent_too_long(now_ns) and self.trajectory is not None:
-            self.brake(now_ns)
-        if self.watchdog.tripped:
+        if self.watchdog is not None and self.watchdog_tripped(now_ns):
             if self.trajectory is not None and now_ns - self.published_at >= int(self.params.republish_period * NS):
                 self.publish(now_ns)
             return
@@ -141,6 +146,15 @@ class PlannerNode(Node):
                                               profile=profile)
         self.trajectory_end = now_ns + int(round((len(positions) - 1) * dt * NS))
         self.publish(now_ns)
+
+    def watchdog_tripped(self, now_ns: int) -> bool:
+        """Whether the job manager's silence holds the vehicle (braking at its start); a landing
+        goes on to the ground whoever is silent."""
+        if self.command is not None and self.command.action in ("land", "emergency_land"):
+            return False
+        if self.watchdog.silent_too_long(now_ns) and self.trajectory is not None:
+            self.brake(now_ns)
+        return self.watchdog.tripped
 
     def brake(self, now_ns: int) -> None:
         """Stop where we are (the job manager has been silent too long): brake along the current

@@ -34,7 +34,8 @@ class WallClock:
     clock. A step of the system clock in flight (an NTP correction, a hand-set date) would expire
     every timer at once going forward (forbidden zones, a partner's silence: revenge mode on a
     partner that is flying) and freeze them going back; the monotonic clock never steps (NTP slews
-    it like the system clock, so UAVs synchronised at start stay so). `system_step_ns` tells how far
+    it like the system clock, so processes started on a synchronised clock stay so; one started
+    after a step differs by it, hence deploy/README.md's time-sync.target). `system_step_ns` tells how far
     the system clock has moved against it; `inject_step` moves this process's view of the system
     clock (the `clock_jump` fault)."""
 

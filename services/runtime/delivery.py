@@ -4,17 +4,18 @@ disturb that. Pure: no Zenoh, no clocks; times are mission seconds.
 - `Freshness`: per key, a message is handled only when it is newer than the last one handled
   (its seq is higher, or its stamp later: a restarted publisher counts from 1 again). A duplicate,
   or a message overtaken in transit by a newer one, is dropped and counted: every keyed stream
-  here is a state ("the newest wins"), and a consumer handed the older state after the newer
-  one would step back in time.
+  here but the map deltas is a state ("the newest wins"), and a consumer handed the older state
+  after the newer one would step back in time. Of the map deltas only duplicates are dropped.
 - `DeliveryFaults`: the `duplicate`, `reorder` and `slow` faults that apply to one node. The first
   two are faults of the network between a topic's publisher and this subscriber (every sample
   twice; a sample held back until the next one on its key has passed it), the third of the node's
   own computer (each message received costs `delay` more seconds).
 - `Reorderer`: carries out `reorder`, one held-back sample per key.
 
-Lockstep needs neither a freshness filter nor backlog shedding: its gate holds messages by seq
-(`LockstepGate.hold`) and waits for every one, so a duplicate or overtaken message changes
-nothing there, and a slow consumer only slows the run.
+Lockstep needs neither this filter nor backlog shedding: its gate holds messages by seq and stamp
+(`LockstepGate.hold` drops duplicates and puts overtaken messages back in order) and waits for
+every one, so a duplicate or overtaken message changes nothing there, and a slow consumer only
+slows the run.
 """
 from __future__ import annotations
 
@@ -27,7 +28,9 @@ from schemas import keys
 Item = TypeVar("Item")
 DELIVERY_FAULTS = ("duplicate", "reorder")
 NODE_FAULTS = DELIVERY_FAULTS + ("slow",)
-MAX_DELAY_S = 1.0  # a `slow` fault beyond this per message is a freeze: use `freeze`
+# a `slow` fault beyond this per message is a freeze (use `freeze`); in lockstep a service takes a
+# few messages a tick, which must stay well inside the 5 s a downstream waits for its tick
+MAX_DELAY_S = 0.1
 TOPIC = re.compile(r"[A-Za-z0-9_-]+")  # one chunk of a per-UAV key: "detections", "points_truth"
 
 
@@ -35,10 +38,14 @@ class Freshness:
     def __init__(self) -> None:
         self._last: dict[str, tuple[int, int]] = {}  # key -> (seq, stamp) of the newest handled
 
-    def fresh(self, key: str, seq: int, stamp: int) -> bool:
+    def fresh(self, key: str, seq: int, stamp: int, ordered: bool = True) -> bool:
+        """`ordered` False for a stream of increments (map deltas), where an overtaken message still
+        counts (its consumer puts it in order or asks for a snapshot): only a duplicate is dropped."""
         last = self._last.get(key)
         if last is not None and seq <= last[0] and stamp <= last[1]:
-            return False  # a duplicate, or older than what was handled already
+            if ordered or (seq, stamp) == last:
+                return False  # a duplicate, or older than what was handled already
+            return True
         self._last[key] = (seq, stamp)
         return True
 
@@ -113,6 +120,9 @@ class Reorderer(Generic[Item]):
             self._held[key] = item
             return []
         return [item, held]
+
+    def holds(self, key: str) -> bool:
+        return key in self._held
 
     def flush(self) -> list[Item]:
         held, self._held = list(self._held.values()), {}

@@ -13,7 +13,8 @@ A key across a cut radio link (`begin(..., cut=...)`) is neither waited for nor 
 the cut lasts, whatever the network still delivers in the moment before the link really goes
 down: the cut starts on the tick the schedule says. When the link is back, the first message
 that gets through says where the key's publisher is; what it sent before is gone, as over a real
-radio. Pure logic: no Zenoh, no clocks.
+radio. With the stamp, a message received twice is kept once, and one overtaken on the way goes
+back before the newer one (`hold`). Pure logic: no Zenoh, no clocks.
 """
 from __future__ import annotations
 
@@ -58,23 +59,29 @@ class LockstepGate(Generic[Item]):
         later stamp than one held) goes back before it, and one whose successor was released
         already is too late and dropped. False when dropped. (A restarted publisher counts from 1
         again, but its stamps are later: its messages are news, not stragglers.)"""
-        if key in self._reconnecting and not self._cut(key):
-            self._reconnecting.discard(key)  # the first message over the restored link
-            self._floor[key] = seq - 1
         fifo = self._fifo.setdefault(key, deque())
-        if seq < self._floor.get(key, 0) and not fifo:
-            del self._floor[key]  # its publisher restarted: the new numbers are all news to us
-        at = len(fifo)
         if stamp is not None:
             last = self._released_mark.get(key)
             if last is not None and seq <= last[0] and stamp <= last[1]:
                 return False
             if any(s == seq and t == stamp for s, t, _ in fifo):
                 return False
-            while at > 0 and fifo[at - 1][0] > seq and fifo[at - 1][1] is not None and fifo[at - 1][1] >= stamp:
-                at -= 1
+        if key in self._reconnecting and not self._cut(key):
+            self._reconnecting.discard(key)  # the first message over the restored link
+            self._floor[key] = seq - 1
+        if seq < self._floor.get(key, 0) and not fifo:
+            del self._floor[key]  # its publisher restarted: the new numbers are all news to us
+        at = len(fifo)
+        while stamp is not None and at > 0 and fifo[at - 1][0] > seq and fifo[at - 1][1] is not None \
+                and fifo[at - 1][1] >= stamp:
+            at -= 1
         fifo.insert(at, (seq, stamp, item))
         return True
+
+    def forget_stamps(self) -> None:
+        """The clock's master restarted: its mission time, and every publisher's stamps, may start
+        again before what was released."""
+        self._released_mark.clear()
 
     def begin(self, step: int, clock_bounds: dict[str, int], cut: Callable[[str], bool] | None = None) -> None:
         """Tick `step` with the simulator's bounds; `cut(key)`: the key comes over a radio link

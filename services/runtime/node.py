@@ -39,7 +39,7 @@ from services.runtime.typed import Counters, M, Subscription, TypedPublisher
 from services.runtime.zenoh_config import OpenCancelled, ZenohSettings, init_logging, open_session, undeclare_all
 
 POLL_S = 0.1  # how often the loop looks at stop requests when idle
-KEEP = 10  # real time: per key, at most this many messages wait unread; older ones are shed
+KEEP = 1  # real time: per key, only the newest message waits unread (keep-last); older ones are shed
 MAX_CLOCK_JUMP_S = 1e9  # s (~30 years): a clock_jump beyond is not a clock (NaN and infinity included)
 CLOCK_STEP_WARN_S = 0.5  # a system clock moved this far against the monotonic one is reported
 LOCKSTEP_TIMEOUT_S = 5.0
@@ -108,6 +108,7 @@ class Node:
         self._declared = False
         self._deferred_clock: SimClock | None = None
         self._last_ack: StepAck | None = None
+        self._simulator_lost = False
         self._warned_no_clock = False
         self._fault_windows = FaultWindows()
         self._delivery_faults = DeliveryFaults(self.scope, self.service)
@@ -139,9 +140,9 @@ class Node:
 
     def subscribe(self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None],
                   keep: int | None = KEEP) -> None:
-        """handler(msg, key) for every message on key_expr. In real time, when a slow loop lets more
-        than `keep` messages of one key queue up, the older ones are shed unread and counted
-        (None: never shed, for streams of increments such as map deltas)."""
+        """handler(msg, key) for every message on key_expr. In real time, when a slow loop lets
+        messages of one key queue up, all but the newest `keep` are shed unread and counted
+        (None: never shed, for streams of increments or events: map deltas, fault commands)."""
         self._add_subscription(key_expr, msg_type, handler, internal=False, keep=keep)
 
     def on_liveliness(self, key_expr: str, handler: Callable[[str, bool], None], internal: bool = False) -> None:
@@ -389,7 +390,7 @@ class Node:
         disturbance = self._delivery_faults.disturbance(key, self.clock.now_ns() / 1e9)
         if disturbance == "duplicate":
             return [sample, sample]
-        if disturbance == "reorder":
+        if disturbance == "reorder" or self._reorderer.holds(key):  # one held at the window's end still waits
             return self._reorderer.pass_through(key, sample)
         return [sample]
 
@@ -410,7 +411,7 @@ class Node:
 
     def _handle(self, sub: Subscription, key: str, msg: Any) -> None:
         """Real time: the newest message of a key wins; a duplicate or an overtaken one is dropped."""
-        if self._freshness.fresh(key, msg.header.seq, msg.header.stamp):
+        if self._freshness.fresh(key, msg.header.seq, msg.header.stamp, ordered=sub.keep is not None):
             self._call(sub.handler, msg, key)
         else:
             self._count(self.counters.dropped_stale, key)
@@ -466,6 +467,8 @@ class Node:
             tick, self._deferred_clock = self._deferred_clock, None
 
     def _process_tick(self, tick: SimClock) -> None:
+        if self._simulator_lost:
+            self._follow_restarted_simulator(tick)
         if tick.step <= self._last_step:
             if tick.step == self._last_step and tick.lockstep and self._last_ack is not None:
                 self._ack_pub.put(self._last_ack)  # re-sent because our ack was lost (a router restart)
@@ -582,12 +585,22 @@ class Node:
 
     def _on_simulator_liveliness(self, key: str, alive: bool) -> None:
         if not alive and self._last_step >= 0:
-            # A restarted simulator counts ticks from 0 again: follow it.
-            self.log.warning("simulator gone; will follow its clock from the start when it returns")
+            # Gone for good and restarted, or only out of reach (a router restart): its next tick tells.
+            self.log.warning("simulator out of reach; its next tick tells whether it restarted")
+            self._simulator_lost = True
+
+    def _follow_restarted_simulator(self, tick: SimClock) -> None:
+        """A simulator back after losing sight of it: one that restarted counts its ticks (and its
+        publishers their seqs) again from where it resumed, at or before our last step; one that was
+        only out of reach goes on counting."""
+        self._simulator_lost = False
+        if tick.step <= self._last_step:
+            self.log.warning("the simulator restarted at step %d: following its clock from there", tick.step)
             self._last_step = -1
             self._gate.rejoin()
+            self._gate.forget_stamps()
             self.clock = MissionClock()
-            self._freshness = Freshness()  # its mission time may start again from 0
+            self._freshness = Freshness()
 
     # ------------------------------------------------------------- health
     def health(self) -> ServiceHealth:

@@ -64,7 +64,7 @@ class SensorDriverNode(Node):
         self.truth_pub = self.publisher(self.topic("points_truth"), PointTruth)
         self.subscribe(keys.WORLD, WorldModel, self.on_world)
         self.subscribe(keys.TRUTH, GroundTruth, self.on_truth)
-        self.subscribe(keys.FAULTS, FaultCommand, self.on_fault)
+        self.subscribe(keys.FAULTS, FaultCommand, self.on_fault, keep=None)  # events: each one counts
 
     def _use_model(self, name: str) -> None:
         p: SensorDriverParams = self.params

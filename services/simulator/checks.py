@@ -72,6 +72,7 @@ def validated(s: Scenario) -> Scenario:
     _check_uav_table(s)
     for i, fault in enumerate(s.faults):
         _check_fault(s, fault, f"faults[{i}]")
+    _check_router_restarts(s)
     start_poses(s, s.uavs)  # raises when the team cannot be placed
     return s
 
@@ -266,6 +267,15 @@ def _check_uav_table(s: Scenario) -> None:
     for name, override in s.uav.overrides.items():
         _check_uav_name(name, f"uav.overrides.{name}")
         _check_uav_settings(override, f"uav.overrides.{name}")
+
+
+def _check_router_restarts(s: Scenario) -> None:
+    """One router: a restart must be over before the next begins."""
+    restarts = sorted((f.time, i) for i, f in enumerate(s.faults) if f.kind == "router_restart")
+    for (start, i), (later, j) in zip(restarts, restarts[1:]):
+        if later < start + s.faults[i].duration:
+            raise ScenarioError(f"faults[{j}].time: the router is still down from faults[{i}] until "
+                                f"{start + s.faults[i].duration:g} s")
 
 
 def _check_fault_fields(f, where: str) -> None:

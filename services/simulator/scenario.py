@@ -105,14 +105,14 @@ Top-level fields
   uav       str: uav1..uav3, required but for router_restart; a run whose team lacks it stops with an error.
   service   str = ""     kill, freeze, slow and clock_jump only: one service (e.g. "planner"); "" = every
             process of the UAV.
-  duration  float = 0.0  s (>= 0); 0 = until the end of the run. router_restart: how long the router
-            stays down (> 0).
+  duration  float = 0.0  s (>= 0); 0 = until the end of the run. router_restart: the s of wall time
+            the router stays down (> 0; real-time runs only, one restart at a time).
   offset    [x, y, z] = [0, 0, 0]   odometry_jump only, required non-zero: the jump, m.
   failsafe  "land" | "hold" = "land"   whole-UAV kill only: what the flight controller does when the
             onboard computer dies: land where it is, or hold its position in the air until the end.
   topic     str          duplicate and reorder only, required: the UAV's topic whose messages every
             subscriber receives twice, or with neighbours swapped (e.g. "detections").
-  delay     float        slow only, required, 0 < delay <= 1: s of extra handling time per message
+  delay     float        slow only, required, 0 < delay <= 0.1: s of extra handling time per message
             the slowed service receives (a slow or overloaded computer).
   jump      float        clock_jump only, required non-zero: s the system clock of the UAV's services
             steps (an NTP step); only services on the wall clock (`falconry run --clock wall`) see it.
