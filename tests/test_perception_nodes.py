@@ -53,19 +53,23 @@ def test_bad_scans_are_refused_with_counted_warnings_and_the_map_stays_sound(hub
         time.sleep(0.3)
         rng = np.random.default_rng(3)
         points_key = keys.uav("uav1", "points")
+
+        def scan_out(message: bytes) -> None:  # at a LiDAR's pace: in real time a burst is shed to its newest
+            session.put(points_key, message)
+            time.sleep(0.1)
         for k in range(10):  # sound scans first: the ground becomes occupied, the air above it free
-            session.put(points_key, cloud(0.1 * k, ground_scan(rng)))
+            scan_out(cloud(0.1 * k, ground_scan(rng)))
         bad = ground_scan(rng)
         bad[0, :10] = np.inf
         bad[1, :10] = [np.nan, 1.0, np.inf]
-        session.put(points_key, cloud(1.1, bad))  # infinities: dropped and counted
-        session.put(points_key, cloud(1.2, rng.uniform(0, 20, (100, 2))))  # not (…, 3)
-        session.put(points_key, cloud(1.3, ground_scan(rng), position=(math.nan, 0.0, 0.0)))  # pose not finite
-        session.put(points_key, cloud(1.35, ground_scan(rng), orientation=(0.0, 0.0, 0.0, 0.0)))  # no rotation
+        scan_out(cloud(1.1, bad))  # infinities: dropped and counted
+        scan_out(cloud(1.2, rng.uniform(0, 20, (100, 2))))  # not (…, 3)
+        scan_out(cloud(1.3, ground_scan(rng), position=(math.nan, 0.0, 0.0)))  # pose not finite
+        scan_out(cloud(1.35, ground_scan(rng), orientation=(0.0, 0.0, 0.0, 0.0)))  # no rotation
         far = ground_scan(rng)
         far[:16] += [-500.0, 0.0, 0.0]  # half the scan far outside the map
-        session.put(points_key, cloud(1.4, far))
-        session.put(points_key, cloud(1.5, ground_scan(rng)))  # and a sound one after it all
+        scan_out(cloud(1.4, far))
+        scan_out(cloud(1.5, ground_scan(rng)))  # and a sound one after it all
         time.sleep(1.0)
         while not maps.empty():  # the first tick's snapshot: before any scan
             maps.get()
