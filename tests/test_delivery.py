@@ -1,13 +1,19 @@
 """Pure parts of message delivery under faults: the real-time freshness rule, the delivery faults a
 node applies to itself, the reorder buffer, the lockstep gate with duplicated and overtaken
-messages, the wall clock against a stepped system clock, and the planner's job-manager watchdog."""
+messages, the wall clock against a stepped system clock, the planner's job-manager watchdog, and
+a node's refusal of overlapping subscriptions."""
 from __future__ import annotations
 
-from schemas.messages import FaultCommand, Header
+import pytest
+
+from schemas import keys
+from schemas.messages import Detections, FaultCommand, Header, UavStatus
 from services.planner.watchdog import JobManagerWatchdog
 from services.runtime.clock import NS, WallClock
 from services.runtime.delivery import DeliveryFaults, Freshness, Reorderer
 from services.runtime.lockstep import LockstepGate
+from services.runtime.node import Node
+from services.runtime.zenoh_config import ZenohSettings
 
 DETECTIONS = "falconry/uav1/detections"
 
@@ -87,3 +93,17 @@ def test_the_watchdog_trips_once_per_silence_and_reports_the_recovery():
     assert not dog.silent_too_long(12 * NS)  # once
     assert dog.heard(13 * NS) and not dog.tripped
     assert not dog.heard(13 * NS)
+
+
+def test_a_node_refuses_two_subscriptions_that_would_share_a_sample():
+    """The duplicate filter and the lockstep gate track a key once per node: a sample matching two
+    subscriptions would reach only one handler, so a node subscribes once per key instead."""
+    class Listener(Node):
+        service = "tracker"
+
+    node = Listener("uav1", ZenohSettings())
+    node.subscribe(keys.uav("uav1", "detections"), Detections, lambda msg, key: None)
+    node.subscribe(keys.uav("uav1", "status"), UavStatus, lambda msg, key: None)
+    with pytest.raises(ValueError, match="overlaps"):
+        node.subscribe(keys.ALL_STATUS, UavStatus, lambda msg, key: None)
+    node.subscribe_runtime(keys.ALL_STATUS, UavStatus, lambda msg, key: None)  # plumbing is never filtered

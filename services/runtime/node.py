@@ -189,6 +189,13 @@ class Node:
 
     # ------------------------------------------------------------ plumbing
     def _add_subscription(self, key_expr, msg_type, handler, internal: bool, keep: int | None = None) -> None:
+        for other in self._subs:
+            if not (internal or other.internal) and zenoh.KeyExpr(other.key_expr).intersects(zenoh.KeyExpr(key_expr)):
+                # a sample of both would reach each subscription with the same key, seq and stamp, and
+                # the duplicate filter (real time) or the lockstep gate would hand it to one only
+                # (run plumbing is handled as it arrives, never filtered, so it may overlap)
+                raise ValueError(f"subscription {key_expr!r} overlaps {other.key_expr!r} of the same node: "
+                                 "subscribe once and dispatch by key in the handler")
         sub = Subscription(len(self._subs), key_expr, msgspec.msgpack.Decoder(msg_type), handler, internal, keep)
         self._subs.append(sub)
         self._wants_cache.clear()
