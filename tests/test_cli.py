@@ -90,3 +90,26 @@ def test_the_summary_sums_each_services_cpu_over_the_uavs_largest_first():
 
     cpu = {"uav1/mapper": 2.0, "uav2/mapper": 3.0, "uav1/classifier": 1.0, "sim/simulator": 0.5, "launcher": 0.7}
     assert cpu_line(cpu) == "mapper 5.0, classifier 1.0, launcher 0.7, simulator 0.5"
+
+
+def test_messages_missed_by_a_stopped_service_are_counted_apart_from_the_deliverys_losses():
+    """A killed or frozen service misses what is sent while it is gone, by an amount that follows
+    wall time; the delivery's own losses are what services that ran throughout did not receive."""
+    from schemas.messages import FaultCommand, Header, ServiceHealth
+    from services.launcher.sim_cmd import health_totals, stopped_services
+
+    def health(uav, service, received=None, published=None):
+        return ServiceHealth(header=Header(), uav=uav, service=service, pid=1, uptime=1.0, state="running",
+                             received=received or {}, published=published or {})
+
+    odometry, status = "falconry/uav1/odometry", "falconry/uav1/status"
+    usage = [health("sim", "simulator", published={odometry: 100}),
+             health("uav1", "job_manager", received={odometry: 97}, published={status: 50}),
+             health("uav1", "planner", received={odometry: 40, status: 20}),  # killed and restarted
+             health("uav2", "planner", received={odometry: 10})]  # another UAV's key: not its own
+    faults = [FaultCommand(header=Header(), kind="kill", uav="uav1", service="planner")]
+    totals = health_totals(usage, stopped_services(faults, restarted=set()))
+    assert (totals["lost_own_uav"], totals["missed_while_stopped"]) == (3, 60 + 30)
+    assert stopped_services([], restarted={"uav1/planner"}) == {"uav1/planner"}
+    whole_uav = stopped_services([FaultCommand(header=Header(), kind="freeze", uav="uav1")], set())
+    assert health_totals(usage, whole_uav)["lost_own_uav"] == 0

@@ -159,5 +159,6 @@ def totals(results: list[RunResult], safety_distance: float) -> list[str]:
         + (f"{min(separations):.1f} m" if separations else "-"),
         f"handler errors: {sum(r.handler_errors for r in results)}; undecodable payloads: "
         f"{sum(r.decode_errors for r in results)}; restarts: {sum(r.restarts for r in results)}; emergency landings: "
-        f"{sum(r.emergency_landings for r in results)}; own-UAV messages not received: {sum(r.lost for r in results)}",
+        f"{sum(r.emergency_landings for r in results)}; own-UAV messages not received by services that ran throughout: "
+        f"{sum(r.lost for r in results)}",
     ]

@@ -25,7 +25,9 @@ def add_parser(commands) -> None:
                     f"kinds {', '.join(KINDS)}), fly each as a lockstep `falconry sim` on 2- and 3-UAV teams in "
                     "turn, and print one line per run and a table: faults, minimum separation of flying UAVs, "
                     "separation violations, targets destroyed, emergency landings, restarts, handler errors, "
-                    "undecodable payloads, own-UAV messages not received. The same command gives the same table. "
+                    "undecodable payloads, own-UAV messages not received by services that ran throughout (what a "
+                    "killed or frozen service missed while gone follows wall time; each run's summary has it). "
+                    "The same command gives the same table. "
                     "Exit status 1 when a run did not finish, broke the safety distance or had a handler error.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--runs", type=int, default=20, help="how many runs")

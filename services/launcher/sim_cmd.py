@@ -148,6 +148,7 @@ class SimRun:
         self.encoder = msgspec.msgpack.Encoder()
         self.fault_decoder = msgspec.msgpack.Decoder(FaultCommand)
         self.event_seq = 0
+        self.restarted: set[str] = set()  # children the supervisor restarted
         self.session = self.events_pub = self.resume = self.recorder = None
         self.subscribers: list = []
         self.supervisor = Supervisor(echo=not args.quiet, on_restart=self._on_restart, log_file=self.outputs.log)
@@ -189,6 +190,7 @@ class SimRun:
             kind=kind, subject=subject, detail=detail)))
 
     def _on_restart(self, name: str, code: int, _when: float) -> None:
+        self.restarted.add(name)
         self.report_event("service_restarted", name, describe_exit(code))
 
     # ------------------------------------------------------------------- loop
@@ -283,7 +285,8 @@ class SimRun:
                        detector=args.detector, wall_time=round(time.time() - self.started_wall, 2),
                        killed_at_shutdown=self.killed,
                        failed_services=[c.name for c in self.supervisor.children.values() if c.failed],
-                       cpu=cpu_by_service(self.usage, time.process_time()), health=health_totals(self.usage))
+                       cpu=cpu_by_service(self.usage, time.process_time()),
+                       health=health_totals(self.usage, stopped_services(self.scenario.faults, self.restarted)))
         for h in self.usage:  # the job managers' own logs: complete even where a cut hid their statuses
             if h.decisions and h.uav in summary["uavs"]:
                 summary["uavs"][h.uav]["decisions"] = [[round(d.stamp / 1e9, 2), d.state, d.reason]
@@ -404,18 +407,38 @@ def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[st
     return cpu
 
 
-def health_totals(usage: list[ServiceHealth]) -> dict[str, int]:
+def stopped_services(faults, restarted: set[str]) -> set[str]:
+    """"<uav>/<service>" names (or "<uav>/" for every service of a UAV) that a kill or freeze fault
+    stopped or the supervisor restarted: for a while they were not there to receive."""
+    stopped = set(restarted)
+    for fault in faults:
+        if fault.kind in ("kill", "freeze"):
+            stopped.add(f"{fault.uav}/{fault.service}")
+    return stopped
+
+
+def health_totals(usage: list[ServiceHealth], stopped: set[str] = frozenset()) -> dict[str, int]:
     """What every service counted by the end of the run: payloads it could not decode, handler
     errors, lockstep waits given up, messages of its own UAV's publishers it never received
-    (per subscriber: published - received on a key of its own UAV; a restart also shows here, and
-    so do messages shed unread), messages it shed unread behind newer ones (a slow consumer in
-    real time), and duplicates or overtaken messages it dropped."""
+    (per subscriber: published - received on a key of its own UAV, messages shed unread included),
+    messages it shed unread behind newer ones (a slow consumer in real time), and duplicates or
+    overtaken messages it dropped.
+
+    Messages not received are split by subscriber: those of services that ran throughout
+    (`lost_own_uav`: the delivery's losses) and those of `stopped` ones (`missed_while_stopped`).
+    A killed or frozen service misses what is sent while it is gone, and a restarted one's counters
+    start again (what it received before is missing too); how many that is follows the wall time a
+    process takes to stop and come back, so it differs from run to run even in lockstep."""
     published = {key: n for h in usage for key, n in h.published.items()}
-    lost = sum(max(0, published[key] - n) for h in usage for key, n in h.received.items()
-               if key in published and key.startswith(f"falconry/{h.uav}/"))
+    missed = {"lost_own_uav": 0, "missed_while_stopped": 0}
+    for h in usage:
+        was_stopped = f"{h.uav}/{h.service}" in stopped or f"{h.uav}/" in stopped
+        for key, n in h.received.items():
+            if key in published and key.startswith(f"falconry/{h.uav}/"):
+                missed["missed_while_stopped" if was_stopped else "lost_own_uav"] += max(0, published[key] - n)
     return {"decode_errors": sum(sum(h.decode_errors.values()) for h in usage),
             "handler_errors": sum(h.handler_errors for h in usage),
-            "lockstep_timeouts": sum(h.lockstep_timeouts for h in usage), "lost_own_uav": lost,
+            "lockstep_timeouts": sum(h.lockstep_timeouts for h in usage), **missed,
             "dropped_backlog": sum(sum(h.dropped_backlog.values()) for h in usage),
             "dropped_stale": sum(sum(h.dropped_stale.values()) for h in usage),
             "services_answering": len(usage)}
@@ -456,7 +479,9 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         h = s["health"]
         lines.append(f"service counters ({h['services_answering']} answered): {h['decode_errors']} undecodable, "
                      f"{h['handler_errors']} handler errors, {h['lockstep_timeouts']} lockstep waits given up, "
-                     f"{h['lost_own_uav']} own-UAV messages not received, {h['dropped_backlog']} shed by slow "
+                     f"{h['lost_own_uav']} own-UAV messages not received by services that ran throughout "
+                     f"({h.get('missed_while_stopped', 0)} more by ones a fault or crash stopped), "
+                     f"{h['dropped_backlog']} shed by slow "
                      f"consumers, {h['dropped_stale']} duplicates or overtaken dropped")
     if s["failed_services"]:
         lines.append("gave up on: " + ", ".join(s["failed_services"]))
