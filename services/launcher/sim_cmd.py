@@ -12,6 +12,7 @@ import json
 import queue
 import signal
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 import msgspec
@@ -33,6 +34,7 @@ from services.runtime.health import query_health
 from services.runtime.zenoh_config import free_port, init_logging, open_session
 from services.simulator.options import add_simulator_options
 from services.simulator.scenario import ScenarioError, load_scenario
+from services.simulator.specs import FaultSpec
 from services.viz.settings import web_address
 
 VIEWER = "sim/viewer"
@@ -407,7 +409,7 @@ def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[st
     return cpu
 
 
-def stopped_services(faults, restarted: set[str]) -> set[str]:
+def stopped_services(faults: Iterable[FaultSpec | FaultCommand], restarted: set[str]) -> set[str]:
     """"<uav>/<service>" names (or "<uav>/" for every service of a UAV) that a kill or freeze fault
     stopped or the supervisor restarted: for a while they were not there to receive."""
     stopped = set(restarted)
