@@ -1,5 +1,5 @@
-"""The compiled voxel algorithms of seed 000 on hand-made cases: exact ray traversal (eq. 20–22),
-the cube search of rule A, the flood fill of rule B (Alg. 1), Euclidean clustering (eq. 13–15)."""
+"""The compiled voxel algorithms of seed 000 on hand-made cases: the cube search of rule A, the flood
+fill of rule B (Alg. 1), Euclidean clustering (eq. 13–15). The ray traversal: test_voxels_traversal.py."""
 from __future__ import annotations
 
 import numpy as np
@@ -8,72 +8,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import cdist
 
 from schemas.voxels import STATE_FREE, STATE_TENTATIVE, STATE_UNKNOWN
-from services.voxels.kernels import (
-    accumulate_ray_lengths,
-    clusters_near_occupied,
-    enclosed_by_free,
-    euclidean_clusters,
-)
+from services.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
 
 SHAPE = np.array([20, 16, 12])
 CORNER = np.array([-1.0, -2.0, 0.5])
 VOXEL = 0.5
-
-
-def traverse(origin, ends):
-    weights = np.zeros(int(SHAPE.prod()), np.float32)
-    accumulate_ray_lengths(np.asarray(origin, float), np.asarray(ends, float).reshape(-1, 3), CORNER, VOXEL,
-                           SHAPE, weights)
-    return weights, np.flatnonzero(weights)
-
-
-def sampled(origin, end, samples=200_000):
-    """Brute force: the length of the segment in each voxel, by sampling it densely."""
-    origin, end = np.asarray(origin, float), np.asarray(end, float)
-    t = (np.arange(samples) + 0.5) / samples
-    points = origin + t[:, None] * (end - origin)
-    ijk = np.floor((points - CORNER) / VOXEL).astype(int)
-    inside = np.all((ijk >= 0) & (ijk < SHAPE), axis=1)
-    flat = np.ravel_multi_index(tuple(ijk[inside].T), tuple(SHAPE))
-    return np.bincount(flat, minlength=int(SHAPE.prod())) * np.linalg.norm(end - origin) / samples
-
-
-@pytest.mark.parametrize("seed", range(6))
-def test_traversal_lengths_sum_to_the_ray_and_match_a_brute_force_sampler(seed):
-    rng = np.random.default_rng(seed)
-    high = CORNER + SHAPE * VOXEL
-    origin = rng.uniform(CORNER, high)
-    end = rng.uniform(CORNER, high)
-    weights, _ = traverse(origin, end)
-    assert weights.sum() == pytest.approx(np.linalg.norm(end - origin), rel=1e-5)
-    assert np.allclose(weights, sampled(origin, end), atol=2e-4)
-
-
-def test_a_ray_leaving_the_grid_is_clipped_and_a_ray_outside_touches_nothing():
-    origin = np.array([0.0, 0.0, 1.0])
-    far = np.array([100.0, 0.0, 1.0])  # leaves through x = corner + 10 m
-    weights, _ = traverse(origin, far)
-    assert weights.sum() == pytest.approx(9.0 - 0.0, rel=1e-5)  # from x = 0 to x = 9 (= -1 + 20 × 0.5)
-    assert np.allclose(weights, sampled(origin, far, 1_000_000), atol=1e-3)
-    weights, touched = traverse([50.0, 50.0, 50.0], [60.0, 50.0, 50.0])
-    assert weights.sum() == 0.0 and len(touched) == 0
-
-
-def test_rays_along_grid_lines_and_through_corners():
-    origin = CORNER + np.array([1.0, 1.0, 1.0])  # on a voxel corner
-    for end in (origin + [3.0, 0, 0], origin + [2.0, 2.0, 2.0], origin + [0.0, 0.0, -0.7]):
-        weights, _ = traverse(origin, end)
-        assert weights.sum() == pytest.approx(np.linalg.norm(end - origin), rel=1e-5)
-        assert np.allclose(weights, sampled(origin, end), atol=5e-4)
-
-
-def test_accumulation_over_many_rays_is_the_sum_of_single_rays():
-    rng = np.random.default_rng(7)
-    origin = np.array([3.0, 1.0, 2.0])
-    ends = origin + rng.normal(0, 3.0, (50, 3))
-    together, _ = traverse(origin, ends)
-    alone = sum(traverse(origin, e)[0].astype(np.float64) for e in ends)
-    assert np.allclose(together, alone, atol=1e-4)
 
 
 def grid_states(fill=STATE_UNKNOWN):
@@ -147,26 +86,6 @@ def test_euclidean_clusters_equal_the_connected_components_of_the_distance_graph
     assert len(pairs) == count  # the same partition, whatever the numbering
     assert labels[0] == 0 and list(dict.fromkeys(labels)) == list(range(count))  # first-appearance order
     assert euclidean_clusters(np.zeros((0, 3)), 1.5)[1] == 0
-
-
-def test_casting_a_scan_equals_traversing_its_ray_ends():
-    """cast_scan finds the ends of eq. 20 itself: the same lengths as ray_ends + accumulate_ray_lengths."""
-    from services.lidar.rays import ray_ends
-    from services.voxels.kernels import cast_scan
-    rng = np.random.default_rng(9)
-    origin = np.array([3.0, 1.5, 3.0])
-    beams = rng.normal(size=(400, 3))
-    beams /= np.linalg.norm(beams, axis=1, keepdims=True)
-    ranges = rng.uniform(0.5, 12.0, 400)
-    points = (origin + beams * ranges[:, None]).astype(np.float32)
-    points[::7] = np.nan  # no return: cast along the beam to d_max
-    masked = np.zeros(400, bool)
-    masked[::11] = True
-    weights = np.zeros(int(SHAPE.prod()), np.float32)
-    turn = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # the sensor yawed by 90°
-    cast_scan(origin, turn, points, beams @ turn, masked, 4.0, CORNER, VOXEL, SHAPE, weights)  # sensor-frame beams
-    reference, _ = traverse(origin, ray_ends(origin, points, beams, masked, 4.0))
-    assert np.allclose(weights, reference, atol=1e-4)
 
 
 @pytest.mark.parametrize("seed, count", [(1, 300), (2, 1500), (3, 4000)])

@@ -39,7 +39,7 @@ from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.lidar.rays import ScanRays
 from services.mapper.update import THRESHOLDS, apply_ray_lengths
 from services.voxels.grid import GridGeometry
-from services.voxels.kernels import cast_scan
+from services.voxels.traversal import cast_scan
 
 
 class MapperParams(msgspec.Struct, forbid_unknown_fields=True):
