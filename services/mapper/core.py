@@ -32,12 +32,11 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
-from scipy import ndimage
 
 from schemas import voxels
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.lidar.rays import ScanRays
-from services.mapper.update import THRESHOLDS, apply_ray_lengths
+from services.mapper.update import THRESHOLDS, apply_ray_lengths, first_occurrences, weakly_held_voxels
 from services.voxels.grid import GridGeometry
 from services.voxels.traversal import cast_scan
 
@@ -111,7 +110,11 @@ class MapperCore:
         self.grid = np.full(self.shape, p.unknown_value, dtype=np.float32)
         self._flat = self.grid.reshape(-1)  # a view: writes land in grid
         self._window = np.zeros(0, dtype=np.float32)  # ray lengths around the sensor: scratch, left all 0
+        self._changed = np.zeros(0, dtype=np.int64)  # scratch: the voxels the rays moved to another state
         self._marks = np.zeros(self.geometry.size, dtype=bool)  # scratch, always left all False
+        self._box_slot = np.zeros(0, dtype=np.int64)  # separate-cluster reset scratch, left all -1
+        self._weak = np.zeros(0, dtype=np.int64)  # separate-cluster reset scratch
+        self._forward = _forward_neighbours(p.separation_distance / p.voxel_size)
         self._next_separation: int | None = None
         self.counters = MapperCounters()
 
@@ -185,11 +188,11 @@ class MapperCore:
             self._window = np.zeros(size, dtype=np.float32)
         cast_scan(origin, rotation, pts, beams, blocked, self.params.raycast_max_distance,
                   self.origin + low * self.voxel_size, self.voxel_size, window, self._window)
-        crossed = np.flatnonzero(self._window[:size])
-        n_changed, _ = apply_ray_lengths(self._flat, self._window, crossed, len(crossed), low, window,
-                                         np.asarray(self.shape), self._marks, self.params.free_value, THRESHOLDS,
-                                         crossed)
-        return crossed[:n_changed].copy()
+        if len(self._changed) < size:
+            self._changed = np.zeros(size, dtype=np.int64)
+        n_changed = apply_ray_lengths(self._flat, self._window, low, window, np.asarray(self.shape), self._marks,
+                                      self.params.free_value, THRESHOLDS, self._changed)
+        return self._changed[:n_changed].copy()
 
     def _label_sets(self, label_voxels, voxel_labels, voxel_weights) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(flat indices, labels, weights) of the label sets inside the map; a set with impossible
@@ -207,8 +210,8 @@ class MapperCore:
         flat = self.geometry.flat(v[inside])
         labels, weights = labels[inside], weights[inside]
         weights = np.where(labels == FLYING, np.inf, weights)  # eq. 17: n_det = ∞
-        flat, first = np.unique(flat, return_index=True)  # one update per voxel (the classifier sends one)
-        return flat, labels[first], weights[first]
+        first = first_occurrences(flat, self._marks)  # one update per voxel (the classifier sends one)
+        return flat[first], labels[first], weights[first]
 
     def _separation_due(self, stamp: int) -> bool:
         """Every `separation_period` of mission time, the first one a period after the first scan."""
@@ -230,16 +233,14 @@ class MapperCore:
         low, high = self.geometry.window(origin, p.separation_reach)
         if np.any(high <= low):
             return np.zeros(0, dtype=np.int64)
-        box = self.grid[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
-        occupied = box >= np.float32(voxels.TENTATIVE_OCCUPIED)
-        groups, count = ndimage.label(occupied, structure=_adjacency(p.separation_distance / self.voxel_size))
-        if count == 0:
-            return np.zeros(0, dtype=np.int64)
-        confident = np.bincount(groups[box >= np.float32(voxels.CONFIDENT_OCCUPIED)], minlength=count + 1)
-        small = confident < p.separation_min_confident
-        small[0] = False  # 0: not occupied at all
-        where = np.argwhere(small[groups]) + low
-        flat = np.ravel_multi_index(tuple(where.T), self.shape)
+        size = int(np.prod(high - low))
+        if len(self._box_slot) < size:
+            self._box_slot = np.full(size, -1, dtype=np.int64)
+            self._weak = np.zeros(size, dtype=np.int64)
+        count = weakly_held_voxels(self._flat, low, high, np.asarray(self.shape), np.float32(voxels.TENTATIVE_OCCUPIED),
+                                   np.float32(voxels.CONFIDENT_OCCUPIED), self._forward, p.separation_min_confident,
+                                   self._box_slot, self._weak)
+        flat = self._weak[:count]
         flat = flat[np.isfinite(self._flat[flat])]  # pinned voxels stay
         before = voxels.map_states(self._flat[flat])
         self._flat[flat] = exponential_update(self._flat[flat], np.ones(len(flat)), p.free_value)
@@ -251,7 +252,11 @@ class MapperCore:
         return MapDelta(changed.astype(np.int32), self._flat[changed].copy())
 
 
-def _adjacency(reach_voxels: float) -> np.ndarray:
-    """3×3×3 structuring element: neighbours whose centres are within `reach_voxels` voxel edges."""
-    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1)
-    return np.linalg.norm(offsets, axis=-1) <= max(reach_voxels, 1.0) + 1e-9
+def _forward_neighbours(reach_voxels: float) -> np.ndarray:
+    """(K, 3) offsets of the neighbours whose centres are within `reach_voxels` voxel edges (at
+    least the 6 face neighbours, at most the 26 of the 3×3×3 cube), those after (0, 0, 0) in C
+    order: each adjacent pair of voxels is looked at once."""
+    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    near = np.linalg.norm(offsets, axis=-1) <= max(reach_voxels, 1.0) + 1e-9
+    after = np.arange(len(offsets)) > 13  # (0, 0, 0) is the 14th of the 27
+    return np.ascontiguousarray(offsets[near & after], dtype=np.int64)
