@@ -13,7 +13,7 @@ from numba import njit
 INF = math.inf
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cell(px, py, pz, corner, edge, shape):
     """Flat index of the grid cell holding a point, -1 outside the grid."""
     x, y, z = (px - corner[0]) / edge, (py - corner[1]) / edge, (pz - corner[2]) / edge

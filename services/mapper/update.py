@@ -19,7 +19,7 @@ from schemas import voxels
 THRESHOLDS = np.array([voxels.UNCERTAIN, voxels.TENTATIVE_OCCUPIED, voxels.CONFIDENT_OCCUPIED], dtype=np.float32)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _state(value, thresholds):
     state = 0
     for k in range(3):
@@ -130,7 +130,7 @@ def _grid_value(grid, local, low, by, bz, gy, gz):
     return grid[((local // (by * bz) + low[0]) * gy + (local // bz) % by + low[1]) * gz + local % bz + low[2]]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _find(parent, i):
     root = i
     while parent[root] != root:
@@ -140,7 +140,7 @@ def _find(parent, i):
     return root
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _union(parent, i, j):
     a, b = _find(parent, i), _find(parent, j)
     if a != b:

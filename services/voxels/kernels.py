@@ -211,14 +211,14 @@ _KY = 1 << 21
 _KX = 1 << 42
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _cell_key(cx, cy, cz):
     """One int64 per cell, ordered like (cx, cy, cz); a neighbour's key is the key plus its offset."""
     half = 1 << 20
     return (cx + half) * _KX + (cy + half) * _KY + (cz + half)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _slot(table, cell_keys, key, bits):
     """Where `key` sits in the open-addressing table, or the empty slot where it would go
     (Fibonacci hashing, linear probing; the table is at least twice the number of cells)."""
@@ -229,14 +229,14 @@ def _slot(table, cell_keys, key, bits):
     return slot
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _forward(k):
     """The k-th of the 13 neighbour offsets that come after (0, 0, 0) in (x, y, z) order."""
     index = k + 14  # offsets -1..1 enumerated 0..26, (0, 0, 0) is 13
     return index // 9 - 1, (index // 3) % 3 - 1, index % 3 - 1
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _close(points, i, j, limit):
     dx = points[i, 0] - points[j, 0]
     dy = points[i, 1] - points[j, 1]
@@ -244,7 +244,7 @@ def _close(points, i, j, limit):
     return dx * dx + dy * dy + dz * dz <= limit
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _find(parent, i):
     root = i
     while parent[root] != root:
@@ -254,7 +254,7 @@ def _find(parent, i):
     return root
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _union(parent, i, j):
     a, b = _find(parent, i), _find(parent, j)
     if a != b:

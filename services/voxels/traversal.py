@@ -21,7 +21,7 @@ integer below 2^24 exactly, and a window of the grid larger than that takes the 
 In voxel edges from the window's corner (at most a few hundred) float32 places a boundary within
 about 1e-5 of a voxel edge: the lengths differ from the float64 reference by parts in a million,
 and a ray passing within that distance of a voxel's edge or corner may put its tiny share into the
-neighbouring voxel instead. Lengths are summed into a float64 grid.
+neighbouring voxel instead. The lengths are summed into the caller's grid (the mapper's is float32).
 """
 from __future__ import annotations
 
@@ -199,7 +199,7 @@ RAY_ROWS = 5
 @njit(cache=True, error_model="numpy")
 def cast_scan(origin, rotation, points, beams, masked, max_distance, corner, voxel_size, shape, weights):
     """Add the length (m) of every ray of an organised scan inside each voxel to `weights` (flat
-    over `shape`, float64; the grid's minimum corner at `corner`), finding the rays' ends on the
+    over `shape`, float32 or float64; the grid's minimum corner at `corner`), finding the rays' ends on the
     way (eq. 20): a return at most `max_distance` away ends its ray, a farther one or none at all
     (NaN) ends it at `max_distance` along the ray (when it returned nothing, along its beam:
     `beams[i]`, sensor frame, turned by `rotation`). Rays `masked` (the carrier's body) are
