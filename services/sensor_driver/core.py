@@ -180,11 +180,21 @@ def pack(p: Primitives) -> Packed:
     )
 
 
+def read_only(array: np.ndarray) -> np.ndarray:
+    """A C-contiguous read-only view (a copy only when not contiguous). numba compiles a kernel
+    once per argument type and read-only is part of the type: the LiDAR models hand out cached
+    read-only beams for a spinning pattern and fresh ones for the Mid-360's, and the first scan of
+    the other kind compiled the scan kernel again (3 s on this machine, a stalled lockstep tick)."""
+    view = np.ascontiguousarray(array).view()
+    view.flags.writeable = False
+    return view
+
+
 def cast_with_ids(origin: np.ndarray, directions: np.ndarray, world: Primitives | Packed
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(range, hit id) along each unit direction (N, 3) from `origin`: inf and -1 if none."""
     packed = world if isinstance(world, Packed) else pack(world)
-    d = np.ascontiguousarray(np.asarray(directions, dtype=float).reshape(-1, 3))
+    d = read_only(np.asarray(directions, dtype=float).reshape(-1, 3))
     ranges = np.empty(len(d))
     index = np.empty(len(d), dtype=np.int64)
     cast_kernel(np.asarray(origin, dtype=float), d, packed.kinds, packed.params, packed.bounds, ranges, index)
@@ -232,7 +242,7 @@ def scan(origin: np.ndarray, heading: float, directions: np.ndarray, world: Prim
     is one draw per ray whether it hits or not, so the RNG stream stays in step."""
     shape = directions.shape[:-1]
     packed = world if isinstance(world, Packed) else pack(world)
-    sensor_dirs = np.ascontiguousarray(np.asarray(directions, dtype=float).reshape(-1, 3))
+    sensor_dirs = read_only(np.asarray(directions, dtype=float).reshape(-1, 3))
     pose_draw = rng.normal(0.0, 1.0, 6)
     noise = rng.normal(0.0, range_noise, len(sensor_dirs)) if range_noise > 0 else np.zeros(len(sensor_dirs))
     believed_origin = np.asarray(origin, dtype=float)
