@@ -11,17 +11,26 @@ import re
 ROOT = "falconry"
 SIM = "sim"  # the run-wide segment used in place of a UAV name
 UAV_SERVICES = ("sensor_driver", "classifier", "mapper", "tracker", "job_manager", "planner")
+# The colour camera and its balloon detector (seed 004 §4.1), beside the LiDAR perception.
+CAMERA_SERVICES = ("camera", "object_detect")
 # Evaluation-only detector that replaces the classifier: noisy detections made from the LiDAR
 # points that really hit a target (simulation only; `falconry sim --detector oracle`).
 ORACLE = "oracle"
 SIM_SERVICES = ("simulator",)
+# `falconry sim --detector`: onboard = LiDAR perception for drones and the camera for balloons;
+# classifier = the LiDAR perception alone; oracle = the evaluation detector alone.
+DETECTORS = ("onboard", "classifier", "oracle")
 
 
 def uav_services(detector: str = "classifier") -> list[str]:
-    """The per-UAV services of a run: the oracle, when chosen, replaces the classifier."""
-    return [detector if s == "classifier" else s for s in UAV_SERVICES]
+    """The per-UAV services of a run: the oracle, when chosen, replaces the classifier; onboard adds
+    the camera and Object Detect."""
+    if detector not in DETECTORS:
+        raise ValueError(f"unknown detector {detector!r} (choose from {', '.join(DETECTORS)})")
+    services = [ORACLE if s == "classifier" and detector == ORACLE else s for s in UAV_SERVICES]
+    return services + list(CAMERA_SERVICES) if detector == "onboard" else services
 
-SERVICES = SIM_SERVICES + UAV_SERVICES + (ORACLE,)
+SERVICES = SIM_SERVICES + UAV_SERVICES + CAMERA_SERVICES + (ORACLE,)
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 

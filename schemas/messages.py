@@ -17,6 +17,7 @@ from schemas.arrays import Array
 Vec3 = tuple[float, float, float]
 Quat = tuple[float, float, float, float]
 Point2 = tuple[float, float]
+Color = tuple[int, int, int]  # sRGB, 0-255 per channel
 
 
 class Header(msgspec.Struct, kw_only=True):
@@ -65,6 +66,50 @@ class PointTruth(msgspec.Struct, kw_only=True):
     targets: list[str] = []
 
 
+class CameraFrame(msgspec.Struct, kw_only=True):
+    """One colour image and the depth image aligned with it (a simulated RGB-D camera; onboard,
+    a driver). Pixel (u, v): column u from the left, row v from the top; the ray through it in the
+    camera frame (x along the optical axis, y left, z up) is (1, (cx - u) / fx, (cy - v) / fy),
+    pixel centres at integer + 0.5. Raw frames stay on their UAV: the recorder keeps the compressed
+    stream (`CompressedFrame`)."""
+
+    header: Header
+    width: int
+    height: int
+    camera_pose: Pose  # the camera frame in the world at the stamp
+    fx: float  # focal lengths and principal point, pixels
+    fy: float
+    cx: float
+    cy: float
+    color: Array  # uint8 (height, width, 3), RGB
+    depth: Array | None = None  # uint16 (height, width), mm along the optical axis; 0: no depth
+    camera_model: str = ""
+
+
+class CompressedFrame(msgspec.Struct, kw_only=True):
+    """A `CameraFrame` small enough for a radio link and a recording: JPEG colour, PNG depth."""
+
+    header: Header
+    width: int
+    height: int
+    camera_pose: Pose
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    jpeg: bytes
+    depth_png: bytes = b""  # 16-bit PNG of the depth image (mm), empty: none
+    camera_model: str = ""
+
+
+class ColorUpdate(msgspec.Struct, kw_only=True):
+    """A colour file for Object Detect, sent live (`falconry colors pick --send`): its TOML text."""
+
+    header: Header
+    name: str = ""
+    toml: str = ""
+
+
 class Odometry(msgspec.Struct, kw_only=True):
     """Estimated state of one UAV. `covariance` is float64 6×6 over (x, y, z, roll, pitch, yaw)."""
 
@@ -79,7 +124,7 @@ class Detections(msgspec.Struct, kw_only=True):
     """Flying objects found in one scan: N rows in every array."""
 
     header: Header
-    detector: str  # "classifier" (LiDAR pipeline) or "oracle" (evaluation only)
+    detector: str  # "classifier" (LiDAR pipeline), "camera" (colour blobs) or "oracle" (evaluation only)
     positions: Array  # float64 (N, 3) cluster centres
     covariances: Array  # float64 (N, 3, 3)
     point_counts: Array  # int32 (N,)
@@ -236,6 +281,19 @@ class Obstacle(msgspec.Struct, kw_only=True):
     radius: float = 0.0
     height: float = 0.0
     name: str = ""
+    color: Color | None = None  # what a camera sees of its surface; None: Appearance's default for its kind
+
+
+class Appearance(msgspec.Struct, kw_only=True):
+    """What a simulated camera sees of the world besides the shapes: the sky, the default colours
+    of obstacles without one of their own, and the light (a sun and an ambient share)."""
+
+    sky: Color = (150, 190, 235)
+    ground: Color = (196, 178, 140)  # the plane: sand
+    obstacle: Color = (128, 128, 128)
+    sun_elevation: float = 50.0  # degrees above the horizon
+    sun_azimuth: float = 135.0  # degrees counter-clockwise from +x
+    ambient: float = 0.4  # share of the light that does not depend on the surface's orientation
 
 
 class WorldModel(msgspec.Struct, kw_only=True):
@@ -251,6 +309,7 @@ class WorldModel(msgspec.Struct, kw_only=True):
     seed: int = 0
     duration: float = 0.0  # s of mission time
     sensors: dict[str, str] = {}  # UAV -> LiDAR model its sensor driver simulates
+    appearance: Appearance = msgspec.field(default_factory=Appearance)
 
 
 class VehicleTruth(msgspec.Struct, kw_only=True):
@@ -269,6 +328,7 @@ class TargetTruth(msgspec.Struct, kw_only=True):
     velocity: Vec3
     radius: float
     destroyed: bool = False
+    color: Color = (200, 30, 30)  # what a camera sees of it (sRGB)
 
 
 class GroundTruth(msgspec.Struct, kw_only=True):
@@ -359,4 +419,7 @@ ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (
     ServiceHealth,
     PointTruth,
     FaultCommand,
+    CameraFrame,
+    CompressedFrame,
+    ColorUpdate,
 )

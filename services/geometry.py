@@ -21,6 +21,29 @@ def rotation_matrix(orientation_wxyz) -> np.ndarray:
     ])
 
 
+def quaternion(rotation: np.ndarray) -> tuple[float, float, float, float]:
+    """(w, x, y, z), w >= 0, of a (3, 3) rotation matrix (Shepperd's method: the largest of the four
+    squared components first, so no division by a small number)."""
+    m = np.asarray(rotation, dtype=np.float64).reshape(3, 3)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    candidates = (trace, m[0, 0], m[1, 1], m[2, 2])
+    k = int(np.argmax(candidates))
+    if k == 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = (0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s)
+    elif k == 1:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = ((m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s)
+    elif k == 2:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = ((m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s)
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = ((m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s)
+    sign = -1.0 if q[0] < 0 else 1.0
+    return tuple(float(sign * v) for v in q)  # type: ignore[return-value]
+
+
 def as_polygon(polygon: np.ndarray) -> np.ndarray:
     poly = np.asarray(polygon, dtype=np.float64).reshape(-1, 2)
     if len(poly) > 1 and np.array_equal(poly[0], poly[-1]):

@@ -56,6 +56,12 @@ def test_help_explains_every_option(command):
     (("analyze", "hit-probability", "--noise", "bad=-1,0,0"), "must be finite and not negative"),
     (("analyze", "hit-probability", "--step", "0"), "must be positive"),
     (("analyze", "hit-probability", "--plot", "/tmp/p.txt"), "--plot writes a PNG"),
+    (("colors", "pick", "/tmp/definitely/missing.png", "--roi", "1,1,2,2"), "no such file"),
+    (("colors", "pick", str(REPO / "README.md"), "--roi", "1,1,2,2"), "not an image OpenCV can read"),
+    (("colors", "pick", "/tmp/x.png", "--roi", "1,1,0,2"), "w and h > 0"),
+    (("colors", "pick", "/tmp/x.png", "--roi", "1,1"), "give x,y,w,h"),
+    (("colors", "show", "/tmp/x.png", "--colors", "no_such_colour", "--out", "/tmp/y.png"), "colour file not found"),
+    (("snapshot", "--out", "/tmp/y.png"), "--connect"),
     (("frobnicate",), "invalid choice"),
 ])
 def test_user_mistakes_give_one_line_and_exit_2(args, expected):
@@ -64,6 +70,30 @@ def test_user_mistakes_give_one_line_and_exit_2(args, expected):
     assert "Traceback" not in result.stderr
     error_lines = [line for line in result.stderr.splitlines() if "error" in line]
     assert len(error_lines) == 1 and expected in error_lines[0], result.stderr
+
+
+def test_colour_picking_mistakes_give_one_line_and_exit_2(tmp_path):
+    """An ROI outside the image, a colour file that is not one, Object Detect started without one."""
+    import cv2
+    import numpy as np
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), np.full((40, 60, 3), 90, np.uint8))
+    bad = tmp_path / "bad.toml"
+    bad.write_text("diameter = 0.6\n")
+    config = tmp_path / "params.toml"
+    config.write_text(f'[object_detect]\ncolors = "{tmp_path / "missing.toml"}"\n')
+    for args, expected in [(("colors", "pick", str(image), "--roi", "50,30,20,5"), "reaches outside the 60 × 40 image"),
+                           (("colors", "show", str(image), "--colors", str(bad), "--out", str(tmp_path / "s.png")),
+                            "missing field 'thresholds'"),
+                           (("colors", "pick", str(image), "--roi", "1,1,2,2", "--append", str(bad)),
+                            "not a colour file written by"),
+                           (("run", "object_detect", "--uav", "uav1", "--config", str(config)),
+                            "colour file not found")]:
+        result = falconry(*args)
+        assert result.returncode == 2, result.stderr
+        assert "Traceback" not in result.stderr
+        error_lines = [line for line in result.stderr.splitlines() if "error" in line.lower()]
+        assert len(error_lines) == 1 and expected in error_lines[0], result.stderr
 
 
 def test_bad_parameter_file_names_table_and_field(tmp_path):

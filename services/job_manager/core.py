@@ -171,6 +171,13 @@ class JobManager:
         if mover is not None and (self.engagement is None or mover is not self.engagement.filter):
             mover.update(above, stamp)  # keep knowing where the last mover is, engaged or not
 
+    def observe_camera(self, stamp: int, positions: np.ndarray) -> None:
+        """One camera frame's detections (N, 3), world frame (Object Detect: balloons by colour)."""
+        positions = self.seen.camera(stamp, positions)
+        if self.engagement is not None:
+            self.engagement.filter.update(positions[positions[:, 2] >= self.ground_z + self.params.min_target_height],
+                                          stamp)
+
     def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
         """Confirmed tracks: ids (K,), positions and velocities (K, 3); they tell at the lock
         whether a target moves (the target filter finds out by itself a little later)."""
@@ -262,7 +269,7 @@ class JobManager:
     def candidates(self, now: int, position: np.ndarray) -> np.ndarray:
         """(N, 3) detections in view that this UAV may act on (seed 004 §3.5.2 filter)."""
         latest = self.seen.in_view(now)
-        return np.zeros((0, 3)) if latest is None else self._usable(latest, now, position, self.seen.latest_stamp)
+        return np.zeros((0, 3)) if latest is None else self._usable(latest, now, position, self.seen.view_stamp)
 
     def recent_candidates(self, now: int, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Candidates of the scans of the last t_m, with their stamps: a target far away shows in

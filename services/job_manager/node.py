@@ -1,7 +1,8 @@
 """job_manager service: wires the mission state machine (core.JobManager) to Zenoh.
 
 In: the world (arena, team, mission length), this UAV's odometry, detections (one message per
-LiDAR scan, also the abort system's heartbeat) and tracks, every partner's status and the
+LiDAR scan, also the abort system's heartbeat), the camera's detections (Object Detect's
+balloons, one message per frame) and tracks, every partner's status and the
 liveliness tokens (pre-flight check of this UAV's services; partners' job managers for revenge
 mode). Out: mission commands for the planner and this UAV's status for its partners. Every
 decision is the core's; the node only converts messages and logs what the core noted.
@@ -38,7 +39,7 @@ DETECTORS = ("classifier", keys.ORACLE)
 
 class JobManagerNode(Node):
     service = "job_manager"
-    upstream = ("tracker", "classifier", keys.ORACLE)  # the detector that runs, and the tracker
+    upstream = ("tracker", "classifier", keys.ORACLE, "object_detect")  # the detectors that run, and the tracker
     params_type = JobManagerParams
 
     def setup(self) -> None:
@@ -66,6 +67,7 @@ class JobManagerNode(Node):
         self.subscribe(keys.WORLD, WorldModel, self.on_world)
         self.subscribe(self.topic("odometry"), Odometry, self.on_odometry)
         self.subscribe(self.topic("detections"), Detections, self.on_detections)
+        self.subscribe(self.topic("camera_detections"), Detections, self.on_camera_detections)
         self.subscribe(self.topic("tracks"), Tracks, self.on_tracks)
         self.subscribe(keys.ALL_STATUS, UavStatus, self.on_partner_status)
         self.on_liveliness(keys.ALL_ALIVE, self.on_alive)
@@ -97,6 +99,10 @@ class JobManagerNode(Node):
     def on_detections(self, msg: Detections, key: str) -> None:
         positions = to_numpy(msg.positions)
         self.core.observe_detections(msg.header.stamp, positions.reshape(-1, 3) if positions.size else np.zeros((0, 3)))
+
+    def on_camera_detections(self, msg: Detections, key: str) -> None:
+        positions = to_numpy(msg.positions)
+        self.core.observe_camera(msg.header.stamp, positions.reshape(-1, 3) if positions.size else np.zeros((0, 3)))
 
     def on_tracks(self, msg: Tracks, key: str) -> None:
         confirmed = [t for t in msg.tracks if t.confirmed]

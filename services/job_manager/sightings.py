@@ -23,6 +23,8 @@ class Sightings:
         self.scan_stamp: int | None = None  # stamp of the latest Detections (the LiDAR heartbeat)
         self.latest = np.zeros((0, 3))
         self.latest_stamp = 0
+        self.camera_latest = np.zeros((0, 3))  # the latest camera frame's detections (balloons by colour)
+        self.camera_stamp: int | None = None
         self.recent: deque[tuple[int, np.ndarray]] = deque()  # the last t_m of scans' detections
         self.tracks: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # stamp, ids, pos, vel
         self.last_mover: TargetFilter | None = None  # the filter of the last target found to move
@@ -33,20 +35,43 @@ class Sightings:
         positions = positions[np.isfinite(positions).all(axis=1)]
         self.scan_stamp = stamp if self.scan_stamp is None else max(self.scan_stamp, stamp)
         self.latest, self.latest_stamp = positions, stamp
+        self._remember(stamp, positions)
+        return positions
+
+    def camera(self, stamp: int, positions: np.ndarray) -> np.ndarray:
+        """One camera frame's detections (N, 3); returns them without non-finite rows. They join the
+        LiDAR's in view and in the recent scans (a balloon on its pole is background to the LiDAR
+        perception: the camera is what sees it)."""
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        positions = positions[np.isfinite(positions).all(axis=1)]
+        self.camera_latest, self.camera_stamp = positions, stamp
+        self._remember(stamp, positions)
+        return positions
+
+    def _remember(self, stamp: int, positions: np.ndarray) -> None:
         self.recent.append((stamp, positions))
         while self.recent and stamp - self.recent[0][0] > int(self.params.target_time * NS):
             self.recent.popleft()
-        return positions
 
     def confirmed_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
         self.tracks = (stamp, np.asarray(ids, dtype=np.int64).reshape(-1), np.asarray(positions, float).reshape(-1, 3),
                        np.asarray(velocities, float).reshape(-1, 3))
 
     def in_view(self, now: int) -> np.ndarray | None:
-        """The latest scan's detections, or None when it is older than detection_max_age."""
-        if self.scan_stamp is None or now - self.latest_stamp > int(self.params.detection_max_age * NS):
-            return None
-        return self.latest
+        """The latest scan's and camera frame's detections, those not older than detection_max_age;
+        None when neither is."""
+        fresh = int(self.params.detection_max_age * NS)
+        parts = []
+        if self.scan_stamp is not None and now - self.latest_stamp <= fresh:
+            parts.append(self.latest)
+        if self.camera_stamp is not None and now - self.camera_stamp <= fresh:
+            parts.append(self.camera_latest)
+        return np.concatenate(parts) if parts else None
+
+    @property
+    def view_stamp(self) -> int:
+        """The stamp of the newest detections in view."""
+        return max(self.latest_stamp, self.camera_stamp or 0)
 
     def moving_track(self, detection: np.ndarray, now: int, seen: int | None = None) -> Motion | None:
         """(id, position, velocity, stamp) of a fast confirmed track at this detection (made at

@@ -10,7 +10,7 @@ import zenoh
 
 from services.launcher.common import FOREVER, CliError, add_zenoh_options, zenoh_settings
 from services.recorder.mcap_io import CHUNK_SIZE, COMPRESSIONS
-from services.recorder.record import DEFAULT_KEYS, Recorder, summary_lines
+from services.recorder.record import DEFAULT_KEYS, SKIPPED_BY_DEFAULT, Recorder, summary_lines
 from services.runtime.zenoh_config import init_logging, open_session
 
 
@@ -27,7 +27,8 @@ def add_parser(commands) -> None:
     )
     p.add_argument("file", metavar="FILE", help="the MCAP file to write (replaced if it exists)")
     p.add_argument("--keys", nargs="+", action="extend", metavar="EXPR",
-                   help=f"key expressions to record (default: {' '.join(DEFAULT_KEYS)})")
+                   help=f"key expressions to record (default: {' '.join(DEFAULT_KEYS)} but the raw camera frames "
+                        f"{' '.join(SKIPPED_BY_DEFAULT)}; the compressed ones are kept)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds of wall time (default: until stopped)")
     p.add_argument("--compression", choices=list(COMPRESSIONS), default="zstd", help="chunk compression (default zstd)")
     p.add_argument("--chunk-size", type=int, default=CHUNK_SIZE, metavar="BYTES",
@@ -73,7 +74,8 @@ def run_record(args: argparse.Namespace) -> int:
     try:
         try:
             recorder = Recorder(session, args.file, key_exprs, compression=args.compression,
-                                chunk_size=args.chunk_size, flush_s=args.flush, health_s=args.health)
+                                chunk_size=args.chunk_size, flush_s=args.flush, health_s=args.health,
+                                skip=() if args.keys else SKIPPED_BY_DEFAULT)
         except OSError as exc:
             raise CliError(f"cannot write {args.file}: {exc.strerror or exc}") from None
         print(f"recording {' '.join(recorder.key_exprs)} to {args.file} (Ctrl-C to stop)", flush=True)

@@ -23,6 +23,9 @@ from services.runtime.health import HealthPoller
 from services.runtime.zenoh_config import undeclare_all
 
 DEFAULT_KEYS = ("falconry/**",)
+# Raw camera frames stay on their UAV (1.2 MB each, 10 a second); a recording keeps the
+# compressed stream (falconry/<uav>/camera_jpeg). Name them with --keys to record them anyway.
+SKIPPED_BY_DEFAULT = ("falconry/*/camera",)
 
 
 def without_overlaps(key_exprs: Iterable[str]) -> list[str]:
@@ -39,8 +42,10 @@ def without_overlaps(key_exprs: Iterable[str]) -> list[str]:
 class Recorder:
     def __init__(self, session: zenoh.Session | None, path: str, key_exprs: Iterable[str] = DEFAULT_KEYS,
                  compression: str = "zstd", chunk_size: int = CHUNK_SIZE, flush_s: float = 1.0,
-                 health_s: float = 1.0) -> None:
+                 health_s: float = 1.0, skip: Iterable[str] = SKIPPED_BY_DEFAULT) -> None:
         self.key_exprs = tuple(without_overlaps(key_exprs))
+        self._skip = [zenoh.KeyExpr(e) for e in skip]
+        self._skipped: dict[str, bool] = {}
         self.path = str(path)
         self._writer = McapRecordWriter(self.path, self.key_exprs, compression, chunk_size)
         self._flush_s = flush_s
@@ -59,8 +64,12 @@ class Recorder:
         self.started = time.monotonic()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        if self._error is None:  # after a write error (disk full) nothing would drain the queue
-            self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), time.time_ns()))
+        key = str(sample.key_expr)
+        skipped = self._skipped.get(key)
+        if skipped is None:
+            skipped = self._skipped[key] = any(e.includes(zenoh.KeyExpr(key)) for e in self._skip)
+        if self._error is None and not skipped:  # after a write error (disk full) nothing would drain the queue
+            self._queue.put((key, sample.payload.to_bytes(), time.time_ns()))
 
     def handle(self, key: str, payload: bytes, receive_ns: int | None = None) -> None:
         """Record one message received by the caller (thread-safe)."""

@@ -29,6 +29,7 @@ from services.sensor_driver.core import (
     FALLBACK_MODEL,
     Primitives,
     SensorDriverParams,
+    noise_stream_key,
     primitives_from_obstacles,
     scan,
     yaw_rotation,
@@ -96,10 +97,9 @@ class SensorDriverNode(Node):
         if world.obstacles != self.obstacles:
             self.obstacles = world.obstacles
             self.static = primitives_from_obstacles(world.obstacles)
-        index = world.uavs.index(self.uav) if self.uav in world.uavs else len(world.uavs)
-        if (world.seed, index) != self.rng_key:  # the world repeats every second: keep the stream going
-            self.rng_key = (world.seed, index)
-            self.rng = np.random.default_rng([world.seed, index, RNG_SALT])
+        if (key := noise_stream_key(world, self.uav)) != self.rng_key:
+            self.rng_key = key
+            self.rng = np.random.default_rng([*key, RNG_SALT])
 
     def on_truth(self, truth: GroundTruth, key: str) -> None:
         self.truth = truth

@@ -17,6 +17,7 @@ boxes, cones (the reference's order, so ties resolve alike):
   bounds float64 (P, 4) bounding sphere cx, cy, cz, radius (unused for planes)
   ids    int32 (P,)     0 static world, k >= 1 target k
   reflectivity float64 (P,)
+  colors uint8 (P, 3)   sRGB, for the simulated camera (services/camera)
 """
 from __future__ import annotations
 
@@ -38,6 +39,7 @@ class Packed:
     bounds: np.ndarray
     ids: np.ndarray
     reflectivity: np.ndarray
+    colors: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.kinds)
@@ -132,7 +134,7 @@ def _hit(kind, table, q, ox, oy, oz, dx, dy, dz):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _nearest(ox, oy, oz, dx, dy, dz, kinds, params, cull):
+def nearest_hit(ox, oy, oz, dx, dy, dz, kinds, params, cull):
     """(range, primitive index) of the first surface along one ray; (inf, -1) if none."""
     best, best_p = INF, -1
     for q in range(len(kinds)):
@@ -146,7 +148,7 @@ def _nearest(ox, oy, oz, dx, dy, dz, kinds, params, cull):
 
 
 @njit(cache=True, error_model="numpy")
-def _cull_setup(ox, oy, oz, kinds, bounds):
+def cull_setup(ox, oy, oz, kinds, bounds):
     """Per primitive: centre - origin and the least d·(centre - origin) of a ray that reaches
     its bounding sphere (-inf: every ray, for planes and when the origin is inside)."""
     cull = np.empty((len(kinds), 4))
@@ -166,33 +168,37 @@ def _cull_setup(ox, oy, oz, kinds, bounds):
 def cast_kernel(origin, dirs, kinds, params, bounds, ranges, hit_index):
     """ranges[i], hit_index[i] for every unit direction dirs[i] (world frame) from `origin`."""
     ox, oy, oz = origin[0], origin[1], origin[2]
-    cull = _cull_setup(ox, oy, oz, kinds, bounds)
+    cull = cull_setup(ox, oy, oz, kinds, bounds)
     for i in range(len(dirs)):
-        ranges[i], hit_index[i] = _nearest(ox, oy, oz, dirs[i, 0], dirs[i, 1], dirs[i, 2], kinds, params, cull)
+        ranges[i], hit_index[i] = nearest_hit(ox, oy, oz, dirs[i, 0], dirs[i, 1], dirs[i, 2], kinds, params, cull)
 
 
 # ------------------------------------------------------------------ a whole scan
-@njit(cache=True, error_model="numpy")
-def _normal_cos(kind, p, hx, hy, hz, dx, dy, dz):
-    """|cos| of the incidence angle at hit point h on primitive p."""
+@njit(cache=True, error_model="numpy", inline="always")
+def outward_normal(kind, p, hx, hy, hz):
+    """Unit outward normal at hit point h on primitive p (a row of the packed table); the plane's
+    points up. Caps and box faces are told apart by the nearest face."""
     if kind == PLANE:
-        nx, ny, nz = 0.0, 0.0, 1.0
-    elif kind == SPHERE:
+        return 0.0, 0.0, 1.0
+    if kind == SPHERE:
         nx, ny, nz = hx - p[0], hy - p[1], hz - p[2]
     elif kind == BOX:
-        # the face the point lies on: the smallest distance to a face plane
         nx, ny, nz, gap = 0.0, 0.0, 0.0, INF
         for k in range(3):
             h = hx if k == 0 else (hy if k == 1 else hz)
-            g = min(abs(h - p[k]), abs(h - p[k + 3]))
-            if g < gap:
-                gap = g
-                nx, ny, nz = (1.0 if k == 0 else 0.0), (1.0 if k == 1 else 0.0), (1.0 if k == 2 else 0.0)
+            for side in range(2):
+                g = abs(h - p[k + 3 * side])
+                if g < gap:
+                    gap = g
+                    sign = 1.0 if side == 1 else -1.0
+                    nx, ny, nz = (sign if k == 0 else 0.0), (sign if k == 1 else 0.0), (sign if k == 2 else 0.0)
     else:  # upright cylinder or cone: a cap, or the side
         cx, cy, z0, r, h = p[0], p[1], p[2], p[3], p[4]
         top = z0 + h
         rho = math.sqrt((hx - cx) ** 2 + (hy - cy) ** 2)
-        if abs(hz - z0) < 1e-6 or (kind == CYLINDER and abs(hz - top) < 1e-6):
+        if abs(hz - z0) < 1e-6:
+            nx, ny, nz = 0.0, 0.0, -1.0
+        elif kind == CYLINDER and abs(hz - top) < 1e-6:
             nx, ny, nz = 0.0, 0.0, 1.0
         elif kind == CYLINDER:
             nx, ny, nz = hx - cx, hy - cy, 0.0
@@ -200,8 +206,15 @@ def _normal_cos(kind, p, hx, hy, hz, dx, dy, dz):
             nx, ny, nz = hx - cx, hy - cy, rho * r / h
     norm = math.sqrt(nx * nx + ny * ny + nz * nz)
     if norm == 0.0:
-        return 1.0
-    return abs(nx * dx + ny * dy + nz * dz) / norm
+        return 0.0, 0.0, 1.0
+    return nx / norm, ny / norm, nz / norm
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _normal_cos(kind, p, hx, hy, hz, dx, dy, dz):
+    """|cos| of the incidence angle at hit point h on primitive p."""
+    nx, ny, nz = outward_normal(kind, p, hx, hy, hz)
+    return abs(nx * dx + ny * dy + nz * dz)
 
 
 @njit(cache=True, error_model="numpy")
@@ -212,14 +225,14 @@ def scan_kernel(true_origin, true_rotation, believed_origin, believed_rotation, 
     pose (the pose error shows up in the cloud as it would on a real UAV). Writes float32
     points (N, 3) (NaN: no return), int32 hit ids (-1: no return) and float32 intensity."""
     ox, oy, oz = true_origin[0], true_origin[1], true_origin[2]
-    cull = _cull_setup(ox, oy, oz, kinds, bounds)
+    cull = cull_setup(ox, oy, oz, kinds, bounds)
     R, B = true_rotation, believed_rotation
     for i in range(len(sensor_dirs)):
         sx, sy, sz = sensor_dirs[i, 0], sensor_dirs[i, 1], sensor_dirs[i, 2]
         dx = R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
         dy = R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
         dz = R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
-        t, q = _nearest(ox, oy, oz, dx, dy, dz, kinds, params, cull)
+        t, q = nearest_hit(ox, oy, oz, dx, dy, dz, kinds, params, cull)
         valid = (t >= min_range) and (t <= max_range)
         if valid and has_body and _hits_body(sx, sy, sz, t, body):
             valid = False

@@ -60,6 +60,10 @@ def validated(s: Scenario) -> Scenario:
     _not_negative(s.wind.speed, "wind.speed")
     _not_negative(s.wind.gust, "wind.gust")
     _positive(s.wind.gust_period, "wind.gust_period")
+    if not 0.0 <= s.appearance.sun_elevation <= 90.0:
+        raise ScenarioError(f"appearance.sun_elevation: must lie in [0, 90] degrees, got {s.appearance.sun_elevation}")
+    if not 0.0 <= s.appearance.ambient <= 1.0:
+        raise ScenarioError(f"appearance.ambient: must lie in [0, 1], got {s.appearance.ambient}")
     for i, d in enumerate(s.drones):
         _check_drone(s, d, f"drones[{i}]", space, space_name)
     for i, start in enumerate(s.starts):

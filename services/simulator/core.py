@@ -141,11 +141,14 @@ class Simulation:
 
     def _static_obstacles(self) -> list[Obstacle]:
         s = self.scenario
-        static = [Obstacle(kind="plane", center=(0.0, 0.0, self.ground_z), name="ground")]
+        look = s.appearance
+        static = [Obstacle(kind="plane", center=(0.0, 0.0, self.ground_z), name="ground", color=tuple(look.ground))]
         for o in s.obstacles:
             static.append(Obstacle(kind=o.kind, center=tuple(map(float, o.center)), size=tuple(map(float, o.size)),
-                                   radius=float(o.radius), height=float(o.height), name=o.name))
+                                   radius=float(o.radius), height=float(o.height), name=o.name,
+                                   color=tuple(o.color or look.obstacle)))
         for tid, b in zip(s.balloon_ids(), s.balloons):
             static.append(Obstacle(kind="cylinder", center=(float(b.pole[0]), float(b.pole[1]), self.ground_z),
-                                   radius=POLE_RADIUS, height=float(b.height), name=f"{tid}_pole"))
+                                   radius=POLE_RADIUS, height=float(b.height), name=f"{tid}_pole",
+                                   color=tuple(look.pole)))
         return static

@@ -21,6 +21,7 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import (
+    Appearance,
     FaultCommand,
     GroundTruth,
     Header,
@@ -29,7 +30,6 @@ from schemas.messages import (
     SimClock,
     SimEvent,
     StepAck,
-    TargetTruth,
     TrajectoryReference,
     VehicleTruth,
     WorldModel,
@@ -280,7 +280,10 @@ class SimulatorNode(Node):
             header=Header(stamp=self.clock.now_ns()), scenario=sc.name, arena=[tuple(p) for p in sc.arena],
             min_height=sc.min_height, max_height=sc.max_height, obstacles=self.sim.obstacles(),
             uavs=list(self.uav_names), seed=self.seed, duration=self.duration,
-            sensors={u: sc.uav_spec(u).sensor for u in self.uav_names}))
+            sensors={u: sc.uav_spec(u).sensor for u in self.uav_names},
+            appearance=Appearance(sky=tuple(sc.appearance.sky), ground=tuple(sc.appearance.ground),
+                                  obstacle=tuple(sc.appearance.obstacle), sun_elevation=sc.appearance.sun_elevation,
+                                  sun_azimuth=sc.appearance.sun_azimuth, ambient=sc.appearance.ambient)))
 
     def publish_state(self, step: int, now: int) -> None:
         if step % max(1, int(round(self.params.world_period / self.tick_s))) == 0:
@@ -296,9 +299,7 @@ class SimulatorNode(Node):
             uavs=[VehicleTruth(name=v.name, position=tuple(float(x) for x in v.position),
                                velocity=tuple(float(x) for x in v.velocity), heading=float(v.heading),
                                airborne=bool(v.airborne), alive=bool(v.alive)) for v in vehicles],
-            targets=[TargetTruth(id=t.id, kind=t.kind, position=tuple(float(x) for x in t.position),
-                                 velocity=tuple(float(x) for x in t.velocity), radius=float(t.radius),
-                                 destroyed=bool(t.destroyed)) for t in self.sim.targets()]))
+            targets=[t.truth() for t in self.sim.targets()]))
 
     def event(self, kind: str, subject: str, detail: str = "") -> None:
         self.log.info("event %s %s %s", kind, subject, detail)

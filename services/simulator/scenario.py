@@ -38,6 +38,7 @@ Top-level fields
   radius  float = 0.0   cylinder, cone (base) and sphere radius (> 0 for those kinds).
   height  float = 0.0   cylinder and cone height (> 0 for those kinds).
   name    str = ""
+  color   [r, g, b] = appearance.obstacle   what a camera sees of it, sRGB 0-255.
 
 [[balloons]]  targets: a sphere tethered to the top of a thin pole (the pole, radius 0.05 m, is a
               static cylinder obstacle from the ground to its top)
@@ -48,6 +49,7 @@ Top-level fields
                         is tether + radius above the top; wind leans it over like an inverted
                         pendulum, tan(lean) = (wind / 8 m/s)², so it moves at most tether + radius.
   name    str = ""      target id; default "balloon<k>" (k from 1).
+  color   [r, g, b] = appearance.balloon   sRGB 0-255 (the pole: appearance.pole).
 
 [wind]  sways the balloons (only them, in this version)
   speed        float = 0.0   steady wind, m/s (>= 0).
@@ -85,6 +87,21 @@ Top-level fields
   climb_speed       float = 1.0  m/s (> 0), for the take-off climb.
   body_radius       float = 0.325 the drone's size as a sphere, m (> 0).
   name              str = ""     target id; default "drone<k>".
+  color             [r, g, b] = appearance.drone   sRGB 0-255.
+
+[appearance]  what a simulated camera sees besides shapes (colours sRGB [r, g, b], 0-255 each)
+  sky            = [150, 190, 235]   where a ray meets nothing.
+  ground         = [196, 178, 140]   the ground plane (sand).
+  obstacle       = [128, 128, 128]   obstacles without a colour of their own.
+  pole           = [225, 225, 225]   balloon poles.
+  balloon        = [200, 30, 30]     balloons without a colour of their own (the competition's
+                                     were announced red and flown green: a scenario can say so).
+  drone          = [40, 40, 45]      intruder drones without a colour of their own.
+  sun_elevation  float = 50.0        degrees above the horizon (0-90).
+  sun_azimuth    float = 135.0       degrees counter-clockwise from +x.
+  ambient        float = 0.4         share of the light that does not depend on how a surface
+                                     faces the sun (0-1); the rest falls as the cosine of the
+                                     sun's angle of incidence.
 
 [uav]  the team's UAVs (all of them; per-UAV changes in [uav.overrides.<uav>])
   sensor                   str = "os0-128"   LiDAR model handed to the sensor driver, one of its
@@ -136,6 +153,7 @@ from services.simulator.specs import (
     Scenario,
     ScenarioError,
     UavOverride,
+    AppearanceSpec,
     UavSpec,
     WindSpec,
 )
@@ -143,7 +161,7 @@ from services.simulator.specs import (
 SCENARIO_DIR = Path(__file__).resolve().parent / "scenarios"
 
 __all__ = [
-    "SCENARIO_DIR", "POLE_RADIUS", "BalloonSpec", "DroneSpec", "FaultSpec", "ObstacleSpec", "ProfileSpec",
+    "SCENARIO_DIR", "POLE_RADIUS", "AppearanceSpec", "BalloonSpec", "DroneSpec", "FaultSpec", "ObstacleSpec", "ProfileSpec",
     "Scenario", "ScenarioError", "UavSpec", "WindSpec", "builtin_scenarios", "check_team", "load_scenario",
     "parse_scenario", "start_poses",
 ]

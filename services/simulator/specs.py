@@ -6,7 +6,7 @@ than a type live in `checks.py`.
 """
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 import msgspec
 
@@ -18,6 +18,8 @@ NS = 1_000_000_000
 
 Vec3 = tuple[float, float, float]
 Point2 = tuple[float, float]
+Channel = Annotated[int, msgspec.Meta(ge=0, le=255)]
+Color = tuple[Channel, Channel, Channel]  # sRGB
 
 
 class ScenarioError(ValueError):
@@ -31,6 +33,7 @@ class ObstacleSpec(msgspec.Struct, forbid_unknown_fields=True):
     radius: float = 0.0
     height: float = 0.0
     name: str = ""
+    color: Color | None = None
 
 
 class BalloonSpec(msgspec.Struct, forbid_unknown_fields=True):
@@ -39,6 +42,19 @@ class BalloonSpec(msgspec.Struct, forbid_unknown_fields=True):
     radius: float = 0.3
     tether: float = 0.2
     name: str = ""
+    color: Color | None = None
+
+
+class AppearanceSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
+    sky: Color = (150, 190, 235)
+    ground: Color = (196, 178, 140)
+    obstacle: Color = (128, 128, 128)
+    pole: Color = (225, 225, 225)
+    balloon: Color = (200, 30, 30)
+    drone: Color = (40, 40, 45)
+    sun_elevation: float = 50.0
+    sun_azimuth: float = 135.0
+    ambient: float = 0.4
 
 
 class WindSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
@@ -66,6 +82,7 @@ class DroneSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     takeoff_time: float | None = None
     body_radius: float = 0.325
     name: str = ""
+    color: Color | None = None
 
 
 # Fields each path reads besides the common ones (speed, max_acceleration, climb_speed,
@@ -168,6 +185,7 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     drones: list[DroneSpec] = []
     starts: list[Vec3] = []
     wind: WindSpec = msgspec.field(default_factory=WindSpec)
+    appearance: AppearanceSpec = msgspec.field(default_factory=AppearanceSpec)
     uav: UavTable = msgspec.field(default_factory=UavTable)
     faults: list[FaultSpec] = []
 

@@ -38,10 +38,12 @@ class TargetState:
     velocity: np.ndarray  # (3,)
     radius: float
     destroyed: bool
+    color: tuple[int, int, int] = (200, 30, 30)  # sRGB, what a camera sees
 
     def truth(self) -> TargetTruth:
         return TargetTruth(id=self.id, kind=self.kind, position=_vec(self.position),  # type: ignore[arg-type]
-                           velocity=_vec(self.velocity), radius=self.radius, destroyed=self.destroyed)
+                           velocity=_vec(self.velocity), radius=self.radius, destroyed=self.destroyed,
+                           color=self.color)
 
 
 def _vec(v: np.ndarray) -> tuple[float, float, float]:
@@ -57,6 +59,7 @@ class Balloons:
         self.arms = np.array([b.tether + b.radius for b in s.balloons], dtype=float)
         self.reach = self.radii + s.needle_reach
         self.destroyed = np.zeros(len(self.ids), dtype=bool)
+        self.colors = [tuple(b.color or s.appearance.balloon) for b in s.balloons]
         self.phases = 2 * math.pi * ((np.arange(len(self.ids)) * 0.6180339887498949) % 1.0)
         w = s.wind
         self.along = np.array([math.cos(w.direction), math.sin(w.direction)])
@@ -100,8 +103,8 @@ class Balloons:
 
     def states(self, t: float) -> list[TargetState]:
         positions, velocities = self.positions(t)[0], self.velocities(t)[0]
-        return [TargetState(tid, "balloon", positions[j], velocities[j], float(self.radii[j]), bool(self.destroyed[j]))
-                for j, tid in enumerate(self.ids)]
+        return [TargetState(tid, "balloon", positions[j], velocities[j], float(self.radii[j]), bool(self.destroyed[j]),
+                            self.colors[j]) for j, tid in enumerate(self.ids)]
 
 
 class Drones:
@@ -109,6 +112,7 @@ class Drones:
         self.ids = scenario.drone_ids()
         self.paths = [DronePath(d, scenario, seed, k) for k, d in enumerate(scenario.drones)]
         self.radii = np.array([d.body_radius for d in scenario.drones], dtype=float)
+        self.colors = [tuple(d.color or scenario.appearance.drone) for d in scenario.drones]
         self.rest_z = scenario.ground_z + self.radii
         self.capture_radius = scenario.capture_radius
         self.capture_speed = scenario.capture_speed
@@ -163,4 +167,4 @@ class Drones:
     def states(self, t: float) -> list[TargetState]:
         positions, velocities = self.kinematics(t)
         return [TargetState(tid, "drone", positions[0, k], velocities[0, k], float(self.radii[k]),
-                            bool(self.captured[k])) for k, tid in enumerate(self.ids)]
+                            bool(self.captured[k]), self.colors[k]) for k, tid in enumerate(self.ids)]

@@ -32,17 +32,22 @@ from hypothesis import strategies as st
 from schemas import keys
 from schemas.arrays import ALLOWED_DTYPES, Array, from_numpy, to_numpy
 from schemas.messages import (
+    Appearance,
+    CameraFrame,
+    ColorUpdate,
     Detections,
     FaultCommand,
     GroundTruth,
     Header,
     LabelSet,
     MissionCommand,
+    Obstacle,
     Odometry,
     PointCloud,
     PointTruth,
     SimClock,
     StepAck,
+    TargetTruth,
     Track,
     Tracks,
     TrajectoryReference,
@@ -284,7 +289,23 @@ def corpus() -> dict[type, msgspec.Struct]:
         for msg_type, topic in outputs:
             made[msg_type] = wired.published(msg_type, keys.uav(UAV, topic))
     made[UavStatus].uav = PARTNER  # a job manager reads its partners' status, not its own
+    camera = wire("camera")
+    for msg_type in (WorldModel, GroundTruth):
+        camera.deliver(camera.keys_of[msg_type], encode(made[msg_type]))
+    camera.tick(100_000_000)
+    made[CameraFrame] = crop(camera.published(CameraFrame, keys.uav(UAV, "camera")), 24, 40)
+    made[ColorUpdate] = ColorUpdate(header=Header(sender="ground/colors", seq=1), name="red",
+                                    toml=(REPO / "services/object_detect/colors/red.toml").read_text())
     return made
+
+
+def crop(frame: CameraFrame, height: int, width: int) -> CameraFrame:
+    """The middle of a camera frame, intrinsics kept (Object Detect sees a smaller image)."""
+    rows, cols = frame.height // 2 - height // 2, frame.width // 2 - width // 2
+    color = to_numpy(frame.color)[rows:rows + height, cols:cols + width]
+    depth = None if frame.depth is None else to_numpy(frame.depth)[rows:rows + height, cols:cols + width]
+    return msgspec.structs.replace(frame, height=height, width=width, color=from_numpy(color),
+                                   depth=None if depth is None else from_numpy(depth))
 
 
 def sparse(cloud: PointCloud, every_row: int, every_column: int) -> PointCloud:
@@ -422,7 +443,20 @@ def _contract_overrides() -> dict[tuple[type, str], st.SearchStrategy]:
     truth_h, truth_w = rows("truth.h", 4), rows("truth.w", 16)
     n, m = rows("n", 8), rows("m", 8)
     cov6 = arrays("<f8", _shape(6, 6))
+    image_h, image_w = rows("image.h", 12), rows("image.w", 16)
+    color = st.tuples(*[st.integers(0, 255)] * 3)
     return {
+        (CameraFrame, "height"): image_h,
+        (CameraFrame, "width"): image_w,
+        (CameraFrame, "color"): arrays("|u1", _shape(image_h, image_w, 3), 0, 255),
+        (CameraFrame, "depth"): st.none() | arrays("<u2", _shape(image_h, image_w), 0, 65535),
+        (ColorUpdate, "toml"): st.sampled_from(["", "diameter = 0.6", "[thresholds", "x = 1\n",
+                                                (REPO / "services/object_detect/colors/green.toml").read_text()]),
+        (Obstacle, "color"): st.none() | color,
+        (TargetTruth, "color"): color,
+        (Appearance, "sky"): color,
+        (Appearance, "ground"): color,
+        (Appearance, "obstacle"): color,
         (Header, "stamp"): stamps(),
         (PointCloud, "height"): cloud_h,
         (PointCloud, "width"): cloud_w,
@@ -471,7 +505,8 @@ def _contract_overrides() -> dict[tuple[type, str], st.SearchStrategy]:
 
 # keys a clock tick or an ack may bound: those the nodes subscribe to, and one nobody does
 _CLOCK_BOUND_KEYS = sorted({keys.uav(UAV, t) for t in ("points", "points_truth", "labels", "map", "detections",
-                                                       "tracks", "command", "odometry", "trajectory")}
+                                                       "tracks", "command", "odometry", "trajectory", "camera",
+                                                       "camera_detections", "colors")}
                            | {keys.WORLD, keys.TRUTH, keys.FAULTS, keys.uav(PARTNER, "status"), "falconry/x/y"})
 
 VALID = Leaves(integers=st.integers(0, 2**63 - 1), floats=floats(), text=TEXT,

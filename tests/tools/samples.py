@@ -48,4 +48,6 @@ def _value(info, counter):
         return info.values[-1]
     if isinstance(info, mi.MemoryViewType):
         return memoryview(b"payload")
+    if isinstance(info, mi.BytesType):
+        return b"payload%d" % n
     raise TypeError(f"no sample for {info}")
