@@ -4,7 +4,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1 --detector oracle
+SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1
 CAMPAIGN_ARGS ?= --runs 20 --seed 1
 
 .PHONY: .venv sim test acceptance bench campaign schemas clean

@@ -20,9 +20,10 @@ SIM_SERVICES = ("simulator",)
 # `falconry sim --detector`: onboard = LiDAR perception for drones and the camera for balloons;
 # classifier = the LiDAR perception alone; oracle = the evaluation detector alone.
 DETECTORS = ("onboard", "classifier", "oracle")
+DEFAULT_DETECTOR = "onboard"
 
 
-def uav_services(detector: str = "classifier") -> list[str]:
+def uav_services(detector: str = DEFAULT_DETECTOR) -> list[str]:
     """The per-UAV services of a run: the oracle, when chosen, replaces the classifier; onboard adds
     the camera and Object Detect."""
     if detector not in DETECTORS:

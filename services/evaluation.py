@@ -5,7 +5,12 @@ Evaluation only: the launcher and the viewer read truth, no flying service does.
   the scan's stamp; otherwise it is false;
 - a target was in sight in a scan when at least MIN_HITS of the scan's rays hit it (points_truth),
   and missed when no detection of that scan matched it;
-- a confirmed track is false when it never came within MATCH_DISTANCE of any target.
+- a confirmed track is false when it never came within MATCH_DISTANCE of any target;
+- an engagement (the job manager's first attack or intercept command at a target) went for a
+  target when it was aimed within AIM_DISTANCE of one's true position, else at something that is
+  no target (a pole, a tree, a red wall, nothing).
+Camera detections are scored like the LiDAR's (matched or false); they have no in-sight count: a
+camera frame carries no per-pixel truth on the wire.
 Pure numpy.
 """
 from __future__ import annotations
@@ -16,6 +21,7 @@ import numpy as np
 
 MATCH_DISTANCE = 1.0  # m
 MIN_HITS = 3  # rays of one scan on a target for it to count as in sight
+AIM_DISTANCE = 2.0  # m between an attack's or interception's aim point and a target's true position
 NS = 1_000_000_000
 
 
@@ -31,6 +37,31 @@ def matched(positions: np.ndarray, targets: np.ndarray) -> np.ndarray:
 def found(targets: np.ndarray, positions: np.ndarray) -> np.ndarray:
     """(K,) bool: which targets have a detection within MATCH_DISTANCE."""
     return matched(targets, positions)
+
+
+@dataclass(frozen=True)
+class Engagement:
+    """One attack or interception a UAV started: where it aimed and at what."""
+
+    t: float  # mission time of its first command, s
+    action: str  # "attack" (a static target) or "intercept" (a mover)
+    aim: tuple[float, float, float]
+    target: str | None  # the target within AIM_DISTANCE of the aim, None: no target there
+    miss_m: float  # distance from the aim to the nearest target (inf: none standing)
+
+    def summary(self) -> dict:
+        return {"t": round(self.t, 2), "action": self.action, "aim": [round(v, 2) for v in self.aim],
+                "target": self.target, "miss_m": round(self.miss_m, 2) if np.isfinite(self.miss_m) else None}
+
+
+def aimed_at(aim, targets: dict[str, tuple[float, float, float]]) -> tuple[str | None, float]:
+    """(id of the target the aim point is within AIM_DISTANCE of, or None; distance to the nearest)."""
+    if not targets:
+        return None, float("inf")
+    ids = list(targets)
+    gaps = np.linalg.norm(np.array([targets[i] for i in ids], dtype=np.float64) - np.asarray(aim, float), axis=1)
+    k = int(np.argmin(gaps))
+    return (ids[k] if gaps[k] <= AIM_DISTANCE else None), float(gaps[k])
 
 
 @dataclass

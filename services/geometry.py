@@ -1,4 +1,5 @@
-"""Geometry shared by the services: plane polygons (arena, working areas, scan areas) and rotations.
+"""Geometry shared by the services: plane polygons (arena, working areas, scan areas), rotations and
+the checks on a measurement's covariance.
 
 Pure numpy (no scipy: see services/runtime/warmup.py). Polygons are (K, 2) vertex arrays, simple
 (possibly non-convex), without a repeated closing vertex (one is tolerated and dropped).
@@ -88,6 +89,18 @@ def point_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray | bo
     return bool(inside[0]) if single else inside
 
 
+def distance_to_edges(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """(N,) distance of (N, 2) points to the polygon's outline (inside or out)."""
+    poly = as_polygon(polygon)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    a, b = poly, np.roll(poly, -1, axis=0)
+    edge = b - a
+    length2 = np.maximum(np.sum(edge * edge, axis=1), 1e-18)
+    along = np.clip(np.einsum("nkd,kd->nk", pts[:, None, :] - a[None], edge) / length2, 0.0, 1.0)
+    nearest = a[None] + along[..., None] * edge[None]
+    return np.linalg.norm(pts[:, None, :] - nearest, axis=2).min(axis=1, initial=np.inf)
+
+
 def deepest_point(polygon: np.ndarray, step: float = 1.0) -> tuple[float, float]:
     """The grid point inside the polygon furthest from its edges (a safe spot for a default start)."""
     lo, hi = polygon.min(axis=0), polygon.max(axis=0)
@@ -150,3 +163,21 @@ def pairwise_gaps(points: np.ndarray) -> np.ndarray:
     gaps = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
     np.fill_diagonal(gaps, np.inf)
     return gaps
+
+
+def is_covariance(matrix: np.ndarray) -> bool:
+    """Finite, symmetric and positive semi-definite: what a detection's covariance must be to weigh it."""
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.shape != (3, 3) or not np.isfinite(m).all() or not np.allclose(m, m.T):
+        return False
+    eigenvalues = np.linalg.eigvalsh(m)
+    return bool(np.isfinite(eigenvalues).all() and eigenvalues.min() >= -1e-9 * max(1.0, abs(eigenvalues).max()))
+
+
+def with_variance_floor(covariance: np.ndarray | None, floor: float) -> np.ndarray:
+    """A measurement noise R: the (3, 3) covariance with each variance raised to at least `floor`
+    (stays positive semi-definite: only the diagonal grows); floor · I when there is none."""
+    if covariance is None:
+        return floor * np.eye(3)
+    cov = np.asarray(covariance, dtype=np.float64)
+    return cov + np.diag(np.maximum(floor - np.diag(cov), 0.0))

@@ -152,21 +152,32 @@ def test_every_service_command_is_a_valid_falconry_run(compose):
         assert args.zenoh_profile == "router", f"{name} must be a client of the router"
         assert args.connect == [f"tcp/zenoh:{ROUTER_PORT}"], name
         assert args.clock == "sim", f"{name}: in compose the simulator owns the clock"
-        if args.service in keys.UAV_SERVICES:
+        if args.service in keys.uav_services(simulator_detector(compose)):
             assert args.uav, f"{name}: {args.service} is a per-UAV service and needs --uav"
             keys.check_name(args.uav, "UAV name")
         else:
             assert args.uav is None, f"{name}: {args.service} is run-wide and takes no --uav"
 
 
-def test_both_uavs_run_all_six_services_and_one_simulator(compose):
+def simulator_detector(compose) -> str:
+    """The detector the compose simulator waits for (its --detector, else the default)."""
+    (simulator,) = [args for args in map(parse_falconry, (s["command"] for s in falconry_services(compose).values()))
+                    if args.service == "simulator"]
+    return simulator.detector or keys.DEFAULT_DETECTOR
+
+
+def test_both_uavs_run_every_service_the_simulator_waits_for_and_one_simulator(compose):
+    """The simulator starts the mission once every per-UAV service of its detector is alive: the
+    file must start exactly those (the default, onboard: LiDAR perception, camera, Object Detect)."""
     commands = [parse_falconry(s["command"]) for s in falconry_services(compose).values()]
     simulators = [args for args in commands if args.service == "simulator"]
     assert len(simulators) == 1
     uavs = keys.uav_names(simulators[0].uavs)
     assert uavs == ["uav1", "uav2"]
     running = Counter((args.uav, args.service) for args in commands if args.service != "simulator")
-    assert set(running) == {(uav, service) for uav in uavs for service in keys.UAV_SERVICES}
+    expected = keys.uav_services(simulator_detector(compose))
+    assert "camera" in expected and "object_detect" in expected
+    assert set(running) == {(uav, service) for uav in uavs for service in expected}
     assert max(running.values()) == 1, f"a service runs twice: {running.most_common(1)}"
 
 

@@ -60,3 +60,26 @@ def test_point_in_polygon():
     np.testing.assert_array_equal(point_in_polygon(points, L_SHAPE), [True, False, True, False, True])
     assert point_in_polygon(np.array([10.0, 10.0]), L_SHAPE) is True
     assert point_in_polygon(np.array([60.0, 50.0]), L_SHAPE) is False
+
+
+def test_distance_to_the_outline_inside_and_out():
+    from services.geometry import distance_to_edges
+    # (75, 45) lies in the cut-out block, 15 m above its lower edge
+    points = np.array([[25.0, 45.0], [75.0, 45.0], [50.0, 30.0], [-3.0, -4.0], [102.0, 15.0]])
+    np.testing.assert_allclose(distance_to_edges(points, L_SHAPE), [15.0, 15.0, 0.0, 5.0, 2.0])
+
+
+def test_a_target_on_the_line_between_two_areas_is_usable_from_both_but_not_outside_the_arena():
+    from services.job_manager.targets import ForbiddenZones, usable_detections
+    left, right = split_area(RECT, 2)
+    on_line = np.array([[45.0 + dx, 20.0, 4.0] for dx in (-0.3, 0.3, 1.9, -2.5)])
+    outside = np.array([[45.0, -1.0, 4.0]])  # near both areas' outline, but off the field
+    zones = ForbiddenZones(radius=4.5, lifetime_ns=1, max_tries=2)
+    common = dict(zones=zones, claimed=np.zeros((0, 3)), claim_radius=4.5, min_z=1.0, arena=RECT)
+    points = np.vstack([on_line, outside])
+    strict = [usable_detections(points, area=area, **common) for area in (left, right)]
+    np.testing.assert_array_equal(strict[0] | strict[1], [True, True, True, True, False])
+    assert not (strict[0] & strict[1]).any()  # without the overlap each is one UAV's alone
+    both = [usable_detections(points, area=area, area_overlap=2.0, **common) for area in (left, right)]
+    np.testing.assert_array_equal(both[0], [True, True, True, True, False])
+    np.testing.assert_array_equal(both[1], [True, True, True, False, False])

@@ -345,6 +345,97 @@ def test_target_filter_measures_velocity_and_follows_a_mover():
     np.testing.assert_allclose(still.estimate, BALLOON, atol=0.1)
 
 
+def along_ray_covariance(observer: np.ndarray, target: np.ndarray, along: float, across: float) -> np.ndarray:
+    """A camera detection's covariance: `along` m σ on the line of sight, `across` m σ across it."""
+    ray = (target - observer) / np.linalg.norm(target - observer)
+    return across**2 * np.eye(3) + (along**2 - across**2) * np.outer(ray, ray)
+
+
+def camera_sightings(observer, target, along, across, rng, count):
+    """`count` detections of a still target, scattered as their covariance says."""
+    cov = along_ray_covariance(observer, target, along, across)
+    return rng.multivariate_normal(target, cov, size=count), cov
+
+
+def test_a_far_balloon_seen_by_the_camera_does_not_move_though_its_unweighted_fit_says_so():
+    """30 m away a camera's range from the balloon's size is ~3 m off along the ray: ten frames
+    of it fit "speeds" of metres per second. Weighed by their covariances they are noise."""
+    from services.job_manager.targets import TargetFilter
+    rng = np.random.default_rng(4)
+    observer = BALLOON + [-30.0, 0.0, 1.0]
+    noisy_speeds, moved = [], []
+    for trial in range(20):
+        seen, cov = camera_sightings(observer, BALLOON, 3.0, 0.05, rng, 11)
+        weighed = TargetFilter(seen[0], 0, gate=3.0, measurement_sigma=0.15, process_sigma=0.05,
+                               max_gap_ns=s(1.0), history_ns=s(1.0), covariance=cov)
+        blind = TargetFilter(seen[0], 0, gate=50.0, measurement_sigma=0.15, process_sigma=0.05,
+                             max_gap_ns=s(1.0), history_ns=s(1.0))
+        for k in range(1, 11):
+            assert weighed.update(seen[k][None], s(0.1 * k), cov[None])
+            blind.update(seen[k][None], s(0.1 * k))
+        noisy_speeds.append(blind.speed())
+        moved.append(weighed.moves(1.0, 3.0))
+    assert np.median(noisy_speeds) > 2.0  # what the fixed-noise fit believed
+    assert not any(moved)
+
+
+def test_covariances_weigh_the_balloon_estimate_and_shape_the_gate():
+    from services.job_manager.targets import TargetFilter
+    rng = np.random.default_rng(5)
+    observer = BALLOON + [-30.0, 0.0, 1.0]
+    seen, cov = camera_sightings(observer, BALLOON, 3.0, 0.05, rng, 30)
+    target = TargetFilter(seen[0], 0, gate=3.0, measurement_sigma=0.15, process_sigma=0.05,
+                          max_gap_ns=s(1.0), covariance=cov)
+    for k in range(1, 30):
+        assert target.update(seen[k][None], s(0.1 * k), cov[None])
+    assert np.linalg.norm(target.estimate - BALLOON) < 1.5  # 3 m per frame along the ray, averaged
+    assert abs(target.estimate[1] - BALLOON[1]) < 0.1  # across the ray it was precise all along
+    # a detection 8 m along the ray fits the camera's ellipsoid; one 4 m across it does not
+    assert target.update((target.estimate + [-8.0, 0.0, 0.0])[None], s(3.0), cov[None])
+    assert not target.update((target.estimate + [0.0, 4.0, 0.0])[None], s(3.1), cov[None])
+    # a near, precise detection outweighs the far ones
+    close = np.eye(3) * 0.02**2
+    target.update(BALLOON[None], s(3.2), close[None])
+    assert np.linalg.norm(target.estimate - BALLOON) < 0.2
+
+
+def test_a_drone_seen_by_the_lidar_still_moves_and_bad_covariances_fall_back_to_the_default():
+    from services.job_manager.targets import TargetFilter
+    rng = np.random.default_rng(6)
+    lidar = np.eye(3) * 0.2**2
+    mover = TargetFilter(drone_at(0.0), 0, gate=3.0, measurement_sigma=0.15, process_sigma=0.05,
+                         max_gap_ns=s(1.0), history_ns=s(1.0), covariance=lidar)
+    broken = np.full((3, 3), np.nan)
+    for k in range(1, 11):
+        t = 0.1 * k
+        cov = broken if k % 3 == 0 else lidar  # every third one unusable: weighed by the default
+        assert mover.update((drone_at(t) + rng.normal(0, 0.2, 3))[None], s(t), cov[None])
+    assert mover.moves(1.0, 3.0)
+    np.testing.assert_allclose(mover.velocity, [3.0, 0.0, 0.0], atol=0.6)
+    assert np.isfinite(mover.estimate).all()
+
+
+def test_a_balloon_the_camera_sees_is_attacked_though_its_range_jumps_when_depth_takes_over():
+    """The camera's range from a balloon's size is biased (here 3 m long, a tight colour pick)
+    until the depth image reaches it, then it jumps to the truth: a velocity fit reads 5 m/s.
+    A target the balloon detector saw is tethered: approached and attacked, never intercepted."""
+    rig = Rig().airborne()
+    observer = HOME.copy()
+    biased = BALLOON + 3.0 * (BALLOON - observer) / np.linalg.norm(BALLOON - observer)
+    far = along_ray_covariance(observer, BALLOON, 1.5, 0.05)
+    near = np.eye(3) * 0.05**2
+    for k in range(40):
+        t = round(1.1 + 0.05 * k, 3)
+        seen, cov = (biased, far) if k < 20 else (BALLOON, near)
+        if k % 2:  # frames between the scans; the LiDAR sees nothing of a balloon on its pole
+            rig.jm.observe_camera(s(t), seen[None], cov[None])
+        rig.tick(t)
+    assert rig.jm.engagement is not None and rig.jm.engagement.filter.tethered
+    assert all(d.action != "intercept" for d in rig.decisions), [d.action for d in rig.decisions]
+    assert not any("intercepting" in n for n in rig.jm.notes)
+    np.testing.assert_allclose(rig.jm.engagement.position(s(3.1)), BALLOON, atol=0.3)
+
+
 def test_a_target_that_turns_out_to_move_is_intercepted():
     rig = Rig().airborne()
     rig.tick(1.1, detections=[drone_at(0.0)])

@@ -1,6 +1,8 @@
 """The run timeline PNG and the run monitor behind it, for a simulated run and a real flight."""
 from __future__ import annotations
 
+import math
+
 import msgspec
 import numpy as np
 import pytest
@@ -74,3 +76,38 @@ def test_the_monitor_reports_each_episode_below_the_safety_distance():
         {"start": 3.0, "end": 6.0, "pair": "uav1-uav2", "m": 2.0},
         {"start": 8.0, "end": 9.0, "pair": "uav1-uav2", "m": 4.5}]
     assert RunMonitor().summary()["separation_violations"] == []  # no safety distance given: nothing judged
+
+
+def test_the_monitor_judges_engagements_by_their_aim_and_scores_the_camera():
+    """Each engagement is judged once, at its first attack or intercept command (re-plans of the same
+    one follow it); an aim within 2 m of a standing target went for it, one at a pole top did not.
+    Camera detections count as matched or false like the LiDAR's."""
+    from schemas.messages import MissionCommand, TargetTruth
+    from services.launcher.sim_cmd import engagement_line
+    monitor = RunMonitor()
+    balloon = (30.0, 30.0, 4.0)
+    monitor.handle("falconry/sim/truth", encode(GroundTruth(header=Header(stamp=S), step=0, targets=[
+        TargetTruth(id="balloon1", kind="balloon", position=balloon, velocity=(0, 0, 0), radius=0.3)])))
+
+    def command(k: int, action: str, target) -> None:
+        monitor.handle("falconry/uav1/command", encode(MissionCommand(
+            header=Header(stamp=S), command_id=k, action=action, target=target)))
+
+    command(1, "approach", (29.0, 30.0, 4.0))
+    command(2, "attack", (30.5, 30.0, 4.0))
+    command(3, "attack", (30.3, 30.0, 4.0))  # a re-plan of the same attack
+    command(4, "scan", None)
+    command(5, "attack", (50.0, 12.0, 3.0))  # a red pole top: no target there
+    camera = Detections(header=Header(stamp=S), detector="camera",
+                        positions=from_numpy(np.array([balloon, (50.0, 12.0, 3.0)])),
+                        covariances=from_numpy(np.zeros((2, 3, 3))), point_counts=from_numpy(np.zeros(2, np.int32)),
+                        extents=from_numpy(np.zeros(2, np.float32)))
+    monitor.handle("falconry/uav1/camera_detections", encode(camera))
+    uav1 = monitor.summary()["uavs"]["uav1"]
+    assert [(e["action"], e["target"]) for e in uav1["engagements"]] == [("attack", "balloon1"), ("attack", None)]
+    assert uav1["engagements"][1]["miss_m"] == pytest.approx(math.dist((50.0, 12.0, 3.0), balloon), abs=0.01)
+    assert (uav1["camera"]["detections"], uav1["camera"]["matched"], uav1["camera"]["false"]) == (2, 1, 1)
+    assert monitor.first_detected["balloon1"] == (pytest.approx(1.0), "uav1")
+    line = engagement_line(uav1["engagements"])
+    assert line.startswith("2 attacks, 1 at no target: t=1.0 s attack at (50.0, 12.0, 3.0), nearest target")
+    assert engagement_line(uav1["engagements"][:1]) == "1 attack, all at a target (within 2 m)"

@@ -95,6 +95,26 @@ class Engagement:
         return self.filter.last_seen
 
 
+@dataclass(frozen=True)
+class Candidates:
+    """Detections the machine may act on, each with the stamp of its scan or frame and its
+    covariance (NaN where the detector gave none)."""
+
+    positions: np.ndarray  # (N, 3)
+    stamps: np.ndarray  # (N,) int ns
+    covariances: np.ndarray  # (N, 3, 3)
+    tethered: np.ndarray  # (N,) bool: seen by the camera's balloon detector
+
+    def newest(self) -> Candidates:
+        """Those of the latest scan or frame."""
+        keep = self.stamps == self.stamps.max(initial=0)
+        return Candidates(self.positions[keep], self.stamps[keep], self.covariances[keep], self.tethered[keep])
+
+
+def _rows(covariances: np.ndarray | None, keep: np.ndarray) -> np.ndarray | None:
+    return None if covariances is None else covariances[keep]
+
+
 def _tuple(v) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
 
@@ -161,22 +181,24 @@ class JobManager:
         active = self.team.active
         self.working_area = split_area(self.arena, len(active))[active.index(self.uav)]
 
-    def observe_detections(self, stamp: int, positions: np.ndarray) -> None:
-        """One scan's detections (N, 3), world frame; also the LiDAR heartbeat of the abort system."""
-        positions = self.seen.scan(stamp, positions)
-        above = positions[positions[:, 2] >= self.ground_z + self.params.min_target_height]
+    def observe_detections(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None) -> None:
+        """One scan's detections (N, 3), world frame, with their covariances (N, 3, 3) if known;
+        also the LiDAR heartbeat of the abort system."""
+        positions, covariances = self.seen.scan(stamp, positions, covariances)
+        above = positions[:, 2] >= self.ground_z + self.params.min_target_height
         if self.engagement is not None:
-            self.engagement.filter.update(above, stamp)
+            self.engagement.filter.update(positions[above], stamp, _rows(covariances, above))
         mover = self.seen.last_mover
         if mover is not None and (self.engagement is None or mover is not self.engagement.filter):
-            mover.update(above, stamp)  # keep knowing where the last mover is, engaged or not
+            mover.update(positions[above], stamp, _rows(covariances, above))  # keep knowing where it is
 
-    def observe_camera(self, stamp: int, positions: np.ndarray) -> None:
-        """One camera frame's detections (N, 3), world frame (Object Detect: balloons by colour)."""
-        positions = self.seen.camera(stamp, positions)
+    def observe_camera(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None) -> None:
+        """One camera frame's detections (N, 3), world frame, with their covariances (N, 3, 3) if
+        known (Object Detect: balloons by colour; far ones are metres off along the ray)."""
+        positions, covariances = self.seen.camera(stamp, positions, covariances)
+        above = positions[:, 2] >= self.ground_z + self.params.min_target_height
         if self.engagement is not None:
-            self.engagement.filter.update(positions[positions[:, 2] >= self.ground_z + self.params.min_target_height],
-                                          stamp)
+            self.engagement.filter.update(positions[above], stamp, _rows(covariances, above), tethered=True)
 
     def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
         """Confirmed tracks: ids (K,), positions and velocities (K, 3); they tell at the lock
@@ -271,32 +293,41 @@ class JobManager:
         latest = self.seen.in_view(now)
         return np.zeros((0, 3)) if latest is None else self._usable(latest, now, position, self.seen.view_stamp)
 
-    def recent_candidates(self, now: int, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Candidates of the scans of the last t_m, with their stamps: a target far away shows in
-        some scans only, and the stop manoeuvre may carry it out of range for a while."""
-        scans = [(stamp, self._usable(positions, now, position, stamp)) for stamp, positions in self.seen.recent
-                 if now - stamp <= int(self.params.target_time * NS)]
-        if not scans:
-            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
-        return (np.concatenate([c for _, c in scans]),
-                np.concatenate([np.full(len(c), stamp, dtype=np.int64) for stamp, c in scans]))
+    def recent_candidates(self, now: int, position: np.ndarray) -> Candidates:
+        """Candidates of the scans and frames of the last t_m, with their stamps and covariances:
+        a target far away shows in some scans only, and the stop manoeuvre may carry it out of
+        range for a while."""
+        fresh = [seen for seen in self.seen.recent if now - seen.stamp <= int(self.params.target_time * NS)]
+        keeps = [self._usable_mask(seen.positions, now, position, seen.stamp) for seen in fresh]
+        if not fresh:
+            return Candidates(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros((0, 3, 3)),
+                              np.zeros(0, dtype=bool))
+        return Candidates(np.concatenate([seen.positions[keep] for seen, keep in zip(fresh, keeps)]),
+                          np.concatenate([np.full(int(keep.sum()), seen.stamp, dtype=np.int64)
+                                          for seen, keep in zip(fresh, keeps)]),
+                          np.concatenate([seen.covariances[keep] for seen, keep in zip(fresh, keeps)]),
+                          np.concatenate([np.full(int(keep.sum()), seen.tethered) for seen, keep in zip(fresh, keeps)]))
 
     def _usable(self, detections: np.ndarray, now: int, position: np.ndarray, stamp: int) -> np.ndarray:
-        """The detections of the scan at `stamp` the machine may act on; while movers are skipped
-        (a mover ran out a state timer), the ones that move are left out too."""
+        return detections[self._usable_mask(detections, now, position, stamp)]
+
+    def _usable_mask(self, detections: np.ndarray, now: int, position: np.ndarray, stamp: int) -> np.ndarray:
+        """(N,) bool: the detections of the scan at `stamp` the machine may act on; while movers
+        are skipped (a mover ran out a state timer), the ones that move are left out too."""
         p = self.params
+        keep = np.ones(len(detections), dtype=bool)
         if now < self._no_moving_until and len(detections):
-            still = np.array([self.seen.motion(d, now, stamp) is None for d in detections])
-            detections = detections[still]
+            keep = np.array([self.seen.motion(d, now, stamp) is None for d in detections])
         mine = None if self.engagement is None else self.engagement.position(now)
         claimed = self.team.claimed_targets(mine, position, p.claim_radius) if self.team else np.zeros((0, 3))
-        keep = usable_detections(detections, area=self.working_area, zones=self.zones, claimed=claimed,
-                                 claim_radius=p.claim_radius, min_z=self.ground_z + p.min_target_height)
+        keep &= usable_detections(detections, area=self.working_area, zones=self.zones, claimed=claimed,
+                                  claim_radius=p.claim_radius, min_z=self.ground_z + p.min_target_height,
+                                  area_overlap=p.area_overlap, arena=self.arena)
         no_fly = self._no_fly(now)
         if len(no_fly) and len(detections):  # an unaccounted partner may be there: no attack near it
             apart = np.linalg.norm(detections[:, None, :2] - no_fly[None, :, :2], axis=2)
             keep &= (apart >= p.safety_distance + p.no_fly_margin).all(axis=1)
-        return detections[keep]
+        return keep
 
     def _no_fly(self, now: int) -> np.ndarray:
         return self.team.no_fly(now, self.takeoff_at) if self.team is not None else np.zeros((0, 3))
@@ -315,15 +346,16 @@ class JobManager:
             return p.search_height
         return max(p.search_height, float(near[:, 2].max()) + p.vertical_separation + p.safety_distance)
 
-    def _lock(self, candidates: np.ndarray, stamps: np.ndarray, position: np.ndarray, now: int) -> bool:
+    def _lock(self, found: Candidates, position: np.ndarray, now: int) -> bool:
         """Select b_c: the closest static candidate (a moving one only when none is static); the
         previous target, when it is among them, counts as closest (no flip-flopping between two)."""
+        candidates, stamps = found.positions, found.stamps
         distance = np.linalg.norm(candidates - position, axis=1)
         if self._previous_target is not None:
             again = np.linalg.norm(candidates - self._previous_target, axis=1) <= self.params.detection_gate
             distance = np.where(again, 0.0, distance)
         order = np.argsort(distance, kind="stable")
-        moving = [self.seen.motion(candidates[k], now, int(stamps[k])) for k in order]
+        moving = [None if found.tethered[k] else self.seen.motion(candidates[k], now, int(stamps[k])) for k in order]
         static = [k for k, m in zip(order, moving) if m is None]
         if not static and now < self._no_moving_until:
             return False
@@ -334,8 +366,9 @@ class JobManager:
             filter=TargetFilter(candidates[pick], int(stamps[pick]), gate=p.detection_gate,
                                 measurement_sigma=p.filter_sigma, process_sigma=p.filter_process_sigma,
                                 max_gap_ns=int(p.streak_gap * NS), history_ns=int(p.velocity_window * NS),
-                                velocity=None if track is None else track[2]),
+                                velocity=None if track is None else track[2], covariance=found.covariances[pick]),
             moving=track is not None)
+        self.engagement.filter.tethered = bool(found.tethered[pick])
         self._sent_target = None
         return True
 
@@ -389,13 +422,12 @@ class JobManager:
             if self._stopping and np.linalg.norm(velocity) < p.stop_speed:
                 return State.CHECKING_TARGET, "stopped with a target in view"
         elif state is State.CHECKING_TARGET:
-            candidates, stamps = self.recent_candidates(now, position)
-            newest = stamps == stamps.max(initial=0)
-            candidates, stamps = candidates[newest], stamps[newest]  # the latest scan that saw any
-            if len(candidates):
-                closest = int(np.argmin(np.linalg.norm(candidates - position, axis=1)))
-                self._checked = candidates[closest]
-                if np.linalg.norm(velocity) < p.stop_speed and self._lock(candidates, stamps, position, now):
+            recent = self.recent_candidates(now, position)
+            latest = recent.newest()  # the latest scan or frame that saw any
+            if len(latest.positions):
+                closest = int(np.argmin(np.linalg.norm(latest.positions - position, axis=1)))
+                self._checked = latest.positions[closest]
+                if np.linalg.norm(velocity) < p.stop_speed and self._lock(latest, position, now):
                     kind = "moving" if self.engagement.moving else "static"
                     return State.GOING_TO_TARGET, f"{kind} target at {self._fmt(self.engagement.position(now))}"
             elif now - self.state_since > int(p.target_time * NS):
@@ -493,7 +525,7 @@ class JobManager:
         """A target locked as static that turns out to move is intercepted from now on (non-empty:
         drop it instead)."""
         e = self.engagement
-        if not e.moving and e.filter.speed() >= self.params.moving_speed:
+        if not e.moving and e.filter.moves(self.params.moving_speed, self.params.motion_sigmas):
             if now < self._no_moving_until:
                 self.seen.last_mover = e.filter  # so it is known for a mover from now on
                 return "the target moves, and moving targets are skipped for now"

@@ -97,12 +97,10 @@ class JobManagerNode(Node):
         self.position_stamp = msg.header.stamp
 
     def on_detections(self, msg: Detections, key: str) -> None:
-        positions = to_numpy(msg.positions)
-        self.core.observe_detections(msg.header.stamp, positions.reshape(-1, 3) if positions.size else np.zeros((0, 3)))
+        self.core.observe_detections(msg.header.stamp, *_positions_and_covariances(msg))
 
     def on_camera_detections(self, msg: Detections, key: str) -> None:
-        positions = to_numpy(msg.positions)
-        self.core.observe_camera(msg.header.stamp, positions.reshape(-1, 3) if positions.size else np.zeros((0, 3)))
+        self.core.observe_camera(msg.header.stamp, *_positions_and_covariances(msg))
 
     def on_tracks(self, msg: Tracks, key: str) -> None:
         confirmed = [t for t in msg.tracks if t.confirmed]
@@ -208,3 +206,12 @@ class JobManagerNode(Node):
 
 
 NODE = JobManagerNode
+
+
+def _positions_and_covariances(msg: Detections) -> tuple[np.ndarray, np.ndarray | None]:
+    """(N, 3) positions and (N, 3, 3) covariances, None when their count does not match."""
+    positions = to_numpy(msg.positions)
+    positions = positions.reshape(-1, 3) if positions.size else np.zeros((0, 3))
+    covariances = to_numpy(msg.covariances)
+    covariances = covariances.reshape(-1, 3, 3) if covariances.size == 9 * len(positions) else None
+    return positions, covariances

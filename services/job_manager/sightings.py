@@ -5,6 +5,7 @@ has it held still, is it where the last mover would be by now."""
 from __future__ import annotations
 
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -17,6 +18,16 @@ STILL_TIME = 1.0  # s
 Motion = tuple  # (track id or None, position (3,), velocity (3,), stamp)
 
 
+@dataclass(frozen=True)
+class Seen:
+    """One scan's or camera frame's detections."""
+
+    stamp: int  # ns
+    positions: np.ndarray  # (N, 3)
+    covariances: np.ndarray  # (N, 3, 3), NaN where the detector gave none
+    tethered: bool = False  # from the camera's balloon detector
+
+
 class Sightings:
     def __init__(self, params: JobManagerParams) -> None:
         self.params = params
@@ -25,32 +36,36 @@ class Sightings:
         self.latest_stamp = 0
         self.camera_latest = np.zeros((0, 3))  # the latest camera frame's detections (balloons by colour)
         self.camera_stamp: int | None = None
-        self.recent: deque[tuple[int, np.ndarray]] = deque()  # the last t_m of scans' detections
+        self.recent: deque[Seen] = deque()  # the last t_m of scans' and frames' detections
         self.tracks: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # stamp, ids, pos, vel
         self.last_mover: TargetFilter | None = None  # the filter of the last target found to move
 
-    def scan(self, stamp: int, positions: np.ndarray) -> np.ndarray:
-        """One scan's detections (N, 3); returns them without non-finite rows."""
-        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        positions = positions[np.isfinite(positions).all(axis=1)]
+    def scan(self, stamp: int, positions: np.ndarray,
+             covariances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """One scan's detections (N, 3) and covariances (N, 3, 3) or None; returns both without
+        the rows whose position is not finite."""
+        positions, covariances = _finite(positions, covariances)
         self.scan_stamp = stamp if self.scan_stamp is None else max(self.scan_stamp, stamp)
         self.latest, self.latest_stamp = positions, stamp
-        self._remember(stamp, positions)
-        return positions
+        self._remember(stamp, positions, covariances)
+        return positions, covariances
 
-    def camera(self, stamp: int, positions: np.ndarray) -> np.ndarray:
-        """One camera frame's detections (N, 3); returns them without non-finite rows. They join the
-        LiDAR's in view and in the recent scans (a balloon on its pole is background to the LiDAR
-        perception: the camera is what sees it)."""
-        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        positions = positions[np.isfinite(positions).all(axis=1)]
+    def camera(self, stamp: int, positions: np.ndarray,
+               covariances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """One camera frame's detections, as `scan`. They join the LiDAR's in view and in the
+        recent scans (a balloon on its pole is background to the LiDAR perception: the camera is
+        what sees it)."""
+        positions, covariances = _finite(positions, covariances)
         self.camera_latest, self.camera_stamp = positions, stamp
-        self._remember(stamp, positions)
-        return positions
+        self._remember(stamp, positions, covariances, tethered=True)
+        return positions, covariances
 
-    def _remember(self, stamp: int, positions: np.ndarray) -> None:
-        self.recent.append((stamp, positions))
-        while self.recent and stamp - self.recent[0][0] > int(self.params.target_time * NS):
+    def _remember(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None,
+                  tethered: bool = False) -> None:
+        if covariances is None:
+            covariances = np.full((len(positions), 3, 3), np.nan)
+        self.recent.append(Seen(stamp, positions, covariances, tethered))
+        while self.recent and stamp - self.recent[0].stamp > int(self.params.target_time * NS):
             self.recent.popleft()
 
     def confirmed_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
@@ -104,6 +119,20 @@ class Sightings:
     def held_still(self, candidate: np.ndarray, now: int) -> bool:
         """Seen at this very place (within STILL_RADIUS) over at least STILL_TIME of the recent
         scans: a balloon, not a drone passing through (which is a metre away a second later)."""
-        stamps = [stamp for stamp, positions in self.recent if len(positions)
-                  and np.linalg.norm(positions - candidate, axis=1).min() <= STILL_RADIUS]
+        stamps = [seen.stamp for seen in self.recent if len(seen.positions)
+                  and np.linalg.norm(seen.positions - candidate, axis=1).min() <= STILL_RADIUS]
         return bool(stamps) and now - min(stamps) >= int(STILL_TIME * NS)
+
+
+def _finite(positions: np.ndarray, covariances: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The rows with a finite position; covariances of the wrong count are dropped whole (the
+    target filter then weighs each detection by its default noise; it checks each matrix itself)."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if covariances is not None:
+        covariances = np.asarray(covariances, dtype=np.float64)
+        if covariances.size != 9 * len(positions):
+            covariances = None
+        else:
+            covariances = covariances.reshape(-1, 3, 3)
+    finite = np.isfinite(positions).all(axis=1)
+    return positions[finite], None if covariances is None else covariances[finite]

@@ -6,41 +6,61 @@ Pure: numpy in, numpy out; every time is an int ns stamp passed in by the caller
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.geometry import point_in_polygon
+from services.geometry import distance_to_edges, is_covariance, point_in_polygon, with_variance_floor
 
 NS = 1_000_000_000
 
 
 class TargetFilter:
     """Seed 004 §4.2 "balloon filter": a linear KF with a static-object model in 3D, started
-    at the chosen target; each scan it takes the detection closest to its prediction within
-    `gate` (d_e) and ignores the rest. `streak_start` is when the current run of detections
-    without a gap longer than `max_gap` began: the target counts as confirmed for t_m once
+    at the chosen target; each scan or frame it takes the detection that fits its prediction best
+    and ignores the rest. `streak_start` is when the current run of detections without a gap
+    longer than `max_gap` began: the target counts as confirmed for t_m once
     now − streak_start ≥ t_m.
 
     Beside the KF, a straight-line fit over the taken detections of the last `history_ns`
     measures the target's velocity, so a target that moves (an intruder drone) is noticed,
-    gated where it will be and handed to interception; for a balloon it stays near zero."""
+    gated where it will be and handed to interception; for a balloon it stays near zero.
+
+    Detections carry their covariance (the LiDAR's are a few decimetres; a camera's range from a
+    far balloon's size is metres off along the line of sight, a few centimetres across it). The
+    seed's filter takes one fixed noise; here each detection weighs by its own (raised to at
+    least `measurement_sigma`², which also covers a balloon's sway): in the KF update, in the gate
+    (a detection is the target when it lies within `gate` of the prediction, or within the 99 %
+    ellipsoid of the prediction's and the detection's covariances — long along a camera's ray,
+    narrow across it), and in the velocity fit (weighted least squares, whose standard error says
+    whether a fitted speed is motion or noise: `moves`). Without that, ten camera frames of a
+    balloon 30 m away "move" at metres per second.
+
+    A target the camera's balloon detector saw (`update(..., tethered=True)`) is a balloon on its
+    tether: it never moves and is predicted where the KF holds it. The camera's range is also
+    biased, not only noisy — from the balloon's size until the depth image reaches it (10 m), then
+    from depth — and a metre's jump between the two reads as motion to any velocity fit."""
 
     MIN_FIT_POINTS = 5
     MIN_FIT_SPAN_NS = 500_000_000
+    GATE_CHI2 = 11.34  # χ² with 3 degrees of freedom, 99 %
 
     def __init__(self, position: np.ndarray, stamp: int, *, gate: float, measurement_sigma: float,
                  process_sigma: float, max_gap_ns: int, history_ns: int = 2 * NS,
-                 velocity: np.ndarray | None = None, max_speed: float = 5.0) -> None:
+                 velocity: np.ndarray | None = None, max_speed: float = 5.0,
+                 covariance: np.ndarray | None = None) -> None:
         from filterpy.kalman import KalmanFilter  # imported here: see services/runtime/warmup.py
 
+        self._floor = measurement_sigma**2
+        first_noise = self._noise(covariance)
         kf = KalmanFilter(dim_x=3, dim_z=3)
         kf.x = np.asarray(position, dtype=np.float64).reshape(3, 1).copy()
         kf.F = np.eye(3)
         kf.H = np.eye(3)
-        kf.P = np.eye(3) * measurement_sigma**2
-        kf.R = np.eye(3) * measurement_sigma**2
+        kf.P = first_noise.copy()
+        kf.R = np.eye(3) * self._floor
         self._kf = kf
         self._process_variance = process_sigma**2
         self.gate = gate
@@ -51,10 +71,24 @@ class TargetFilter:
         self.streak_start = stamp
         self.updates = 1
         self._last_predict = stamp
-        self._history: deque[tuple[int, np.ndarray]] = deque([(stamp, kf.x.reshape(3).copy())])
+        self._history: deque[tuple[int, np.ndarray, float]] = deque(
+            [(stamp, kf.x.reshape(3).copy(), self._weight(first_noise))])
         self._prior_velocity = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64).reshape(3)
         self.velocity = self._prior_velocity.copy()
+        self.velocity_sigma = math.inf  # standard error of the fitted velocity, m/s per axis
+        self._fit_anchor: tuple[float, np.ndarray] | None = None  # (weighted mean time s, position there)
         self._velocity_known = velocity is not None
+        self.tethered = False  # the camera's balloon detector saw it: a balloon
+
+    def _noise(self, covariance: np.ndarray | None) -> np.ndarray:
+        usable = covariance is not None and is_covariance(covariance)
+        return with_variance_floor(covariance if usable else None, self._floor)
+
+    @staticmethod
+    def _weight(noise: np.ndarray) -> float:
+        """The velocity fit's weight of a detection: 1 / its largest variance (a scalar weight
+        that never trusts a detection more than its worst direction deserves)."""
+        return 1.0 / float(np.linalg.eigvalsh(noise)[-1])
 
     @property
     def estimate(self) -> np.ndarray:
@@ -65,11 +99,25 @@ class TargetFilter:
         return self._history[-1][1].copy()
 
     def predict(self, stamp: int) -> np.ndarray:
-        """Where the target is at `stamp`: its last detection carried along the fitted velocity."""
+        """Where the target is at `stamp`: a balloon where the KF holds it; else on the fitted line
+        once there is one, else its last detection carried along the velocity it was handed."""
+        if self.tethered:
+            return self.estimate
+        if self._fit_anchor is not None:
+            t_mean, at_mean = self._fit_anchor
+            return at_mean + self.velocity * (stamp / NS - t_mean)
         return self.last_position + self.velocity * ((stamp - self.last_seen) / NS)
 
-    def update(self, positions: np.ndarray, stamp: int) -> bool:
-        """One scan's detections (N, 3); True when one of them was taken as the target."""
+    def _extrapolation_variance(self, stamp: int) -> float:
+        """Per axis, m²: what the fitted velocity's standard error adds to the line's prediction."""
+        if self._fit_anchor is None:
+            return 0.0
+        return (self.velocity_sigma * (stamp / NS - self._fit_anchor[0])) ** 2
+
+    def update(self, positions: np.ndarray, stamp: int, covariances: np.ndarray | None = None,
+               tethered: bool = False) -> bool:
+        """One scan's or frame's detections (N, 3) with their covariances (N, 3, 3) if known,
+        `tethered` when they come from the balloon detector; True when one of them was taken."""
         elapsed = max(stamp - self._last_predict, 0) / NS
         self._kf.Q = np.eye(3) * self._process_variance * max(elapsed, 1e-3)  # a static target may still sway
         self._kf.predict()
@@ -77,36 +125,57 @@ class TargetFilter:
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         if not len(positions):
             return False
-        gaps = np.linalg.norm(positions - self.predict(stamp), axis=1)
-        best = int(np.argmin(gaps))
+        noises = [self._noise(None if covariances is None else covariances[k]) for k in range(len(positions))]
+        offsets = positions - self.predict(stamp)
+        gaps = np.linalg.norm(offsets, axis=1)
         # until its velocity is known, a target may have moved since it was last seen
         unknown = 0.0 if self._velocity_known else self.max_speed * min((stamp - self.last_seen) / NS, 1.0)
-        grown = self.gate + unknown
-        if gaps[best] > grown:
+        spread = self._kf.P + np.eye(3) * (unknown**2 + self._extrapolation_variance(stamp))
+        mahalanobis = np.array([float(d @ np.linalg.solve(spread + r, d)) for d, r in zip(offsets, noises)])
+        inside = (gaps <= self.gate + unknown) | (mahalanobis <= self.GATE_CHI2)
+        if not inside.any():
             return False
-        self._kf.update(positions[best].reshape(3, 1))
+        best = int(np.argmin(np.where(inside, mahalanobis, np.inf)))
+        self._kf.update(positions[best].reshape(3, 1), R=noises[best])
+        self.tethered = self.tethered or tethered
         if stamp - self.last_seen > self.max_gap_ns:
             self.streak_start = stamp
         self.last_seen = stamp
         self.updates += 1
-        self._history.append((stamp, positions[best].copy()))
+        self._history.append((stamp, positions[best].copy(), self._weight(noises[best])))
         while stamp - self._history[0][0] > self.history_ns:
             self._history.popleft()
         self._fit_velocity()
         return True
 
     def _fit_velocity(self) -> None:
+        """Weighted least-squares line through the history: velocity, its standard error, and the
+        weighted mean time and position the line passes through."""
         if len(self._history) < self.MIN_FIT_POINTS or \
                 self._history[-1][0] - self._history[0][0] < self.MIN_FIT_SPAN_NS:
             return
         t = np.array([h[0] for h in self._history], dtype=np.float64) / NS
         xyz = np.array([h[1] for h in self._history])
-        t -= t.mean()
-        self.velocity = (t @ (xyz - xyz.mean(axis=0))) / (t @ t)
+        w = np.array([h[2] for h in self._history])
+        t_mean = float(w @ t / w.sum())
+        at_mean = w @ xyz / w.sum()
+        dt = t - t_mean
+        spread = float(w @ dt**2)
+        self.velocity = (w * dt) @ (xyz - at_mean) / spread
+        self.velocity_sigma = math.sqrt(1.0 / spread)
+        self._fit_anchor = (t_mean, at_mean)
         self._velocity_known = True
 
     def speed(self) -> float:
         return float(np.linalg.norm(self.velocity))
+
+    def moves(self, min_speed: float, sigmas: float) -> bool:
+        """Not a balloon, and the fitted speed is at least `min_speed` and `sigmas` standard errors
+        above zero."""
+        if self.tethered:
+            return False
+        speed = self.speed()
+        return speed >= min_speed and speed >= sigmas * self.velocity_sigma
 
     def confirmed_for(self, now: int) -> float:
         """Seconds the target has been seen without a gap (0 once the gap exceeds max_gap)."""
@@ -175,14 +244,27 @@ class ForbiddenZones:
 
 
 def usable_detections(positions: np.ndarray, *, area: np.ndarray | None, zones: ForbiddenZones,
-                      claimed: np.ndarray, claim_radius: float, min_z: float) -> np.ndarray:
+                      claimed: np.ndarray, claim_radius: float, min_z: float, area_overlap: float = 0.0,
+                      arena: np.ndarray | None = None) -> np.ndarray:
     """(N,) bool: the detections the state machine may act on — inside this UAV's working
-    area, outside every forbidden zone, not a target a partner has claimed (`claimed` (K, 3)),
-    and above `min_z` (a captured drone lying on the ground is no target)."""
+    area or within `area_overlap` of it inside the `arena`, outside every forbidden zone, not a target a partner
+    has claimed (`claimed` (K, 3)), and above `min_z` (a captured drone lying on the ground is
+    no target).
+
+    The overlap is not in the seed: a balloon on the line between two areas is seen a few
+    decimetres on either side from frame to frame (a camera's range from size is metres off
+    far away), so with strict areas each UAV may leave it to the other for a minute; with the
+    overlap both may take it, and the claims keep it to one chaser."""
     positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     keep = positions[:, 2] >= min_z
     if area is not None and len(area) >= 3 and len(positions):
-        keep &= np.atleast_1d(point_in_polygon(positions[:, :2], area))
+        inside = np.atleast_1d(point_in_polygon(positions[:, :2], area))
+        if area_overlap > 0:
+            near = distance_to_edges(positions[:, :2], area) <= area_overlap
+            if arena is not None:
+                near &= np.atleast_1d(point_in_polygon(positions[:, :2], arena))
+            inside |= near
+        keep &= inside
     keep &= ~zones.contains(positions)
     claimed = np.asarray(claimed, dtype=np.float64).reshape(-1, 3)
     if len(claimed) and len(positions):

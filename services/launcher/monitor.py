@@ -15,7 +15,8 @@ import numpy as np
 
 from schemas import keys
 from schemas.arrays import to_numpy
-from schemas.messages import Detections, GroundTruth, PointTruth, SimClock, SimEvent, Tracks, UavStatus
+from schemas.messages import (Detections, GroundTruth, MissionCommand, PointTruth, SimClock, SimEvent, Tracks,
+                              UavStatus)
 from services import evaluation
 from services.geometry import pairwise_gaps
 from services.runtime.clock import StampOrigin, seconds
@@ -65,6 +66,9 @@ class UavSummary:
     detection_counts: list[Sample] = field(default_factory=list)  # detections per scan
     nearest_partner: list[Sample] = field(default_factory=list)  # m to the nearest flying partner (truth), 4 Hz
     perception: evaluation.PerceptionScore = field(default_factory=evaluation.PerceptionScore)
+    camera: evaluation.PerceptionScore = field(default_factory=evaluation.PerceptionScore)  # Object Detect's
+    engagements: list[evaluation.Engagement] = field(default_factory=list)
+    last_action: str = ""  # of the job manager's latest command
     team_view: tuple | None = None  # (working area x-range, fallen partners) last reported
 
 
@@ -106,6 +110,7 @@ class RunMonitor:
         self._truth_history: dict[int, dict[str, tuple[float, float, float]]] = {}  # stamp -> standing targets
         self._sight_pending: dict[str, dict[int, list]] = {}  # uav -> scan stamp -> [detections, in sight]
         self._detections = msgspec.msgpack.Decoder(Detections)
+        self._command = msgspec.msgpack.Decoder(MissionCommand)
 
     def handle(self, key: str, payload: bytes) -> None:
         # the clock and acknowledgements are plumbing whose repetitions depend on timing: a tick
@@ -132,6 +137,10 @@ class RunMonitor:
                 self._on_detections(uav, self._detections.decode(payload))
             elif topic == "points_truth":
                 self._on_points_truth(uav, self._points_truth.decode(payload))
+            elif topic == "camera_detections":
+                self._on_camera_detections(uav, self._detections.decode(payload))
+            elif topic == "command":
+                self._on_command(uav, self._command.decode(payload))
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
             pass  # not ours to police: the services count their own decode errors
 
@@ -149,6 +158,25 @@ class RunMonitor:
         targets = np.array(list(self._targets_at(det.header.stamp).values())).reshape(-1, 3)
         u.perception.add_detections(t, positions, targets)
         self._pair_sight(uav, det.header.stamp, detections=positions)
+
+    def _on_camera_detections(self, uav: str, det: Detections) -> None:
+        positions = to_numpy(det.positions).reshape(-1, 3)
+        t = self._seconds(det.header.stamp)
+        self._note_first_detections(uav, det)
+        targets = np.array(list(self._targets_at(det.header.stamp).values())).reshape(-1, 3)
+        self._uav(uav).camera.add_detections(t, positions, targets)
+
+    def _on_command(self, uav: str, command: MissionCommand) -> None:
+        """An engagement starts with the first attack or intercept command after any other one
+        (re-plans and re-sends of the same engagement follow it)."""
+        u = self._uav(uav)
+        previous, action = u.last_action, command.action
+        u.last_action = action
+        if action not in ("attack", "intercept") or command.target is None or action == previous:
+            return
+        target, miss = evaluation.aimed_at(command.target, self._targets_at(command.header.stamp))
+        u.engagements.append(evaluation.Engagement(self._seconds(command.header.stamp), action,
+                                                   tuple(command.target), target, miss))
 
     def _on_points_truth(self, uav: str, truth: PointTruth) -> None:
         where = self._targets_at(truth.header.stamp)
@@ -322,7 +350,10 @@ class RunMonitor:
                        "detections": u.detections, "confirmed_tracks": len(u.confirmed_tracks),
                        "states": [[round(t, 2), state] for t, state in u.states],
                        "decisions": [[round(t, 2), state, reason] for t, state, reason in u.decisions],
-                       "perception": u.perception.summary()}
+                       "perception": u.perception.summary(),
+                       "camera": {key: value for key, value in u.camera.summary().items()
+                                  if key in ("detections", "matched", "false", "false_per_minute")},
+                       "engagements": [e.summary() for e in u.engagements]}
                 for name, u in sorted(self.uavs.items())
             },
             "events": [f"{seconds(self._origin.mission_ns(e.header.stamp)):.2f} {e.kind} {e.subject} {e.detail}".rstrip()

@@ -41,7 +41,8 @@ VIEWER = "sim/viewer"
 LEAVING_STATES = ("LANDING", "EMERGENCY_LANDING")
 RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS) + tuple(
-    keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth"))
+    keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth", "camera_detections",
+                                       "command"))
 
 
 def add_parser(commands) -> None:
@@ -401,6 +402,21 @@ def perception_line(p: dict) -> str:
             f"first 10 s)")
 
 
+def engagement_line(engagements: list[dict]) -> str:
+    """'3 attacks, 1 interception, all at a target' or which went for no target, and where."""
+    if not engagements:
+        return "none"
+    counts = [f"{n} {word}{'s' if n != 1 else ''}" for word, action in (("attack", "attack"),
+              ("interception", "intercept")) if (n := sum(e["action"] == action for e in engagements))]
+    wrong = [e for e in engagements if e["target"] is None]
+    if not wrong:
+        return f"{', '.join(counts)}, all at a target (within 2 m)"
+    where = "; ".join(f"t={e['t']:.1f} s {e['action']} at ({e['aim'][0]:.1f}, {e['aim'][1]:.1f}, "
+                      f"{e['aim'][2]:.1f})" + (f", nearest target {e['miss_m']:.1f} m" if e["miss_m"] is not None
+                                                 else "") for e in wrong)
+    return f"{', '.join(counts)}, {len(wrong)} at no target: {where}"
+
+
 def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[str, float]:
     """CPU seconds per process at the end of the run ("uav1/mapper", "sim/simulator", "launcher"); a
     restarted service counts from its restart."""
@@ -472,6 +488,11 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         lines.append(f"{name}: {u['final_state']}; {took}{landed}; flew {u['distance_m']:.0f} m, max height "
                      f"{u['max_height_m']:.1f} m; {u['detections']} detections, {u['confirmed_tracks']} confirmed tracks")
         lines.append(f"  perception: {perception_line(u['perception'])}")
+        if u["camera"]["detections"]:
+            c = u["camera"]
+            lines.append(f"  camera: {c['matched']} detections matched a target (within 1 m), {c['false']} false "
+                         f"({c['false_per_minute']:.1f} per minute)")
+        lines.append(f"  engagements: {engagement_line(u['engagements'])}")
     lines.append("restarts: " + (", ".join(s["restarts"]) if s["restarts"] else "none"))
     injected = [f for f in s["faults"] if "fault_injected" in f]
     lines.append(f"faults injected: {len(injected)}" + "".join(f"\n  {f}" for f in s["faults"]))

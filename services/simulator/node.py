@@ -133,7 +133,7 @@ class SimulatorNode(Node):
 
     # --------------------------------------------------------------- loop
     def expected_services(self) -> set[str]:
-        detector = getattr(self.options, "detector", "classifier") or "classifier"
+        detector = getattr(self.options, "detector", None) or keys.DEFAULT_DETECTOR
         return {f"{u}/{s}" for u in self.uav_names for s in keys.uav_services(detector)}
 
     def serve(self) -> None:

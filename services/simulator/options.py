@@ -24,10 +24,10 @@ def add_simulator_options(parser: argparse.ArgumentParser, *, positional_scenari
                        help="mission time to simulate, seconds (default: the scenario's)")
     group.add_argument("--rtf", type=float, default=1.0, metavar="FACTOR",
                        help="real-time factor without --lockstep (default 1.0; 2.0 runs twice as fast)")
-    group.add_argument("--detector", choices=keys.DETECTORS, default="classifier",
-                       help="classifier: the LiDAR perception pipeline (default); onboard: the LiDAR perception "
-                            "for drones and the colour camera with Object Detect for balloons; oracle: noisy "
-                            "detections made only from LiDAR points that really hit a target (evaluation, "
-                            "simulation only)")
+    group.add_argument("--detector", choices=keys.DETECTORS, default=keys.DEFAULT_DETECTOR,
+                       help="onboard (default): the LiDAR perception for drones and the colour camera with "
+                            "Object Detect for balloons; classifier: the LiDAR perception alone (no camera: "
+                            "balloons on poles stay background); oracle: noisy detections made only from LiDAR "
+                            "points that really hit a target (evaluation, simulation only)")
     group.add_argument("--tick", type=float, default=0.05, metavar="S",
                        help="mission clock tick, seconds (default 0.05 = 20 Hz)")

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import msgspec
 import numpy as np
 
+from services.geometry import is_covariance, with_variance_floor
+
 NS = 1_000_000_000
 H = np.hstack([np.eye(3), np.zeros((3, 6))])  # eq. 30: the measurement is the position
 
@@ -64,22 +66,9 @@ def uncertainty_radius(params: TrackerParams, covariance: np.ndarray) -> float:
     return float(max(params.radius_min, params.radius_confidence * np.cbrt(det)))
 
 
-def is_covariance(matrix: np.ndarray) -> bool:
-    """Finite, symmetric and positive semi-definite: what a detection's covariance must be to weigh it."""
-    m = np.asarray(matrix, dtype=np.float64)
-    if not np.isfinite(m).all() or not np.allclose(m, m.T):
-        return False
-    eigenvalues = np.linalg.eigvalsh(m)
-    return bool(np.isfinite(eigenvalues).all() and eigenvalues.min() >= -1e-9 * max(1.0, abs(eigenvalues).max()))
-
-
 def measurement_noise(params: TrackerParams, detection_covariance: np.ndarray | None) -> np.ndarray:
     """R = the detection covariance with each variance raised to at least the floor (stays PSD)."""
-    floor = params.measurement_variance
-    if detection_covariance is None:
-        return floor * np.eye(3)
-    cov = np.asarray(detection_covariance, dtype=np.float64)
-    return cov + np.diag(np.maximum(floor - np.diag(cov), 0.0))
+    return with_variance_floor(detection_covariance, params.measurement_variance)
 
 
 @dataclass
