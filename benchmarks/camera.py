@@ -36,6 +36,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a plain checkout
 import numpy as np  # noqa: E402
 
 from schemas.messages import Appearance  # noqa: E402
+from services import evaluation  # noqa: E402
 from services.camera.core import Camera, CameraParams, Gains  # noqa: E402
 from services.geometry import point_in_polygon, quaternion  # noqa: E402
 from services.object_detect.colors import load_color_file  # noqa: E402
@@ -47,8 +48,8 @@ from services.simulator.scenario import load_scenario  # noqa: E402
 
 GOAL_MS = 15.0
 BIN_M = 5.0
-MATCH_M = 1.0
-MATCH_SHARE = 0.1  # of the distance, when that is larger
+MATCH_M = evaluation.MATCH_DISTANCE
+MATCH_SHARE = evaluation.CAMERA_RANGE_SHARE  # of the distance, when that is larger (the run summary's match)
 
 
 def main() -> int:

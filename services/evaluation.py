@@ -9,8 +9,11 @@ Evaluation only: the launcher and the viewer read truth, no flying service does.
 - an engagement (the job manager's first attack or intercept command at a target) went for a
   target when it was aimed within AIM_DISTANCE of one's true position, else at something that is
   no target (a pole, a tree, a red wall, nothing).
-Camera detections are scored like the LiDAR's (matched or false); they have no in-sight count: a
-camera frame carries no per-pixel truth on the wire.
+Camera detections are scored like the LiDAR's, matched within MATCH_DISTANCE or CAMERA_RANGE_SHARE
+of their distance from the camera, whichever is larger (beyond the depth image's reach a balloon's
+range comes from its size, whose error grows with the square of the distance:
+benchmarks/camera.py); they have no in-sight count: a camera frame carries no per-pixel truth on
+the wire.
 Pure numpy.
 """
 from __future__ import annotations
@@ -21,17 +24,26 @@ import numpy as np
 
 MATCH_DISTANCE = 1.0  # m
 MIN_HITS = 3  # rays of one scan on a target for it to count as in sight
+CAMERA_RANGE_SHARE = 0.1  # of a camera detection's distance: its match tolerance when larger than 1 m
 AIM_DISTANCE = 2.0  # m between an attack's or interception's aim point and a target's true position
 NS = 1_000_000_000
 
 
-def matched(positions: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """(N,) bool: which of the (N, 3) positions lie within MATCH_DISTANCE of one of the (K, 3) targets."""
+def matched(positions: np.ndarray, targets: np.ndarray, tolerance: np.ndarray | float = MATCH_DISTANCE) -> np.ndarray:
+    """(N,) bool: which of the (N, 3) positions lie within `tolerance` (one, or (N,) one per
+    position) of one of the (K, 3) targets."""
     p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     t = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
     if not len(p) or not len(t):
         return np.zeros(len(p), dtype=bool)
-    return (np.linalg.norm(p[:, None] - t[None], axis=2) <= MATCH_DISTANCE).any(axis=1)
+    reach = np.broadcast_to(np.asarray(tolerance, dtype=np.float64), (len(p),))
+    return (np.linalg.norm(p[:, None] - t[None], axis=2) <= reach[:, None]).any(axis=1)
+
+
+def camera_tolerance(positions: np.ndarray, camera: np.ndarray) -> np.ndarray:
+    """(N,) match distance of camera detections seen from `camera` (3,)."""
+    distance = np.linalg.norm(np.asarray(positions, dtype=np.float64).reshape(-1, 3) - np.asarray(camera), axis=1)
+    return np.maximum(MATCH_DISTANCE, CAMERA_RANGE_SHARE * distance)
 
 
 def found(targets: np.ndarray, positions: np.ndarray) -> np.ndarray:
@@ -83,9 +95,10 @@ class PerceptionScore:
     last_t: float = 0.0
     tracks: dict[int, TrackRecord] = field(default_factory=dict)
 
-    def add_detections(self, t: float, positions: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """Count one scan's detections; returns which matched a target."""
-        hit = matched(positions, targets)
+    def add_detections(self, t: float, positions: np.ndarray, targets: np.ndarray,
+                       tolerance: np.ndarray | float = MATCH_DISTANCE) -> np.ndarray:
+        """Count one scan's detections; returns which matched a target (within `tolerance`)."""
+        hit = matched(positions, targets, tolerance)
         self.detections += len(hit)
         self.matched += int(hit.sum())
         self.false += int((~hit).sum())

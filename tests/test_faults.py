@@ -140,7 +140,9 @@ class Observer:
 def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
     scenario, summary_path = fault_scenario(tmp_path), tmp_path / "summary.json"
     launcher = subprocess.Popen(
+        # the LiDAR pipeline alone: the faults act on it, and the camera would only add CPU
         falconry_argv("sim", str(scenario), "--uavs", "2", "--lockstep", "--duration", "18", "--port", str(port),
+                      "--detector", "classifier",
                       "--lease-ms", "1000", "--quiet", "--progress", "0", "--summary-json", str(summary_path)),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     session = join_run(port)
@@ -264,6 +266,7 @@ def test_a_cut_link_parts_the_uav_from_partners_and_ground_but_not_from_its_vehi
     network = netns.UavNetwork(port, ["uav1", "uav2"])  # the plan the launcher derives from the port
     launcher = subprocess.Popen(
         falconry_argv("sim", str(scenario), "--uavs", "2", "--lockstep", "--duration", "14", "--port", str(port),
+                      "--detector", "classifier",  # the link cut is the subject: no camera needed
                       "--lease-ms", "1000", "--quiet", "--progress", "0", "--rtf", "1"),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     probes: dict[str, NamespaceProbe] = {}

@@ -36,7 +36,7 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
     mission_time = [0]
     clock = session.declare_subscriber(
         keys.CLOCK, lambda s: mission_time.__setitem__(0, clock_decoder.decode(s.payload.to_bytes()).header.stamp))
-    victims = [("uav1", s) for s in keys.UAV_SERVICES] + [(keys.SIM, "simulator")]
+    victims = [("uav1", s) for s in keys.uav_services()] + [(keys.SIM, "simulator")]  # the default: onboard
     try:
         wait_healthy(session, [("uav2", "job_manager")] + victims, timeout=60)
         time.sleep(1.0)

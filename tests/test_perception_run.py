@@ -29,6 +29,7 @@ def test_a_drone_taking_off_beside_a_wall_is_detected_within_3_s_once_2_m_clear(
     (riser,) = scenario.drones
     summary, truth = tmp_path / "summary.json", tmp_path / "truth.log"
     run = subprocess.run(falconry_argv("sim", "takeoff", "--lockstep", "--duration", "54", "--port", str(port),
+                                       "--detector", "classifier",  # the LiDAR perception is the subject
                                        "--quiet", "--progress", "0", "--summary-json", str(summary),
                                        "--truth-log", str(truth)),
                          cwd=REPO, capture_output=True, text=True, timeout=400)

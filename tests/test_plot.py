@@ -111,3 +111,16 @@ def test_the_monitor_judges_engagements_by_their_aim_and_scores_the_camera():
     line = engagement_line(uav1["engagements"])
     assert line.startswith("2 attacks, 1 at no target: t=1.0 s attack at (50.0, 12.0, 3.0), nearest target")
     assert engagement_line(uav1["engagements"][:1]) == "1 attack, all at a target (within 2 m)"
+
+
+def test_a_camera_detection_matches_within_a_tenth_of_its_distance_a_lidar_one_within_1_m():
+    from services import evaluation
+    target = np.array([[40.0, 0.0, 4.0]])
+    off = np.array([[37.5, 0.0, 4.0], [0.5, 0.0, 4.0]])  # 2.5 m short at 37.5 m; 0.5 m from a target at 1 m
+    near = np.array([[1.0, 0.0, 4.0]])
+    camera = np.array([0.0, 0.0, 4.0])
+    tolerance = evaluation.camera_tolerance(off, camera)
+    np.testing.assert_allclose(tolerance, [3.75, 1.0])
+    assert evaluation.matched(off[:1], target, tolerance[:1]).tolist() == [True]
+    assert evaluation.matched(off[:1], target).tolist() == [False]  # the LiDAR's 1 m
+    assert evaluation.matched(off[1:], near, tolerance[1:]).tolist() == [True]

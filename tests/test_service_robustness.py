@@ -18,9 +18,10 @@ GARBAGE = (b"\x00\xffnot msgpack at all", b"", msgspec.msgpack.encode({"header":
 
 def test_services_count_garbage_and_keep_working(hub, processes):
     session, endpoint = hub
-    for service in keys.UAV_SERVICES:
+    services = keys.UAV_SERVICES + keys.CAMERA_SERVICES
+    for service in services:
         processes.start("run", service, "--uav", "uav1", "--connect", endpoint, "--exit-with-parent")
-    names = [("uav1", s) for s in keys.UAV_SERVICES]
+    names = [("uav1", s) for s in services]
     before = wait_healthy(session, names)
     time.sleep(0.5)  # every service's subscriptions reach this session
 

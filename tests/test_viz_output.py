@@ -8,6 +8,7 @@ import subprocess
 import time
 import warnings
 
+import cv2
 import numpy as np
 import pytest
 import rerun as rr
@@ -33,6 +34,7 @@ RECORDS = [
     draw.Axes(1.0),
     draw.Text("fault_injected uav1: kill", "WARN"),
     draw.Document("## uav1\n| a | b |\n| --- | --- |\n| 1 | 2 |"),
+    draw.Image(bytes(cv2.imencode(".jpg", np.zeros((4, 6, 3), np.uint8))[1])),
     draw.State("IDLE"),
     draw.StateStyle(["IDLE", "LANDED"], [(1, 2, 3, 255), (4, 5, 6, 255)]),
     draw.Scalar(2.5),

@@ -272,6 +272,26 @@ def test_with_truth_detections_are_coloured_matched_or_false_and_false_ones_plot
     assert logs["plots/false_detections/uav1"][0].item.value == 1.0
 
 
+def test_the_camera_frame_and_its_balloon_detections_are_drawn_and_judged_by_truth():
+    from schemas.messages import CompressedFrame
+    scene = SceneBuilder()
+    scene.feed("falconry/sim/truth", encode(GroundTruth(header=Header(stamp=S), step=20, uavs=[], targets=[
+        TargetTruth(id="balloon1", kind="balloon", position=(10, 0, 4), velocity=(0, 0, 0), radius=0.3)])))
+    jpeg = b"\xff\xd8 a jpeg \xff\xd9"
+    frame = CompressedFrame(header=Header(stamp=S), width=640, height=360, camera_pose=Pose(), fx=460.0, fy=460.0,
+                            cx=320.0, cy=180.0, jpeg=jpeg)
+    (image,) = entities(scene.feed("falconry/uav1/camera_jpeg", encode(frame)))["uav1/camera/image"]
+    assert image.item == draw.Image(jpeg)
+    seen = Detections(header=Header(stamp=S), detector="camera",
+                      positions=from_numpy(np.array([[10.2, 0.1, 4.0], [20.0, 5.0, 3.0]])),
+                      covariances=from_numpy(np.tile(np.eye(3) * 0.04, (2, 1, 1))),
+                      point_counts=from_numpy(np.array([300, 40], np.int32)), extents=from_numpy(np.ones(2, np.float32)))
+    logs = entities(scene.feed("falconry/uav1/camera_detections", encode(seen)))
+    (det,) = logs["uav1/camera_detections"]
+    assert det.item.colors.tolist() == [list(MATCHED_COLOR), list(FALSE_COLOR)]
+    assert "uav1/detections" not in logs  # the LiDAR's detections are another entity
+
+
 def test_without_truth_detections_keep_the_flying_object_colour():
     scene = SceneBuilder()
     msg = Detections(header=Header(stamp=S), detector="classifier", positions=from_numpy(np.ones((1, 3))),

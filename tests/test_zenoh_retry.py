@@ -166,6 +166,7 @@ def test_sim_waits_for_its_router_and_a_service_restarted_while_it_is_down_comes
     light.write_text('[sensor_driver]\nmodel = "os0-32-512"\n')
     log = tmp_path / "run.log"
     launcher = processes.start("sim", "mbzirc", "--uavs", "2", "--duration", "120", "--config", str(light),
+                               "--detector", "classifier",  # the router's absence is the subject
                                "--quiet", "--progress", "0", "--log-file", str(log),
                                "--zenoh-profile", "router", "--connect", endpoint)
     output = Lines(launcher.stdout)

@@ -366,9 +366,9 @@ class JobManager:
             filter=TargetFilter(candidates[pick], int(stamps[pick]), gate=p.detection_gate,
                                 measurement_sigma=p.filter_sigma, process_sigma=p.filter_process_sigma,
                                 max_gap_ns=int(p.streak_gap * NS), history_ns=int(p.velocity_window * NS),
-                                velocity=None if track is None else track[2], covariance=found.covariances[pick]),
+                                velocity=None if track is None else track[2], covariance=found.covariances[pick],
+                                tethered=bool(found.tethered[pick])),
             moving=track is not None)
-        self.engagement.filter.tethered = bool(found.tethered[pick])
         self._sent_target = None
         return True
 

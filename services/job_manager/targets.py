@@ -50,7 +50,7 @@ class TargetFilter:
     def __init__(self, position: np.ndarray, stamp: int, *, gate: float, measurement_sigma: float,
                  process_sigma: float, max_gap_ns: int, history_ns: int = 2 * NS,
                  velocity: np.ndarray | None = None, max_speed: float = 5.0,
-                 covariance: np.ndarray | None = None) -> None:
+                 covariance: np.ndarray | None = None, tethered: bool = False) -> None:
         from filterpy.kalman import KalmanFilter  # imported here: see services/runtime/warmup.py
 
         self._floor = measurement_sigma**2
@@ -78,7 +78,7 @@ class TargetFilter:
         self.velocity_sigma = math.inf  # standard error of the fitted velocity, m/s per axis
         self._fit_anchor: tuple[float, np.ndarray] | None = None  # (weighted mean time s, position there)
         self._velocity_known = velocity is not None
-        self.tethered = False  # the camera's balloon detector saw it: a balloon
+        self.tethered = tethered  # the camera's balloon detector saw it: a balloon
 
     def _noise(self, covariance: np.ndarray | None) -> np.ndarray:
         usable = covariance is not None and is_covariance(covariance)

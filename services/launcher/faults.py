@@ -42,7 +42,7 @@ class FaultExecutor:
     def targets(self, command: FaultCommand) -> list[str]:
         if command.kind == "router_restart":
             return [ROUTER] if ROUTER in self.supervisor.children else []
-        services = [command.service] if command.service else list(keys.UAV_SERVICES) + [keys.ORACLE]
+        services = [command.service] if command.service else [s for s in keys.SERVICES if s not in keys.SIM_SERVICES]
         return [name for s in services if (name := f"{command.uav}/{s}") in self.supervisor.children]
 
     def start(self, command: FaultCommand, mission_time: float) -> None:

@@ -164,7 +164,8 @@ class RunMonitor:
         t = self._seconds(det.header.stamp)
         self._note_first_detections(uav, det)
         targets = np.array(list(self._targets_at(det.header.stamp).values())).reshape(-1, 3)
-        self._uav(uav).camera.add_detections(t, positions, targets)
+        self._uav(uav).camera.add_detections(t, positions, targets,
+                                             evaluation.camera_tolerance(positions, np.array(det.sensor_position)))
 
     def _on_command(self, uav: str, command: MissionCommand) -> None:
         """An engagement starts with the first attack or intercept command after any other one

@@ -490,7 +490,8 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         lines.append(f"  perception: {perception_line(u['perception'])}")
         if u["camera"]["detections"]:
             c = u["camera"]
-            lines.append(f"  camera: {c['matched']} detections matched a target (within 1 m), {c['false']} false "
+            lines.append(f"  camera: {c['matched']} detections matched a target (within 1 m or 10 % of their "
+                         f"distance), {c['false']} false "
                          f"({c['false_per_minute']:.1f} per minute)")
         lines.append(f"  engagements: {engagement_line(u['engagements'])}")
     lines.append("restarts: " + (", ".join(s["restarts"]) if s["restarts"] else "none"))

@@ -93,6 +93,12 @@ class Document:
 
 
 @dataclass(frozen=True)
+class Image:
+    encoded: bytes  # a compressed image as sent (JPEG, PNG)
+    media_type: str = "image/jpeg"
+
+
+@dataclass(frozen=True)
 class State:
     value: str
 

@@ -22,7 +22,8 @@ from services.runtime.zenoh_config import undeclare_all
 
 LIVE_KEYS = (keys.CLOCK, keys.WORLD, keys.TRUTH, keys.EVENTS) + tuple(
     keys.uav("*", topic) for topic in
-    ("odometry", "points", "labels", "detections", "map", "tracks", "command", "trajectory", "status"))
+    ("odometry", "points", "labels", "detections", "map", "tracks", "command", "trajectory", "status",
+     "camera_jpeg", "camera_detections"))
 SCANS = ("/points", "/labels")  # whole scans: the viewer draws one in a few anyway
 
 

@@ -3,7 +3,7 @@
 Timelines: "mission_time" (duration, the messages' header stamps) and "tick" (the mission clock's
 step); rerun's own wall-clock log time is switched off, so a recording converted later reads the
 same as the one drawn live. The blueprint opens on: the 3D arena with everything; one tab per UAV
-(its own 3D view, status document and event log); the job managers' states as a state timeline;
+(its own 3D view, its camera's frames, status document and event log); the job managers' states as a state timeline;
 every event; plots of detections per second, track uncertainty, CPU and memory per service,
 pipeline lag, distance to the nearest partner and the real-time factor.
 """
@@ -30,7 +30,8 @@ def blueprint(uavs: list[str]) -> rrb.Blueprint:
         rrb.Vertical(
             rrb.Spatial3DView(name=f"{uav} believes", origin="/",
                               contents=["+ /world/**", "+ /truth/targets/**", f"+ /{uav}/**"]),
-            rrb.Horizontal(rrb.TextDocumentView(name=f"{uav} status", origin=f"/{uav}/status"),
+            rrb.Horizontal(rrb.Spatial2DView(name=f"{uav} camera", origin=f"/{uav}/camera"),
+                           rrb.TextDocumentView(name=f"{uav} status", origin=f"/{uav}/status"),
                            rrb.TextLogView(name=f"{uav} events", origin=f"/{uav}/events")),
             row_shares=[3, 1], name=uav)
         for uav in uavs
@@ -41,7 +42,8 @@ def blueprint(uavs: list[str]) -> rrb.Blueprint:
         row_shares=[1, 2])
     plots = rrb.Vertical(
         rrb.TimeSeriesView(name="detections per second, and false ones (truth)", origin="/plots",
-                           contents=["+ /plots/detections/**", "+ /plots/false_detections/**"]),
+                           contents=["+ /plots/detections/**", "+ /plots/false_detections/**",
+                                     "+ /plots/camera_detections/**"]),
         rrb.TimeSeriesView(name="track uncertainty radius (m)", origin="/plots/track_uncertainty"),
         rrb.TimeSeriesView(name="CPU per service (%)", origin="/plots/cpu"),
         rrb.TimeSeriesView(name="lag after the scan, worst per second (ms)", origin="/plots/lag_ms"),
@@ -89,6 +91,8 @@ def archetype(item: draw.Drawable):
             return rr.TransformAxes3D(item.length)
         case draw.Text():
             return rr.TextLog(item.text, level=item.level)
+        case draw.Image():
+            return rr.EncodedImage(contents=item.encoded, media_type=item.media_type)
         case draw.Document():
             return rr.TextDocument(item.markdown, media_type=rr.MediaType.MARKDOWN)
         case draw.State():

@@ -11,7 +11,8 @@ Entities (`UAV_FAMILIES` under each UAV's name; the rest run-wide):
   positions and paths, the UAVs' true positions, destruction and capture markers;
 - <uav>/…: what that UAV believes — pose (odometry) and trail, scan coloured by the classifier's
   labels (by height when only raw points exist), map (occupied / unknown voxels), detections and
-  tracks with covariance ellipsoids, predicted track paths, trajectory reference, working area,
+  tracks with covariance ellipsoids, the camera's compressed frames (1 Hz) and Object Detect's
+  detections (balloons by colour), predicted track paths, trajectory reference, working area,
   forbidden zones, the job manager's state (timeline and document), events (faults, restarts,
   commands, state changes);
 - plots/…: detections per second (and, with truth, false ones), track uncertainty, CPU per service,
@@ -33,6 +34,7 @@ from schemas import keys, voxels
 from schemas.arrays import to_numpy
 from schemas.catalogue import catalogue_entry
 from schemas.messages import (
+    CompressedFrame,
     Detections,
     GroundTruth,
     LabelSet,
@@ -71,7 +73,8 @@ from services.viz.style import (DETECTION_COLOR, FALSE_COLOR, LABEL_COLORS, MATC
                                 uav_color)
 
 UAV_FAMILIES = (
-    "pose", "trail", "scan", "map/occupied", "map/unknown", "detections", "tracks/confirmed",
+    "pose", "trail", "scan", "map/occupied", "map/unknown", "detections", "camera/image", "camera_detections",
+    "tracks/confirmed",
     "tracks/tentative", "tracks/predicted", "trajectory", "working_area", "forbidden_zones", "state",
     "status", "events",
 )
@@ -141,6 +144,8 @@ class SceneBuilder:
             keys.EVENTS: self._on_event,
             "falconry/<uav>/odometry": self._on_odometry, "falconry/<uav>/points": self._on_points,
             "falconry/<uav>/labels": self._on_labels, "falconry/<uav>/detections": self._on_detections,
+            "falconry/<uav>/camera_jpeg": self._on_camera_frame,
+            "falconry/<uav>/camera_detections": self._on_camera_detections,
             "falconry/<uav>/map": self._on_map, "falconry/<uav>/tracks": self._on_tracks,
             "falconry/<uav>/command": self._on_command, "falconry/<uav>/trajectory": self._on_trajectory,
             "falconry/<uav>/status": self._on_status, "falconry/<scope>/health/<service>": self._on_health,
@@ -390,7 +395,19 @@ class SceneBuilder:
         self._windows[entity] = _Window(second, value)
 
     def _on_detections(self, name: str, detections: Detections) -> None:
-        uav = self._uav(name)
+        self._draw_detections(name, detections, "detections", "")
+        self._lag(name, self._uav(name), "detections")
+
+    def _on_camera_detections(self, name: str, detections: Detections) -> None:
+        self._draw_detections(name, detections, "camera_detections", "camera_", camera=True)
+
+    def _on_camera_frame(self, name: str, frame: CompressedFrame) -> None:
+        self._uav(name)
+        self._log(f"{name}/camera/image", draw.Image(bytes(frame.jpeg)))
+
+    def _draw_detections(self, name: str, detections: Detections, entity: str, plot_prefix: str,
+                         camera: bool = False) -> None:
+        """Ellipsoids of the detections' covariances, coloured by the truth where there is one."""
         positions = to_numpy(detections.positions).reshape(-1, 3)
         half, rotations = covariance_ellipsoids(to_numpy(detections.covariances).reshape(-1, 3, 3),
                                                 self.params.ellipsoid_sigma)
@@ -400,13 +417,15 @@ class SceneBuilder:
         labels = [f"{n} pts" for n in counts.tolist()]
         colors: np.ndarray | Color = DETECTION_COLOR
         if self._targets_now is not None:  # a simulation: truth says which detections were right
-            right = evaluation.matched(positions, self._targets_now)
+            tolerance = (evaluation.camera_tolerance(positions, np.array(detections.sensor_position)) if camera
+                         else evaluation.MATCH_DISTANCE)
+            right = evaluation.matched(positions, self._targets_now, tolerance)
             colors = np.where(right[:, None], MATCHED_COLOR, FALSE_COLOR).astype(np.uint8).reshape(-1, 4)
             labels = [f"{label}, {'matched' if ok else 'false'}" for label, ok in zip(labels, right.tolist())]
-            self._per_second(f"plots/false_detections/{name}", float((~right).sum()), lambda a, b: a + b)
-        self._log(f"{name}/detections", draw.Ellipsoids(positions, half, rotations, colors, labels, show_labels=False))
-        self._per_second(f"plots/detections/{name}", float(len(positions)), lambda a, b: a + b)
-        self._lag(name, uav, "detections")
+            self._per_second(f"plots/false_detections/{plot_prefix}{name}", float((~right).sum()), lambda a, b: a + b)
+        self._log(f"{name}/{entity}", draw.Ellipsoids(positions, half, rotations, colors, labels, show_labels=False))
+        plot = f"plots/camera_detections/{name}" if plot_prefix else f"plots/detections/{name}"
+        self._per_second(plot, float(len(positions)), lambda a, b: a + b)
 
     def _on_map(self, name: str, voxel_map: VoxelMap) -> None:
         uav = self._uav(name)
