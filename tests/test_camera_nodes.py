@@ -1,6 +1,7 @@
 """The camera and Object Detect as running services: frames at the camera's rate between the
 LiDAR's scans, a balloon detected where it is, a compressed frame for the ground, a colour file
-sent live replacing the one Object Detect started with, and a bad one refused."""
+sent live replacing the one Object Detect started with, and a bad one refused, as is a frame whose
+image is not the shape its header says (one warning, no detections, the service carries on)."""
 from __future__ import annotations
 
 import time
@@ -9,7 +10,7 @@ import msgspec
 import numpy as np
 
 from schemas import keys
-from schemas.arrays import to_numpy
+from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import (
     CameraFrame,
     ColorUpdate,
@@ -18,6 +19,7 @@ from schemas.messages import (
     GroundTruth,
     Header,
     Obstacle,
+    Pose,
     SimClock,
     TargetTruth,
     VehicleTruth,
@@ -28,6 +30,7 @@ from tests.tools.health import health, wait_healthy
 
 TICK_NS = 50_000_000
 BALLOON = (9.0, 1.0, 5.0)
+BAD_FRAME_NS = 470_000_001  # a stamp no camera frame has
 
 
 def test_the_camera_frames_a_balloon_object_detect_finds_it_and_takes_new_colours_live(hub, processes):
@@ -53,6 +56,10 @@ def test_the_camera_frames_a_balloon_object_detect_finds_it_and_takes_new_colour
     put(keys.WORLD, world)
     time.sleep(0.3)
     for tick in range(1, 41):
+        if tick == 10:  # a frame whose image is not what its header says
+            put(keys.uav("uav1", "camera"), CameraFrame(
+                header=Header(stamp=BAD_FRAME_NS), width=640, height=360, camera_pose=Pose(), fx=460.0, fy=460.0,
+                cx=320.0, cy=180.0, color=from_numpy(np.zeros((10, 10, 3), np.uint8))))
         if tick == 20:  # a colour file that is not one, then green: the red balloon is not green
             colors.put(msgspec.msgpack.encode(ColorUpdate(header=Header(seq=1), name="broken", toml="[thresholds")))
             green = (REPO / "services/object_detect/colors/green.toml").read_text()
@@ -72,7 +79,7 @@ def test_the_camera_frames_a_balloon_object_detect_finds_it_and_takes_new_colour
         s.undeclare()
     colors.undeclare()
 
-    frames = {m.header.stamp: m for m in got["camera"]}
+    frames = {m.header.stamp: m for m in got["camera"] if m.header.stamp != BAD_FRAME_NS}
     # 10 Hz half a period after the 10 Hz LiDAR scans: 0.05 s, 0.15 s, ... (in real time a loaded
     # machine may shed a tick to a slow renderer: not every slot is required)
     assert all(stamp % 100_000_000 == 50_000_000 for stamp in frames) and len(frames) >= 12
@@ -81,7 +88,7 @@ def test_the_camera_frames_a_balloon_object_detect_finds_it_and_takes_new_colour
     assert to_numpy(first.depth).dtype == np.uint16
     assert got["camera_jpeg"] and got["camera_jpeg"][0].jpeg[:2] == b"\xff\xd8"  # a JPEG, at 1 Hz
     detections = {m.header.stamp: m for m in got["camera_detections"]}
-    assert set(detections) == set(frames)  # one message per frame, empty ones included
+    assert set(detections) == set(frames)  # one message per frame, empty ones included; none for the bad one
     red = [to_numpy(m.positions) for stamp, m in detections.items() if stamp < 950_000_000]
     green = [to_numpy(m.positions) for stamp, m in detections.items() if stamp > 1_200_000_000]
     assert red and all(len(p) == 1 and np.linalg.norm(p[0] - BALLOON) < 0.3 for p in red)

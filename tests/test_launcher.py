@@ -166,7 +166,8 @@ def test_two_uav_mission_flies_and_reports(tmp_path):
         assert uav["max_height_m"] > 4.0, (name, uav)
     assert summary["targets"] >= 5
     # where the CPU went: every process answered its health query before it was stopped
-    services = ("sensor_driver", "classifier", "mapper", "tracker", "job_manager", "planner")
+    services = keys.uav_services()  # the default detector, onboard: the camera services too
+    assert "camera" in services and "object_detect" in services
     expected = {f"{u}/{s}" for u in ("uav1", "uav2") for s in services} | {"sim/simulator", "launcher"}
     assert set(summary["cpu"]) == expected
     assert all(seconds > 0 for seconds in summary["cpu"].values()), summary["cpu"]

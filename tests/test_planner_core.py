@@ -424,3 +424,26 @@ def test_trajectories_longer_than_an_hour_are_refused():
         fly(np.array([[0.0, 0.0, 5.0], [0.0, 10.0, 5.0]]), slow_turns, start_heading=0.0)
     with pytest.raises(ValueError, match="lines"):
         lawnmower(AREA, 5.0, 1e-6, profile=SWEEP)
+
+
+def test_a_sweep_interrupted_mid_line_resumes_where_the_vehicle_is_the_way_it_was_going():
+    wide = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 45.0], [0.0, 45.0]])
+    fresh = lawnmower_waypoints(wide, 5.0, 20.0, 2.0, np.array([2.0, 43.0, 5.0]))
+    line = fresh[0, 1]  # the first line, along x
+    on_line = np.array([50.0, line + 0.3, 5.0])  # stopped halfway along it (a false alarm)
+    resumed = lawnmower_waypoints(wide, 5.0, 20.0, 2.0, on_line, heading=0.0)  # it was flying +x
+    np.testing.assert_allclose(resumed[0, :2], [50.0, line])
+    np.testing.assert_allclose(resumed[1, :2], [98.0, line])
+    assert fresh[1, 0] == 98.0  # the fresh sweep flew this line +x too: the rest is the same
+    np.testing.assert_allclose(resumed[2:], fresh[2:])
+    backwards = lawnmower_waypoints(wide, 5.0, 20.0, 2.0, on_line, heading=np.pi)
+    np.testing.assert_allclose(backwards[:2, 0], [50.0, 2.0])
+    # without a heading along the line, off it, or at its very end: from the nearest corner, as before
+    for start, heading in ((on_line, None), (on_line, np.pi / 2), (on_line + [0, 5.0, 0], 0.0),
+                           (np.array([97.0, line, 5.0]), 0.0)):
+        again = lawnmower_waypoints(wide, 5.0, 20.0, 2.0, start, heading=heading)
+        assert again[0, 0] in (2.0, 98.0), (start, heading, again[0])
+    # the whole sweep from there: no flying back along the line already covered
+    positions, _ = lawnmower(wide, 5.0, 20.0, profile=SWEEP, start=on_line, start_heading=0.0)
+    first_leg = positions[: int(np.argmin(np.abs(positions[:, 0] - 98.0)))]
+    assert np.all(np.diff(first_leg[:, 0]) >= -1e-9)

@@ -30,7 +30,8 @@ QUICK_ZONES = "[job_manager]\nchecking_timeout = 0.5\ngoing_timeout = 0.5\n"
 # the tracker, the job manager's checks and forbidden zones follow) within a short run: the
 # built-in scenarios find their targets later, and mbzirc's balloons on poles are background.
 # The drones drift slowly: a moving target is chased rather than checked, and leaves no zone. Two
-# more take off later, so new tracks start while the first ones are confirmed.
+# more take off later, so new tracks start while the first ones are confirmed. A red balloon ahead
+# of uav1 gives its camera something to find.
 YARD = """
 name = "viewer_yard"
 duration = 20.0
@@ -70,6 +71,11 @@ radius = 1.0
 speed = 0.3
 takeoff_time = 4.0
 climb_speed = 2.0
+
+[[balloons]]
+name = "ahead"
+pole = [24.0, 24.0]
+height = 3.0
 
 [[obstacles]]
 name = "hangar"

@@ -16,6 +16,8 @@ from services.geometry import as_polygon, point_in_polygon
 from services.planner.timing import DT, Path, fly
 
 MAX_LINES = 10_000  # the most sweep lines planned: 10 km of area at 1 m spacing
+RESUME_OFF_LINE = 1.0  # m: a vehicle this close to its first line, heading along it, resumes it where it is
+RESUME_HEADING = np.cos(np.radians(30.0))  # ... heading within 30° of the line
 
 _EPS = 1e-9
 
@@ -93,14 +95,17 @@ def scan_rectangle(area: np.ndarray, offset: float) -> tuple[np.ndarray, np.ndar
 
 
 def lawnmower_waypoints(area: np.ndarray, height: float, spacing: float, offset: float,
-                        start: np.ndarray) -> np.ndarray:
+                        start: np.ndarray, heading: float | None = None) -> np.ndarray:
     """Boustrophedon corners (2·lines, 3) over the scan rectangle: lines along its long side,
     `spacing` apart, as few as keep every point within spacing/2 of one (centred across the
-    short side), from the corner nearest `start`."""
-    return _sweep_corners(*scan_rectangle(area, offset), height, spacing, start)
+    short side), from the corner nearest `start` — or, when the vehicle is on its first line and
+    `heading` along it, from where it is, the way it was going (a sweep interrupted by a stop
+    manoeuvre resumes instead of flying back to the line's start)."""
+    return _sweep_corners(*scan_rectangle(area, offset), height, spacing, start, heading)
 
 
-def _sweep_corners(low: np.ndarray, high: np.ndarray, height: float, spacing: float, start: np.ndarray) -> np.ndarray:
+def _sweep_corners(low: np.ndarray, high: np.ndarray, height: float, spacing: float, start: np.ndarray,
+                   heading: float | None = None) -> np.ndarray:
     if spacing <= 0:
         raise ValueError(f"spacing must be positive, got {spacing}")
     size = high - low
@@ -127,13 +132,31 @@ def _sweep_corners(low: np.ndarray, high: np.ndarray, height: float, spacing: fl
     begin, end = low[along], high[along]
     if abs(start[along] - end) < abs(start[along] - begin):
         begin, end = end, begin
+    resume = _resume_direction(start, heading, along, across_at[0] - start[across], low, high, spacing)
+    if resume:
+        begin, end = (low[along], high[along]) if resume > 0 else (high[along], low[along])
     forward = np.arange(lines) % 2 == 0
     corners = np.empty((2 * lines, 3))
     corners[0::2, along] = np.where(forward, begin, end)
     corners[1::2, along] = np.where(forward, end, begin)
     corners[:, across] = np.repeat(across_at, 2)
     corners[:, 2] = height
+    if resume:
+        corners[0, along] = start[along]  # the first line from where the vehicle is
     return corners
+
+
+def _resume_direction(start: np.ndarray, heading: float | None, along: int, off_line: float, low: np.ndarray,
+                      high: np.ndarray, spacing: float) -> int:
+    """+1 or -1: resume the first line from `start` in that direction along it; 0: do not."""
+    if heading is None or abs(off_line) > RESUME_OFF_LINE or not low[along] <= start[along] <= high[along]:
+        return 0
+    direction = (np.cos(heading), np.sin(heading))[along]
+    if abs(direction) < RESUME_HEADING:
+        return 0
+    sign = 1 if direction > 0 else -1
+    ahead = high[along] - start[along] if sign > 0 else start[along] - low[along]
+    return sign if ahead >= spacing / 2 else 0
 
 
 def lawnmower(area: np.ndarray, height: float, spacing: float, offset: float = 2.0,
@@ -152,7 +175,7 @@ def lawnmower(area: np.ndarray, height: float, spacing: float, offset: float = 2
         start = np.array([area[0, 0], area[0, 1], height])
     start = np.asarray(start, dtype=np.float64).reshape(3)
     low, high = scan_rectangle(area, offset)
-    corners = _sweep_corners(low, high, height, spacing, start)
+    corners = _sweep_corners(low, high, height, spacing, start, start_heading)
     slow = profile.max_speed / max(corner_factor, 1.0)
     outside = bool(np.any(start[:2] < low - 1e-6) or np.any(start[:2] > high + 1e-6))
     corner_speeds = np.full(len(corners) + 1, slow)

@@ -11,7 +11,8 @@ from rerun.chunk import RrdReader
 RERUN = str(Path(sys.executable).parent / "rerun")
 VIEWER_BINARY = str(Path(rerun_cli.__file__).parent / "rerun")  # the viewer itself, no Python wrapper
 # The component of each archetype the viewer draws that says how many things a row holds.
-CONTENT = (":positions", ":centers", ":strips", ":translation", ":text", ":state", ":scalars", ":vertex_positions")
+CONTENT = (":positions", ":centers", ":strips", ":translation", ":text", ":state", ":scalars", ":vertex_positions",
+           ":blob")
 
 
 def entity_times(path: str | Path, with_content: bool = False) -> dict[str, set[int]]:
