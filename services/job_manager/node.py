@@ -208,10 +208,7 @@ class JobManagerNode(Node):
 NODE = JobManagerNode
 
 
-def _positions_and_covariances(msg: Detections) -> tuple[np.ndarray, np.ndarray | None]:
-    """(N, 3) positions and (N, 3, 3) covariances, None when their count does not match."""
+def _positions_and_covariances(msg: Detections) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) positions and the covariances as sent (the core drops a covariance array of the wrong size)."""
     positions = to_numpy(msg.positions)
-    positions = positions.reshape(-1, 3) if positions.size else np.zeros((0, 3))
-    covariances = to_numpy(msg.covariances)
-    covariances = covariances.reshape(-1, 3, 3) if covariances.size == 9 * len(positions) else None
-    return positions, covariances
+    return (positions.reshape(-1, 3) if positions.size else np.zeros((0, 3))), to_numpy(msg.covariances)

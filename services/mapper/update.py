@@ -15,6 +15,7 @@ import numpy as np
 from numba import njit
 
 from schemas import voxels
+from services.voxels.kernels import find_root, union_sets
 
 THRESHOLDS = np.array([voxels.UNCERTAIN, voxels.TENTATIVE_OCCUPIED, voxels.CONFIDENT_OCCUPIED], dtype=np.float32)
 
@@ -110,14 +111,14 @@ def weakly_held_voxels(grid, low, high, grid_shape, tentative, confident, forwar
             if 0 <= jx < bx and 0 <= jy < by and 0 <= jz < bz:
                 other = slot[(jx * by + jy) * bz + jz]
                 if other >= 0:
-                    _union(parent, k, other)
+                    union_sets(parent, k, other)
     held = np.zeros(n, dtype=np.int64)  # confident voxels per group root
     for k in range(n):
         if _grid_value(grid, occupied[k], low, by, bz, gy, gz) >= confident:
-            held[_find(parent, k)] += 1
+            held[find_root(parent, k)] += 1
     count = 0
     for k in range(n):
-        if held[_find(parent, k)] < min_confident:
+        if held[find_root(parent, k)] < min_confident:
             local = occupied[k]
             out[count] = ((local // (by * bz) + low[0]) * gy + (local // bz) % by + low[1]) * gz + local % bz + low[2]
             count += 1
@@ -128,20 +129,3 @@ def weakly_held_voxels(grid, low, high, grid_shape, tentative, confident, forwar
 @njit(cache=True, inline="always")
 def _grid_value(grid, local, low, by, bz, gy, gz):
     return grid[((local // (by * bz) + low[0]) * gy + (local // bz) % by + low[1]) * gz + local % bz + low[2]]
-
-
-@njit(cache=True, inline="always")
-def _find(parent, i):
-    root = i
-    while parent[root] != root:
-        root = parent[root]
-    while parent[i] != root:  # path compression
-        parent[i], i = root, parent[i]
-    return root
-
-
-@njit(cache=True, inline="always")
-def _union(parent, i, j):
-    a, b = _find(parent, i), _find(parent, j)
-    if a != b:
-        parent[max(a, b)] = min(a, b)

@@ -164,11 +164,11 @@ def euclidean_clusters(points, radius):
         for a in range(begin[c], end[c]):
             for b in range(a + 1, end[c]):
                 if _close(points, order[a], order[b], limit):
-                    _union(parent, order[a], order[b])
-        root = _find(parent, order[begin[c]])
+                    union_sets(parent, order[a], order[b])
+        root = find_root(parent, order[begin[c]])
         whole[c] = True
         for a in range(begin[c] + 1, end[c]):
-            if _find(parent, order[a]) != root:
+            if find_root(parent, order[a]) != root:
                 whole[c] = False
                 break
     for c in range(cells):
@@ -179,13 +179,13 @@ def euclidean_clusters(points, radius):
             if other < 0:
                 continue
             if whole[c] and whole[other]:
-                if _find(parent, order[begin[c]]) == _find(parent, order[begin[other]]):
+                if find_root(parent, order[begin[c]]) == find_root(parent, order[begin[other]]):
                     continue
                 linked = False
                 for a in range(begin[c], end[c]):
                     for b in range(begin[other], end[other]):
                         if _close(points, order[a], order[b], limit):
-                            _union(parent, order[a], order[b])
+                            union_sets(parent, order[a], order[b])
                             linked = True
                             break
                     if linked:
@@ -193,13 +193,13 @@ def euclidean_clusters(points, radius):
             else:
                 for a in range(begin[c], end[c]):
                     for b in range(begin[other], end[other]):
-                        if _find(parent, order[a]) != _find(parent, order[b]) and _close(points, order[a], order[b], limit):
-                            _union(parent, order[a], order[b])
+                        if find_root(parent, order[a]) != find_root(parent, order[b]) and _close(points, order[a], order[b], limit):
+                            union_sets(parent, order[a], order[b])
     labels = np.full(n, -1, dtype=np.int64)
     root_label = np.full(n, -1, dtype=np.int64)
     count = 0
     for i in range(n):
-        r = _find(parent, i)
+        r = find_root(parent, i)
         if root_label[r] < 0:
             root_label[r] = count
             count += 1
@@ -245,7 +245,8 @@ def _close(points, i, j, limit):
 
 
 @njit(cache=True, inline="always")
-def _find(parent, i):
+def find_root(parent, i):
+    """The root of i's set in a union-find forest (`parent`), compressing the path on the way."""
     root = i
     while parent[root] != root:
         root = parent[root]
@@ -255,7 +256,8 @@ def _find(parent, i):
 
 
 @njit(cache=True, inline="always")
-def _union(parent, i, j):
-    a, b = _find(parent, i), _find(parent, j)
+def union_sets(parent, i, j):
+    """Join the sets of i and j; the smaller index becomes the root (the grouping is order-independent)."""
+    a, b = find_root(parent, i), find_root(parent, j)
     if a != b:
         parent[max(a, b)] = min(a, b)
