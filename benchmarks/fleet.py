@@ -1,8 +1,9 @@
 """Can the whole fleet keep up? The lockstep real-time factor of a mission with 2 and 3 UAVs at the
 seeds' sensor (Ouster OS0-128 × 1024), and where the time goes per service.
 
-Flies `falconry sim SCENARIO --lockstep` (the classifier detector, every service of every UAV in its
-own process, as `make sim` does) once per fleet size, with the sensor driver's model set by a
+Flies `falconry sim SCENARIO --lockstep --detector DETECTOR` (default classifier: the LiDAR
+perception the goal was set for; onboard adds the camera and Object Detect, as `make sim` runs;
+every service of every UAV in its own process) once per fleet size, with the sensor driver's model set by a
 parameter file, and reads the run's summary (`--summary-json`): the simulator's mission time over
 wall time since the first tick is the real-time factor (goal: at least 1.0 with 3 UAVs: a lockstep
 run then loses nothing against the real clock; the launcher's figure, which includes starting every
@@ -28,13 +29,14 @@ RTF_GOAL = 1.0  # with 3 UAVs: a lockstep run as fast as the real clock
 SENSOR = "os0-128-1024"
 
 
-def fly(scenario: str, uavs: int, sensor: str, duration: float, seed: int, work: Path) -> dict:
+def fly(scenario: str, uavs: int, sensor: str, duration: float, seed: int, work: Path,
+        detector: str = "classifier") -> dict:
     config = work / "sensor.toml"
     config.write_text(f'[sensor_driver]\nmodel = "{sensor}"\n')
     summary = work / f"{scenario}-{uavs}.json"
     argv = [sys.executable, "-m", "services.launcher", "sim", scenario, "--uavs", str(uavs), "--seed", str(seed),
-            "--lockstep", "--duration", str(duration), "--quiet", "--progress", "0", "--config", str(config),
-            "--summary-json", str(summary)]
+            "--lockstep", "--detector", detector, "--duration", str(duration), "--quiet", "--progress", "0",
+            "--config", str(config), "--summary-json", str(summary)]
     result = subprocess.run(argv, capture_output=True, text=True)
     if result.returncode != 0 or not summary.exists():
         raise SystemExit(f"{' '.join(argv[3:])} failed ({result.returncode}):\n{result.stdout[-2000:]}"
@@ -60,6 +62,8 @@ def main() -> int:
     parser.add_argument("--duration", type=float, default=60.0, metavar="S", help="mission time per run (default 60)")
     parser.add_argument("--uavs", type=int, nargs="+", default=[2, 3], choices=[2, 3], help="fleet sizes (default 2 3)")
     parser.add_argument("--seed", type=int, default=1, help="scenario seed (default 1)")
+    parser.add_argument("--detector", choices=["classifier", "onboard", "oracle"], default="classifier",
+                        help="the runs' detector (default classifier: the LiDAR perception alone)")
     args = parser.parse_args()
     if args.duration <= 0:
         parser.error("--duration must be positive")
@@ -69,7 +73,7 @@ def main() -> int:
         for uavs in args.uavs:
             print(f"[{time.time() - started:5.0f} s] {args.scenario}, {uavs} UAVs, {args.sensor}, "
                   f"{args.duration:g} s lockstep ...", flush=True)
-            summary = fly(args.scenario, uavs, args.sensor, args.duration, args.seed, Path(tmp))
+            summary = fly(args.scenario, uavs, args.sensor, args.duration, args.seed, Path(tmp), args.detector)
             rtf = summary["real_time_factor"]
             results[uavs] = (rtf, shares_per_uav(summary, uavs), summary)
             print(f"        real-time factor {rtf:.2f}x from the first tick; mission {summary['mission_time']:.1f} s "
