@@ -2,15 +2,30 @@
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import logging
 import sys
 
-from services.launcher import (analyze_cmd, campaign_cmd, colors_cmd, health_cmd, params_cmd, record_cmd,
-                               replay_cmd, router_cmd, run_cmd, sim_cmd, view_cmd)
+from services.launcher import (analyze_cmd, campaign_cmd, colors_cmd, completion_cmd, health_cmd, params_cmd,
+                               record_cmd, replay_cmd, router_cmd, run_cmd, sim_cmd, view_cmd)
 from services.launcher.common import EXIT_CODES, Parser
 from services.runtime.errors import INTERRUPTED, RuntimeFailure, UsageError
 from services.runtime.zenoh_config import OpenCancelled
 from services.simulator.scenario import ScenarioError
+
+
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+def version() -> str:
+    """This package's version and the Zenoh it speaks (services must share a Zenoh major version)."""
+    package, zenoh = (importlib.metadata.version(name) for name in ("falconry", "eclipse-zenoh"))
+    return f"falconry {package} (eclipse-zenoh {zenoh}, python {sys.version.split()[0]})"
+
+
+def add_log_level(parser: argparse.ArgumentParser, default) -> None:
+    parser.add_argument("--log-level", default=default, choices=LOG_LEVELS,
+                        help="log verbosity of this process (default: info); before or after the command")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -19,8 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Falconry: a team of autonomous LiDAR interceptor UAVs as services over Zenoh.",
         epilog="Run `falconry COMMAND --help` for the options of each command.\n\n" + EXIT_CODES,
     )
-    parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"],
-                        help="log verbosity of this process (default: info)")
+    parser.add_argument("--version", action="version", version=version())
+    add_log_level(parser, "info")
     commands = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     sim_cmd.add_parser(commands)
     run_cmd.add_parser(commands)
@@ -33,6 +48,10 @@ def build_parser() -> argparse.ArgumentParser:
     colors_cmd.add_parser(commands)
     campaign_cmd.add_parser(commands)
     router_cmd.add_parser(commands)
+    completion_cmd.add_parser(commands, build_parser)
+    for command in commands.choices.values():
+        # after the command it overrides the one before it; absent, it leaves that one alone
+        add_log_level(command, argparse.SUPPRESS)
     return parser
 
 

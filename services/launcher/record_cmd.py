@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import datetime
 import signal
 import threading
 import time
@@ -25,7 +26,10 @@ def add_parser(commands) -> None:
                     "--duration finish the file properly. Any MCAP reader opens it (`mcap info FILE`, Foxglove: "
                     "channels, schemas, timing; the payloads are msgpack); replay it with `falconry replay FILE`.",
     )
-    p.add_argument("file", metavar="FILE", help="the MCAP file to write (replaced if it exists)")
+    p.add_argument("file", metavar="FILE",
+                   help="the MCAP file to write (replaced if it exists); {start} in the name becomes the UTC start "
+                        "time, e.g. flight-{start}.mcap -> flight-20261125T061502Z.mcap, so a recorder that a "
+                        "supervisor restarts starts a new file instead of replacing the last")
     p.add_argument("--keys", nargs="+", action="extend", metavar="EXPR",
                    help=f"key expressions to record (default: {' '.join(DEFAULT_KEYS)} but the raw camera frames "
                         f"{' '.join(SKIPPED_BY_DEFAULT)}; the compressed ones are kept)")
@@ -42,6 +46,14 @@ def add_parser(commands) -> None:
                    help="print a progress line every S seconds (default 5; 0 = never)")
     add_zenoh_options(p, "Give the run's hub, e.g. --connect tcp/127.0.0.1:PORT (or --listen and let the run connect).", connect_timeout=FOREVER)
     p.set_defaults(handler=run_record)
+
+
+START_PLACEHOLDER = "{start}"
+
+
+def recording_path(template: str, start: datetime.datetime) -> str:
+    """The file name with {start} replaced by the UTC start time (ISO 8601 basic format: no ':' in names)."""
+    return template.replace(START_PLACEHOLDER, start.astimezone(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ"))
 
 
 def check_key_exprs(exprs: list[str]) -> list[str]:
@@ -65,6 +77,7 @@ def run_record(args: argparse.Namespace) -> int:
     if args.health < 0:
         raise CliError("--health must be 0 (never) or positive")
     key_exprs = check_key_exprs(args.keys or list(DEFAULT_KEYS))
+    path = recording_path(args.file, datetime.datetime.now(datetime.timezone.utc))
 
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -73,12 +86,12 @@ def run_record(args: argparse.Namespace) -> int:
     session = open_session(zenoh_settings(args), wait=stop.wait)
     try:
         try:
-            recorder = Recorder(session, args.file, key_exprs, compression=args.compression,
+            recorder = Recorder(session, path, key_exprs, compression=args.compression,
                                 chunk_size=args.chunk_size, flush_s=args.flush, health_s=args.health,
                                 skip=() if args.keys else SKIPPED_BY_DEFAULT)
         except OSError as exc:
-            raise CliError(f"cannot write {args.file}: {exc.strerror or exc}") from None
-        print(f"recording {' '.join(recorder.key_exprs)} to {args.file} (Ctrl-C to stop)", flush=True)
+            raise CliError(f"cannot write {path}: {exc.strerror or exc}") from None
+        print(f"recording {' '.join(recorder.key_exprs)} to {path} (Ctrl-C to stop)", flush=True)
         started = time.monotonic()
         next_progress = started + args.progress
         while not stop.wait(0.1):
@@ -94,5 +107,5 @@ def run_record(args: argparse.Namespace) -> int:
         stats = recorder.close()
     finally:
         session.close()
-    print("\n".join(summary_lines(args.file, stats, time.monotonic() - started)), flush=True)
+    print("\n".join(summary_lines(path, stats, time.monotonic() - started)), flush=True)
     return 0

@@ -30,16 +30,18 @@ def process_usage() -> tuple[float, int]:
     return time.process_time(), resident
 
 
-def query_health(session: zenoh.Session, timeout: float) -> list[ServiceHealth]:
-    """Ask every reachable service once; the answers sorted by (scope, service)."""
+def query_health(session: zenoh.Session, timeout: float,
+                 key_exprs: list[str] | None = None) -> list[ServiceHealth]:
+    """Ask every reachable service once (or those of `key_exprs`); the answers sorted by (scope, service)."""
     decoder = msgspec.msgpack.Decoder(ServiceHealth)
     answers = []
-    for reply in session.get(ALL_HEALTH, timeout=timeout):
-        if reply.ok is not None:
-            try:
-                answers.append(decoder.decode(reply.ok.payload.to_bytes()))
-            except (msgspec.DecodeError, msgspec.ValidationError):
-                pass
+    for key_expr in key_exprs or [ALL_HEALTH]:
+        for reply in session.get(key_expr, timeout=timeout):
+            if reply.ok is not None:
+                try:
+                    answers.append(decoder.decode(reply.ok.payload.to_bytes()))
+                except (msgspec.DecodeError, msgspec.ValidationError):
+                    pass
     return sorted(answers, key=lambda h: (h.uav, h.service))
 
 
