@@ -288,9 +288,25 @@ def test_silent_sensor_for_more_than_1_s_is_an_emergency_landing(silent):
     assert rig.jm.state is State.LANDED
 
 
-def test_lidar_that_never_starts_aborts_one_second_after_take_off():
+def test_no_take_off_before_the_lidar_is_heard():
+    """Every service alive is not enough: the UAV waits on the ground for its first fresh scan
+    (a stale one does not count), so slow perception at start never becomes an abort in the air."""
     rig = Rig()
-    rig.tick(0.0, position=HOME - [0, 0, 5], scan=False)
+    for t in (0.0, 0.5, 3.0):
+        rig.tick(t, position=HOME - [0, 0, 5], scan=False)
+        assert rig.jm.state is State.PREFLIGHT
+    assert all(decision.action != "takeoff" for decision in rig.decisions)
+    rig.jm.observe_detections(s(1.0), np.zeros((0, 3)))  # heard, but 2 s ago by 3.0
+    rig.tick(3.0, position=HOME - [0, 0, 5], scan=False)
+    assert rig.jm.state is State.PREFLIGHT
+    decision = rig.tick(3.1, position=HOME - [0, 0, 5])
+    assert rig.jm.state is State.TAKING_OFF and decision.action == "takeoff"
+
+
+def test_lidar_that_stops_at_take_off_aborts_one_second_later():
+    rig = Rig()
+    rig.tick(0.0, position=HOME - [0, 0, 5])
+    assert rig.jm.state is State.TAKING_OFF
     rig.tick(0.9, position=HOME - [0, 0, 4], scan=False)
     assert rig.jm.state is State.TAKING_OFF
     rig.tick(1.1, position=HOME - [0, 0, 3], scan=False)

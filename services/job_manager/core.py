@@ -1,6 +1,9 @@
 """The job manager's mission state machine (seed 004, ch. 3), pure and clock-injected.
 
-Automatic start (§3.6) wraps the seed's five states: PREFLIGHT (every required service alive)
+Automatic start (§3.6) wraps the seed's five states: PREFLIGHT (every required service alive
+and the LiDAR stream heard within `sensor_timeout`: a token says a process is up, not that its
+data flows, and a UAV that left the ground before its first scan would be sent straight back
+down by the abort below when perception is slow to start, e.g. real time on a loaded computer)
 → TAKING_OFF → the state machine proper — IDLE, GOING_AROUND, CHECKING_TARGET,
 GOING_TO_TARGET, DESTROYING (§3.4) — until the mission timer says LANDING → LANDED. The abort
 system (§3.5.3) sends any flying state to EMERGENCY_LANDING when the LiDAR stream (one
@@ -403,7 +406,8 @@ class JobManager:
         if state is State.PREFLIGHT:
             if self._mission_over(now):
                 return State.LANDED, "mission over before take-off"
-            if services_ready and self.working_area is not None:
+            lidar_heard = self.seen.scan_stamp is not None and now - self.seen.scan_stamp <= timeout
+            if services_ready and lidar_heard and self.working_area is not None:
                 return State.TAKING_OFF, "pre-flight check passed"
         elif state is State.TAKING_OFF:
             if airborne and position[2] >= p.search_height - p.height_tolerance:
