@@ -13,7 +13,8 @@ def falconry(*args: str, timeout: float = 60) -> subprocess.CompletedProcess:
     return subprocess.run(falconry_argv(*args), cwd=REPO, capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.mark.parametrize("command", [(), ("sim",), ("run",), ("health",), ("view",), ("record",), ("analyze", "hit-probability")])
+@pytest.mark.parametrize("command", [(), ("sim",), ("run",), ("health",), ("view",), ("record",), ("analyze", "hit-probability"),
+                                     ("export",), ("completion",)])
 def test_help_explains_every_option(command):
     result = falconry(*command, "--help")
     assert result.returncode == 0

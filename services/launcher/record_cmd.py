@@ -24,7 +24,8 @@ def add_parser(commands) -> None:
                     "the services' health answers too. Chunks are "
                     "closed every --flush seconds, so a crash loses at most that much; Ctrl-C, SIGTERM or "
                     "--duration finish the file properly. Any MCAP reader opens it (`mcap info FILE`, Foxglove: "
-                    "channels, schemas, timing; the payloads are msgpack); replay it with `falconry replay FILE`.",
+                    "channels, schemas, timing; the payloads are msgpack: `falconry export --format foxglove` converts "
+                    "them); replay it with `falconry replay FILE`.",
     )
     p.add_argument("file", metavar="FILE",
                    help="the MCAP file to write (replaced if it exists); {start} in the name becomes the UTC start "

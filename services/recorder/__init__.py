@@ -8,7 +8,7 @@
 - `replay`: `Replayer`, which publishes a recording back, paced by its receive times or in
   lockstep as the clock master (`falconry replay --lockstep`), so perception can be re-run on
   exactly the same data.
-
-Later work deepens it: conversion of payloads to JSON/CBOR for viewers that cannot decode
-msgpack, replay of a time window, and a recorded-file source behind the sensor driver.
+- `foxglove_export` (with `json_view` and `foxglove_schemas`): `falconry export --format
+  foxglove`, a recording as JSON with JSON Schemas, Foxglove's own types where it has one
+  (point clouds, poses and frames, scene entities, images).
 """
