@@ -72,6 +72,11 @@ def ack(scope: str, service: str) -> str:
     return f"{ROOT}/{scope}/ack/{service}"
 
 
+# Per-UAV topics that a party other than the UAV's own services publishes: the access control of
+# a team (services/runtime/tls.py) grants exactly these, and their publishers name them from here.
+ODOMETRY = "odometry"  # the flight controller's pose; in simulation the simulator stands in for it
+COLORS = "colors"  # a colour file sent live from the ground (`falconry colors pick --send`)
+
 ALL_ALIVE = f"{ROOT}/*/alive/*"
 ALL_ACKS = f"{ROOT}/*/ack/*"
 ALL_STATUS = f"{ROOT}/*/status"

@@ -215,7 +215,7 @@ def _send(args: argparse.Namespace, colors: ColorFile, path: Path) -> None:
     init_logging()
     session = open_session(zenoh_settings(args))
     try:
-        key = keys.uav(args.uav, "colors")
+        key = keys.uav(args.uav, keys.COLORS)
         publisher = session.declare_publisher(key)
         time.sleep(0.3)  # let the subscription reach us before the one message
         publisher.put(msgspec.msgpack.encode(ColorUpdate(header=Header(sender="ground/colors", seq=1),

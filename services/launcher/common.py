@@ -3,7 +3,10 @@ and the exit codes' explanation."""
 from __future__ import annotations
 
 import argparse
+import os
 
+from schemas import keys
+from services.runtime import tls
 from services.runtime.errors import INTERRUPTED, RUNTIME_FAILURE, USAGE_ERROR, UsageError
 from services.runtime.zenoh_config import PROFILES, RETRY_FIRST_S, RETRY_MAX_S, ZenohSettings
 
@@ -42,9 +45,11 @@ class Parser(argparse.ArgumentParser):
         self.exit(USAGE_ERROR, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
 
 
-def add_zenoh_options(parser: argparse.ArgumentParser, embedded_hint: str, connect_timeout=None) -> None:
+def add_zenoh_options(parser: argparse.ArgumentParser, embedded_hint: str, connect_timeout=None,
+                      tls_identity: str | None = tls.GROUND) -> None:
     """connect_timeout: None offers no --connect-timeout (the session waits for ever), FOREVER
-    offers it with no limit as default, a number offers it with that default."""
+    offers it with no limit as default, a number offers it with that default. tls_identity: the
+    identity this command presents with --tls (None: derived from SERVICE and --uav)."""
     group = parser.add_argument_group("zenoh")
     group.add_argument("--zenoh-profile", choices=PROFILES, default="embedded",
                        help="embedded: loopback peers, multicast off (default); router: client of a zenohd router")
@@ -68,10 +73,60 @@ def add_zenoh_options(parser: argparse.ArgumentParser, embedded_hint: str, conne
                  f"after {RETRY_FIRST_S:g} s, doubling to {RETRY_MAX_S:g} s, and after S s of this exit with code "
                  f"{RUNTIME_FAILURE}; 0 = one attempt (default: {default}). An embedded peer opens at once and "
                  f"Zenoh retries its --connect endpoints in the background")
+    add_tls_options(group, tls_identity)
+
+
+def add_tls_options(group, tls_identity: str | None) -> None:
+    """--tls DIR (default $FALCONRY_TLS_DIR) and --tls-identity NAME."""
+    derived = ("derived from the command: SERVICE --uav U presents U's, the simulator sim's"
+               if tls_identity is None else f"{tls_identity}")
+    group.add_argument("--tls", metavar="DIR", default=os.environ.get(tls.ENV_DIR) or None,
+                       help=f"mutual TLS with the team's certificates in DIR (`falconry certs DIR`): trust only "
+                            f"DIR/ca.crt, present DIR/IDENTITY.crt and .key; every endpoint is then tls/HOST:PORT "
+                            f"(default: ${tls.ENV_DIR}, empty or unset = plain tcp)")
+    group.add_argument("--tls-identity", metavar="NAME", default=tls_identity,
+                       help=f"whose certificate to present with --tls: a UAV name, {', '.join(tls.ROLES)} "
+                            f"(default: {derived})")
+
+
+def add_team_options(group, what: str, default: int | None) -> None:
+    """--uavs N or --team NAME,NAME,... (one of them): the UAVs of a team, for `team_of`."""
+    choice = group.add_mutually_exclusive_group()
+    choice.add_argument("--uavs", type=int, metavar="N",
+                        help=f"{what}: uav1 to uavN" + (f" (default {default})" if default else ""))
+    choice.add_argument("--team", metavar="UAV,UAV,...", help=f"{what}, by name, e.g. uav1,uav2,uav3")
+
+
+def team_of(args: argparse.Namespace, default: int | None = None) -> list[str] | None:
+    """The team --uavs or --team names (else `default` UAVs, or None)."""
+    try:
+        if args.team is not None:
+            return tls.parse_team(args.team)
+        count = args.uavs if args.uavs is not None else default
+        if count is None:
+            return None
+        if count < 1:
+            raise CliError(f"--uavs must be 1 or more, not {count}")
+        return tls.check_team(keys.uav_names(count))
+    except tls.TlsError as exc:
+        raise CliError(f"--team {args.team}: {exc}") from None
+
+
+def tls_identity(args: argparse.Namespace) -> str | None:
+    """The identity this command presents with --tls (None without --tls)."""
+    if not getattr(args, "tls", None):
+        return None
+    try:
+        if args.tls_identity:
+            return tls.check_identity(args.tls_identity)
+        return tls.identity_for(getattr(args, "service", None), getattr(args, "uav", None))
+    except tls.TlsError as exc:
+        raise CliError(str(exc)) from None
 
 
 def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
     return ZenohSettings(profile=args.zenoh_profile, connect=list(args.connect), listen=list(args.listen),
                          config_file=args.zenoh_config, lease_ms=args.lease_ms,
                          connect_timeout=getattr(args, "connect_timeout", None),
-                         gossip_connect=getattr(args, "gossip_connect", True))
+                         gossip_connect=getattr(args, "gossip_connect", True),
+                         tls_dir=getattr(args, "tls", None) or None, tls_identity=tls_identity(args))

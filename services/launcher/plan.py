@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 from schemas.keys import uav_services
 from services.launcher.netns import UavNetwork
+from services.runtime import tls
 from services.runtime.zenoh_config import ZenohSettings
 
 
@@ -30,7 +31,10 @@ def own_router_wanted(args: argparse.Namespace) -> bool:
 def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: float, port: int,
              network: UavNetwork | None) -> RunPlan:
     embedded = args.zenoh_profile == "embedded" and not args.zenoh_config
-    loopback_hub = f"tcp/127.0.0.1:{port}"
+    # --tls: every link is mutual TLS, each child presenting its own identity (derived from its
+    # command line); the run's own router then also enforces the team's access control
+    tls_dir = getattr(args, "tls", None) or None
+    loopback_hub = f"{'tls' if tls_dir else 'tcp'}/127.0.0.1:{port}"
     own_router = own_router_wanted(args)
     connect = [loopback_hub] if own_router else list(args.connect)
     if embedded:
@@ -47,19 +51,21 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
                                  shared_memory=False,
                                  # an embedded hub only listens: a busy --port is one clear error, not a wait;
                                  # our own router is up in a second, or it failed (a busy port)
-                                 connect_timeout=0 if embedded else OWN_ROUTER_TIMEOUT_S if own_router else None)
+                                 connect_timeout=0 if embedded else OWN_ROUTER_TIMEOUT_S if own_router else None,
+                                 tls_dir=tls_dir, tls_identity=tls.SIM if tls_dir else None)
 
     def zenoh_args(connect: list[str], listen: list[str], gossip_connect: bool = True) -> list[str]:
         return ZenohSettings(profile=args.zenoh_profile, connect=connect if embedded or own_router else list(args.connect),
                              listen=listen if embedded else [], config_file=args.zenoh_config,
-                             lease_ms=args.lease_ms, gossip_connect=gossip_connect).as_args()
+                             lease_ms=args.lease_ms, gossip_connect=gossip_connect, tls_dir=tls_dir).as_args()
 
     base = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "run"]
     extra = ["--exit-with-parent"] + (["--config", args.config] if args.config else [])
     plan = RunPlan(hub_settings, hub_label)
     if own_router:
         plan.router = [sys.executable, "-m", "services.launcher", "--log-level", args.log_level, "router",
-                       "--exit-with-parent", "--listen", loopback_hub]
+                       "--exit-with-parent", "--listen", loopback_hub] \
+            + (["--tls", tls_dir, "--team", ",".join(uavs)] if tls_dir else [])
     # With namespaces, the simulator is reached by each UAV over that UAV's airframe link only (never
     # over the radio bridge, which a link_cut takes down), and by the ground over loopback.
     sim_listen = ["tcp/127.0.0.1:0"] + [f"tcp/{network.sim_address(u)}:{port}" for u in uavs] if network else []

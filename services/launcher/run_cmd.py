@@ -28,7 +28,8 @@ def add_parser(commands) -> None:
     p.add_argument("--tick-hz", type=float, default=20.0, help="tick rate with --clock wall (default 20)")
     p.add_argument("--exit-with-parent", action="store_true",
                    help="stop when the launching process dies (the launcher sets this)")
-    add_zenoh_options(p, "Embedded default: none (this process only listens).", connect_timeout=FOREVER)
+    add_zenoh_options(p, "Embedded default: none (this process only listens).", connect_timeout=FOREVER,
+                      tls_identity=None)
     add_simulator_options(p)
     p.set_defaults(handler=run)
 

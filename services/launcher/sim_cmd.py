@@ -29,9 +29,9 @@ from services.launcher.registry import node_class
 from services.launcher.supervisor import Supervisor, describe_exit
 from services.launcher.view_cmd import DRAIN_S, add_view_options, check_view_options
 from services.recorder.record import Recorder, summary_lines
-from services.runtime import shm
+from services.runtime import shm, tls
 from services.runtime.health import query_health
-from services.runtime.zenoh_config import free_port, init_logging, open_session
+from services.runtime.zenoh_config import free_port, init_logging, open_session, tls_files
 from services.simulator.options import add_simulator_options
 from services.simulator.scenario import ScenarioError, load_scenario
 from services.simulator.specs import FaultSpec
@@ -78,7 +78,8 @@ def add_parser(commands) -> None:
                      help="give up after S seconds of wall time (default: no limit)")
     add_view_options(p.add_argument_group("see the run"),
                      "watch the run live in rerun (a plain subscriber: the mission never waits for it)")
-    add_zenoh_options(p, "Embedded default: the launcher listens on --port and services connect to it.")
+    add_zenoh_options(p, "Embedded default: the launcher listens on --port and services connect to it.",
+                      tls_identity=tls.SIM)
     p.set_defaults(handler=run_sim)
 
 
@@ -136,6 +137,14 @@ class SimRun:
         if own_router_wanted(args) and needs_network:
             raise CliError("--zenoh-profile router without --connect runs the run's own router on loopback, "
                            "which UAVs in network namespaces (--isolate, link_cut faults) cannot reach")
+        if args.tls:
+            if needs_network:
+                raise CliError("--tls with per-UAV network namespaces (--isolate, link_cut faults): the namespaces' "
+                               "addresses are not in the certificates; leave out one or the other")
+            # every party's certificate, before anything starts (the launcher and the simulator are sim)
+            for identity in [tls.SIM, *self.uavs] + ([tls.GROUND] if args.viz or args.rrd else []) \
+                    + ([tls.ROUTER] if own_router_wanted(args) else []):
+                tls_files(args.tls, identity)
         if needs_network and (why := netns.available()):
             raise CliError(f"{'--isolate' if args.isolate else 'the scenario schedules link_cut faults, which'} "
                            f"needs per-UAV network namespaces, but {why}")

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import CameraFrame, ColorUpdate, Detections, Header
 from services.object_detect.colors import ColorFile, ColorFileError, load_color_file, parse_color_file
@@ -46,7 +47,7 @@ class ObjectDetectNode(Node):
         self.log.info("colours %r (%s, %s, diameter %g m)", self.colors.name, self.colors.method,
                       self.colors.thresholds.space, self.colors.diameter)
         self.detections_pub = self.publisher(self.topic("camera_detections"), Detections)
-        self.subscribe(self.topic("colors"), ColorUpdate, self.on_colors, keep=None)  # first: before a frame
+        self.subscribe(self.topic(keys.COLORS), ColorUpdate, self.on_colors, keep=None)  # first: before a frame
         self.subscribe(self.topic("camera"), CameraFrame, self.on_frame)
         self._refused_colors = 0
         self._bad_frames = 0

@@ -24,6 +24,11 @@ with an endpoint that is down:
   to 4 s (connect/retry); only a listen endpoint that cannot be bound makes it fail.
 We do not raise connect/timeout_ms instead: Zenoh would then block inside `open`, where neither
 SIGTERM nor Ctrl-C can reach the Python loop.
+
+Mutual TLS (`tls_dir`, services/runtime/tls.py): the session trusts only the team CA in that
+directory and presents `tls_identity`'s certificate; every endpoint must then be tls/ (the
+defaults become tls/ too), and a missing or unreadable certificate file is a usage error
+naming it. The access control itself is the router's (`falconry router --tls`).
 """
 from __future__ import annotations
 
@@ -39,6 +44,7 @@ from typing import Callable
 
 import zenoh
 
+from services.runtime import tls
 from services.runtime.errors import RuntimeFailure, UsageError
 
 PROFILES = ("embedded", "router")
@@ -83,6 +89,10 @@ class ZenohSettings:
     # may still connect to us). The simulator behind per-UAV airframe links must reach each UAV
     # over its own link only, not over the radio a link_cut takes down.
     gossip_connect: bool = True
+    # Mutual TLS: the directory of the team's certificates (None: plain tcp) and whose
+    # certificate to present (tls.identity_for; None in a child's settings: the child derives it).
+    tls_dir: str | None = None
+    tls_identity: str | None = None
 
     def as_args(self) -> list[str]:
         """Command-line arguments that reproduce these settings in a child process."""
@@ -99,6 +109,10 @@ class ZenohSettings:
             args += ["--connect-timeout", f"{self.connect_timeout:g}"]
         if not self.gossip_connect:
             args += ["--no-gossip-connect"]
+        if self.tls_dir:
+            args += ["--tls", self.tls_dir]
+        if self.tls_identity:
+            args += ["--tls-identity", self.tls_identity]
         return args
 
     def describe(self) -> str:
@@ -106,9 +120,17 @@ class ZenohSettings:
         where = [f"connect {e}" for e in self.connect] + [f"listen {e}" for e in self.listen]
         if not where:
             config_file = self.config_file or os.environ.get("ZENOH_CONFIG")
+            scheme = "tls" if self.tls_dir else "tcp"
             where = [f"config {config_file}" if config_file
-                     else f"connect {DEFAULT_ROUTER}" if self.profile == "router" else "listen tcp/127.0.0.1:0"]
-        return f"{self.profile}: " + ", ".join(where)
+                     else f"connect {default_router(self.tls_dir)}" if self.profile == "router"
+                     else f"listen {scheme}/127.0.0.1:0"]
+        secured = f" (mutual TLS as {self.tls_identity})" if self.tls_dir else ""
+        return f"{self.profile}: " + ", ".join(where) + secured
+
+
+def default_router(tls_dir: str | None = None) -> str:
+    """The router a client connects to when none is named: tcp/127.0.0.1:7447, or tls/ with TLS."""
+    return DEFAULT_ROUTER.replace("tcp/", "tls/", 1) if tls_dir else DEFAULT_ROUTER
 
 
 def free_port() -> int:
@@ -143,6 +165,45 @@ def check_endpoint(endpoint: str, listening: bool) -> None:
                                    f"e.g. {protocol}/127.0.0.1:7447")
 
 
+def tls_files(tls_dir: str, identity: str | None) -> tls.TlsFiles:
+    """The certificate files of `identity` in `tls_dir`, each checked readable (a usage error
+    naming the file otherwise)."""
+    if not identity:
+        raise ZenohConfigError("--tls needs the identity whose certificate to present (--tls-identity)")
+    try:
+        files = tls.files(tls_dir, tls.check_identity(identity))
+    except tls.TlsError as exc:
+        raise ZenohConfigError(str(exc)) from None
+    if not Path(tls_dir).is_dir():
+        raise ZenohConfigError(f"--tls {tls_dir}: no such directory (create the team's certificates with "
+                               f"`falconry certs {tls_dir}`)")
+    for path in files.all():
+        if not path.exists():
+            raise ZenohConfigError(f"--tls {tls_dir}: {path} is missing (the {identity} certificate, its key and "
+                                   f"ca.crt come from `falconry certs`)")
+        try:
+            with open(path, "rb") as f:
+                head = f.read(64)
+        except OSError as exc:
+            raise ZenohConfigError(f"--tls {tls_dir}: cannot read {path}: {exc.strerror}") from None
+        if b"-----BEGIN" not in head:
+            raise ZenohConfigError(f"--tls {tls_dir}: {path} is not a PEM certificate or key")
+    return files
+
+
+def check_tls_endpoints(config: zenoh.Config) -> None:
+    """With TLS every endpoint is tls/: a tcp/ one would bypass the certificates."""
+    mode = json.loads(config.get_json("mode") or '"peer"') or "peer"
+    for how in ("connect", "listen"):
+        endpoints = json.loads(config.get_json(f"{how}/endpoints") or "[]") or []
+        if isinstance(endpoints, dict):  # per mode, e.g. Zenoh's default {router: [...], peer: [...]}
+            endpoints = endpoints.get(mode) or []
+        for endpoint in endpoints:
+            if not tls.endpoint_is_tls(endpoint):
+                raise ZenohConfigError(f"{how} endpoint {endpoint!r}: with --tls every endpoint is tls/HOST:PORT, "
+                                       f"e.g. {endpoint.replace(endpoint.partition('/')[0], 'tls', 1)}")
+
+
 def build(settings: ZenohSettings) -> zenoh.Config:
     if settings.profile not in PROFILES:
         raise ZenohConfigError(f"unknown zenoh profile {settings.profile!r} (choose from {', '.join(PROFILES)})")
@@ -161,12 +222,13 @@ def build(settings: ZenohSettings) -> zenoh.Config:
         check_endpoint(endpoint, listening=False)
     for endpoint in settings.listen:
         check_endpoint(endpoint, listening=True)
+    files = tls_files(settings.tls_dir, settings.tls_identity) if settings.tls_dir else None
     if not config_file:
         config = zenoh.Config()
         if settings.profile == "embedded":
             _insert(config, "mode", "peer")
             _insert(config, "scouting/multicast/enabled", False)
-            _insert(config, "listen/endpoints", settings.listen or ["tcp/127.0.0.1:0"])
+            _insert(config, "listen/endpoints", settings.listen or [f"{'tls' if files else 'tcp'}/127.0.0.1:0"])
         else:
             _insert(config, "mode", "client")
             _insert(config, "scouting/multicast/enabled", False)
@@ -175,7 +237,7 @@ def build(settings: ZenohSettings) -> zenoh.Config:
     if settings.connect:
         _insert(config, "connect/endpoints", settings.connect)
     elif settings.profile == "router" and not config_file:
-        _insert(config, "connect/endpoints", [DEFAULT_ROUTER])
+        _insert(config, "connect/endpoints", [default_router(settings.tls_dir)])
     if settings.listen and (config_file or settings.profile != "embedded"):
         _insert(config, "listen/endpoints", settings.listen)
     if settings.shared_memory is not None:
@@ -184,7 +246,11 @@ def build(settings: ZenohSettings) -> zenoh.Config:
         _insert(config, "scouting/gossip/autoconnect", {"router": [], "peer": []})
     if settings.lease_ms:
         _insert(config, "transport/link/tx/lease", settings.lease_ms)
-        _insert(config, "transport/link/tx/keep_alive", 4)
+        _insert(config, "transport/link/tx/keep_alive", tls.KEEP_ALIVE)
+    if files is not None:
+        for path, value in tls.session_inserts(files).items():
+            _insert(config, path, value)
+        check_tls_endpoints(config)
     return config
 
 

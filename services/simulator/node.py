@@ -96,7 +96,7 @@ class SimulatorNode(Node):
         self.truth_pub = self.publisher(keys.TRUTH, GroundTruth)
         self.events_pub = self.publisher(keys.EVENTS, SimEvent)
         self.faults_pub = self.publisher(keys.FAULTS, FaultCommand)
-        self.odometry_pubs = {u: self.publisher(keys.uav(u, "odometry"), Odometry) for u in self.uav_names}
+        self.odometry_pubs = {u: self.publisher(keys.uav(u, keys.ODOMETRY), Odometry) for u in self.uav_names}
         for u in self.uav_names:
             self.subscribe(keys.uav(u, "trajectory"), TrajectoryReference, self.on_trajectory)
         self.subscribe_runtime(keys.ALL_ACKS, StepAck, self._on_ack)
