@@ -1,0 +1,41 @@
+"""`falconry units DIR`: write the onboard systemd units (services/launcher/systemd_units.py)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from schemas import keys
+from services.launcher.common import CliError
+from services.launcher.systemd_units import DEFAULT_PREFIX, TARGET_UNIT, USER, UnitSettings, render_units
+
+
+def add_parser(commands) -> None:
+    p = commands.add_parser(
+        "units", help="write the systemd units that run a UAV's services onboard",
+        description="Write one systemd template unit per per-UAV service (instance = the UAV, e.g. "
+                    "falconry-tracker@uav1), one for the UAV's Zenoh router and falconry@.target, which starts "
+                    "them all. Install them in /etc/systemd/system and run `systemctl enable --now "
+                    "falconry@uav1.target` (docs/deploy.md has every step).")
+    p.add_argument("dir", metavar="DIR", help="where to write the units (created if missing)")
+    p.add_argument("--prefix", default=DEFAULT_PREFIX, metavar="VENV",
+                   help=f"the virtual environment falconry is installed in (default {DEFAULT_PREFIX})")
+    p.add_argument("--detector", choices=keys.DETECTORS, default=keys.DEFAULT_DETECTOR,
+                   help="which per-UAV services to run, as `falconry sim --detector` (default %(default)s)")
+    p.add_argument("--user", default=USER, help="the account the services run as (default %(default)s)")
+    p.set_defaults(handler=run_units)
+
+
+def run_units(args: argparse.Namespace) -> int:
+    if not args.prefix.startswith("/"):
+        raise CliError(f"--prefix {args.prefix!r}: systemd needs an absolute path")
+    out = Path(args.dir)
+    if out.exists() and not out.is_dir():
+        raise CliError(f"{out} exists and is not a directory")
+    out.mkdir(parents=True, exist_ok=True)
+    units = render_units(UnitSettings(prefix=args.prefix.rstrip("/"), detector=args.detector, user=args.user))
+    for name, text in units.items():
+        (out / name).write_text(text)
+    print(f"wrote {len(units)} units to {out}: {', '.join(sorted(units))}")
+    print(f"next: cp {out}/* /etc/systemd/system/ && systemctl daemon-reload && "
+          f"systemctl enable --now {TARGET_UNIT.replace('@.', '@uav1.')}")
+    return 0
