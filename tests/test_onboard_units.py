@@ -4,6 +4,7 @@ it fails the test), and each ExecStart accepted by the real `falconry` parser.""
 from __future__ import annotations
 
 import configparser
+import os
 import contextlib
 import io
 import shlex
@@ -123,7 +124,9 @@ def test_the_router_unit_runs_the_shipped_onboard_file_with_its_access_control(t
     unit = parse_unit(render_units(UnitSettings())[ROUTER_UNIT])
     args = exec_start_args(unit, "uav1")[1:]
     args[args.index("--zenoh-config") + 1] = str(config)
-    processes.start(*args, "--listen", endpoint, "--connect", f"tls/127.0.0.1:{free_port()}")
+    # FALCONRY_TLS_DIR set, as in a shell that read falconry.env: the file, not the variable, decides
+    processes.start(*args, "--listen", endpoint, "--connect", f"tls/127.0.0.1:{free_port()}",
+                    env=os.environ | {"FALCONRY_TLS_DIR": str(tmp_path / "tls")})
     uav1 = member(tmp_path / "tls", "uav1", endpoint, timeout=30.0)
     uav2 = member(tmp_path / "tls", "uav2", endpoint)
     try:

@@ -47,11 +47,11 @@ def add_parser(commands) -> None:
                    help=f"transport lease: a cut link is noticed after about this long (zenoh default 10000; "
                         f"onboard {tls.ONBOARD_LEASE_MS})")
     security = p.add_argument_group("security")
-    security.add_argument("--tls", metavar="DIR", default=os.environ.get(tls.ENV_DIR) or None,
+    security.add_argument("--tls", metavar="DIR", default=None,
                           help=f"mutual TLS with the team's certificates in DIR (`falconry certs DIR`) and the "
                                f"team's access control (needs --uavs or --team); every endpoint is then "
                                f"tls/HOST:PORT (default: ${tls.ENV_DIR}, empty or unset = plain tcp, no access "
-                               f"control)")
+                               f"control; not read with --zenoh-config, whose file says it all)")
     security.add_argument("--tls-identity", metavar="NAME", default=tls.ROUTER,
                           help=f"whose certificate this router presents: {tls.ROUTER} (default, a hub that only "
                                f"listens) or, for a UAV's onboard router peering with its partners, that UAV's name")
@@ -129,7 +129,7 @@ def run_router(args: argparse.Namespace) -> int:
             raise CliError("--zenoh-config carries its own TLS and access control: leave out --tls, --uavs and --team")
         return serve(router_config_from_file(args.zenoh_config, args.listen, args.connect, args.lease_ms),
                      f"the configuration {args.zenoh_config}", args.exit_with_parent)
-    tls_dir = args.tls or None
+    tls_dir = args.tls or os.environ.get(tls.ENV_DIR) or None
     listen = args.listen or [default_router(tls_dir)]
     team = team_of(args)
     if tls_dir:

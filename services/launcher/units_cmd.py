@@ -9,6 +9,9 @@ from services.launcher.common import CliError
 from services.launcher.systemd_units import DEFAULT_PREFIX, TARGET_UNIT, USER, UnitSettings, render_units
 
 
+SYSTEM_UNITS = Path("/etc/systemd/system")
+
+
 def add_parser(commands) -> None:
     p = commands.add_parser(
         "units", help="write the systemd units that run a UAV's services onboard",
@@ -36,6 +39,6 @@ def run_units(args: argparse.Namespace) -> int:
     for name, text in units.items():
         (out / name).write_text(text)
     print(f"wrote {len(units)} units to {out}: {', '.join(sorted(units))}")
-    print(f"next: cp {out}/* /etc/systemd/system/ && systemctl daemon-reload && "
-          f"systemctl enable --now {TARGET_UNIT.replace('@.', '@uav1.')}")
+    install = "" if out.resolve() == SYSTEM_UNITS else f"cp {out}/* {SYSTEM_UNITS}/ && "
+    print(f"next: {install}systemctl daemon-reload && systemctl enable --now {TARGET_UNIT.replace('@.', '@uav1.')}")
     return 0
