@@ -33,6 +33,7 @@ from services.launcher.cli import build_parser
 from services.launcher.registry import node_class
 from services.runtime.zenoh_config import ZenohSettings, free_port, open_session
 
+from tests.tools.run import end_partner
 from tests.tools.compose import (COMPOSE, REPO, TLS_ENV, UAV3_OVERRIDE, compose_cli, falconry_services, render,
                                  run_compose)
 
@@ -383,14 +384,7 @@ def test_onboard_routers_notice_a_frozen_partner_within_the_lease():
         noticed_s = time.monotonic() - frozen
         assert noticed_s < 2 * lease_s + 1.0, f"took {noticed_s:.1f} s with a {lease_s:.1f} s lease"
     finally:
-        partner.send_signal(signal.SIGCONT)
-        partner.stdin.close()
-        try:
-            partner.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            partner.kill()
-            partner.wait()
-        partner.stdout.close()
+        end_partner(partner)
         watcher.undeclare()
         client.close()
         router.close()

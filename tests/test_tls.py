@@ -39,6 +39,7 @@ from services.runtime import tls
 from services.runtime.health import query_health
 from services.runtime.zenoh_config import (ZenohConfigError, ZenohSettings, ZenohUnreachable, build, free_port,
                                            open_session)
+from tests.tools.run import end_partner
 from tests.conftest import REPO, falconry_argv
 
 TEAM = ["uav1", "uav2"]
@@ -711,13 +712,7 @@ def test_onboard_routers_carry_a_partners_own_keys_only(certs):
         assert inbox.count(keys.uav("uav1", "command")) == 0, inbox.samples[-5:]
         assert set(inbox.keys()) == {keys.uav("uav1", "status"), keys.uav("uav2", "status")}
     finally:
-        partner.stdin.close()
-        try:
-            partner.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            partner.kill()
-            partner.wait()
-        partner.stdout.close()
+        end_partner(partner)
         watcher.undeclare()
         inbox.close()
         uav1.close()

@@ -45,12 +45,26 @@ ROUTER_UNIT = "falconry-router@.service"
 TARGET_UNIT = "falconry@.target"
 
 
+# what every unit's process may not do: gain privileges, write outside its state and cache
+# directories, read home directories or share /tmp; and how long a stop may take (SIGTERM ends a
+# service within a fraction of a second, the wait for Zenoh included)
+HARDENING = """\
+TimeoutStopSec=10
+NoNewPrivileges=yes
+ProtectSystem=strict
+ProtectHome=yes
+PrivateTmp=yes
+"""
+
+
+def _account(settings: UnitSettings) -> str:
+    return f"Type=exec\nUser={settings.user}\nGroup={settings.user}\n"
+
+
 def _common_service_section(settings: UnitSettings) -> str:
     return f"""\
 [Service]
-Type=exec
-User={settings.user}
-Group={settings.user}
+{_account(settings)}\
 # FALCONRY_ZENOH (the router's endpoint, tcp/ or tls/) and FALCONRY_TLS_DIR (certificates) live
 # here; the defaults below are a plain-TCP router on loopback
 Environment=FALCONRY_ZENOH=tcp/127.0.0.1:7447
@@ -65,12 +79,7 @@ Restart=on-failure
 RestartSec=2
 # ... but never a usage error: fix the configuration (journalctl shows the one line)
 RestartPreventExitStatus={USAGE_ERROR}
-TimeoutStopSec=10
-NoNewPrivileges=yes
-ProtectSystem=strict
-ProtectHome=yes
-PrivateTmp=yes
-"""
+{HARDENING}"""
 
 
 def service_unit(service: str, settings: UnitSettings) -> str:
@@ -107,20 +116,13 @@ Wants=network-online.target
 StartLimitIntervalSec=0
 
 [Service]
-Type=exec
-User={settings.user}
-Group={settings.user}
+{_account(settings)}\
 # deploy/onboard/<uav>/router.json5, installed as {CONFIG_DIR}/router.json5
 ExecStart={settings.falconry} router --zenoh-config {CONFIG_DIR}/router.json5
 Restart=always
 RestartSec=1
 RestartPreventExitStatus={USAGE_ERROR}
-TimeoutStopSec=10
-NoNewPrivileges=yes
-ProtectSystem=strict
-ProtectHome=yes
-PrivateTmp=yes
-
+{HARDENING}
 [Install]
 WantedBy=falconry@%i.target
 """

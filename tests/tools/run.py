@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import json
+import signal
 import socket
+import subprocess
 import time
 from pathlib import Path
 
@@ -38,3 +40,16 @@ def processes_mentioning(text: str) -> list[int]:
 
 def read_summary(path: Path) -> dict:
     return json.loads(path.read_text())
+
+
+def end_partner(partner: subprocess.Popen) -> None:
+    """Stop a partner process that runs until its stdin closes (thawed first if frozen), and
+    reap it; killed if it does not end within 10 s."""
+    partner.send_signal(signal.SIGCONT)
+    partner.stdin.close()
+    try:
+        partner.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        partner.kill()
+        partner.wait()
+    partner.stdout.close()
