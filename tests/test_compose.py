@@ -283,13 +283,17 @@ def test_dockerfile_installs_locked_dependencies_before_the_source_and_runs_unpr
     install_source = next(i for i, l in enumerate(lines) if l.startswith("RUN pip install --no-deps ."))
     warm_up = next(i for i, l in enumerate(lines) if l.startswith("RUN") and "falconry sim" in l)
     user = lines.index("USER falconry")
-    assert copy_lock < install_lock < copy_source < install_source < warm_up < user
+    numba_cache = next(i for i, l in enumerate(lines) if l.startswith("ENV NUMBA_CACHE_DIR="))
+    assert copy_lock < install_lock < copy_source < install_source < user < numba_cache < warm_up, \
+        "numba keeps only a cache its user can write: warm up as the service user, into its own directory"
+    assert lines[numba_cache].split("=", 1)[1].startswith("/home/falconry/")
     assert lines[-2:] == ['ENTRYPOINT ["falconry"]', 'CMD ["--help"]']
     warm_up_command = lines[warm_up].split("&&")[1].split(">")[0].split()
     assert warm_up_command[0] == "falconry"
     parse_falconry(warm_up_command[1:])
     ignored = (REPO / "deploy" / "Dockerfile.dockerignore").read_text().splitlines()
     assert ".venv" in ignored and ".git" in ignored
+    assert "deploy/tls/*" in ignored, "certificates and the CA's key must never be copied into the image"
     scripts = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["scripts"]
     assert "falconry" in scripts
 
