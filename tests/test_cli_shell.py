@@ -7,6 +7,7 @@ import datetime
 import importlib.metadata
 import subprocess
 import time
+from pathlib import Path
 
 import pytest
 
@@ -15,6 +16,7 @@ from schemas.messages import Header, ServiceHealth
 from services.launcher.cli import build_parser, main
 from services.launcher.health_cmd import ServiceName, parse_service_name, verdicts
 from services.launcher.record_cmd import recording_path
+from services.runtime.zenoh_config import free_port
 from tests.conftest import falconry_argv
 
 
@@ -120,3 +122,40 @@ def test_a_recording_name_takes_the_utc_start_time():
     start = datetime.datetime(2026, 11, 25, 7, 15, 2, tzinfo=datetime.timezone(datetime.timedelta(hours=2)))
     assert recording_path("runs/flight-{start}.mcap", start) == "runs/flight-20261125T051502Z.mcap"
     assert recording_path("plain.mcap", start) == "plain.mcap"
+
+
+def test_log_level_is_taken_after_nested_commands_too():
+    parser = build_parser()
+    args = parser.parse_args(["colors", "pick", "x.png", "--roi", "1,1,2,2", "--log-level", "debug"])
+    assert args.log_level == "debug"
+    assert parser.parse_args(["analyze", "hit-probability", "--log-level", "error"]).log_level == "error"
+
+
+def test_a_health_check_says_unhealthy_when_the_router_is_out_of_reach():
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # nothing listens there
+    out = subprocess.run(falconry_argv("health", "--service", "uav1/planner", "--zenoh-profile", "router",
+                                       "--connect", endpoint), capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and out.stdout.startswith("unhealthy: cannot open zenoh session"), out
+    out = subprocess.run(falconry_argv("health", "--zenoh-profile", "router", "--connect", endpoint),
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 75, "without --service it is a runtime failure, as for every command"
+
+
+def test_a_non_positive_health_timeout_is_one_line_and_exit_2():
+    out = subprocess.run(falconry_argv("health", "--timeout", "-1", "--connect", "tcp/127.0.0.1:1"),
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2 and out.stderr.count("\n") == 1 and "--timeout must be positive" in out.stderr
+
+
+def test_a_start_named_recording_never_replaces_one_made_in_the_same_second(tmp_path):
+    start = datetime.datetime(2026, 11, 25, 5, 15, 2, tzinfo=datetime.timezone.utc)
+    template = str(tmp_path / "flight-{start}.mcap")
+    first = recording_path(template, start)
+    Path(first).write_bytes(b"a recording")
+    second = recording_path(template, start)
+    assert second == str(tmp_path / "flight-20261125T051502Z-2.mcap")
+    Path(second).touch()
+    assert recording_path(template, start).endswith("-3.mcap")
+    plain = tmp_path / "plain.mcap"
+    plain.touch()
+    assert recording_path(str(plain), start) == str(plain), "a fixed name is replaced, as documented"

@@ -447,7 +447,8 @@ def test_certs_makes_a_ca_and_one_certificate_per_identity(tmp_path):
     (["--uavs", "0"], "--uavs must be 1 or more"),
     (["--team", "uav1,ground"], "cannot be named"),
     (["--team", "uav1", "--uavs", "2"], "not allowed with argument"),
-    (["--days", "0"], "--days must be 1 or more"),
+    (["--days", "0"], "--days must be from 1 to 36500"),
+    (["--days", "10000000"], "--days must be from 1 to 36500"),
     (["--host", "no/slash"], "invalid host name"),
 ])
 def test_certs_mistakes_give_one_line_and_exit_2(tmp_path, argv, expected):

@@ -43,10 +43,13 @@ def add_parser(commands) -> None:
     p.set_defaults(handler=run_certs)
 
 
+MAX_DAYS = 36_500  # 100 years: X.509 validity dates cannot go past 9999
+
+
 def run_certs(args: argparse.Namespace) -> int:
     team = team_of(args, default=DEFAULT_UAVS)
-    if args.days < 1:
-        raise CliError(f"--days must be 1 or more, not {args.days}")
+    if not 1 <= args.days <= MAX_DAYS:
+        raise CliError(f"--days must be from 1 to {MAX_DAYS} (X.509 dates end in 9999), not {args.days}")
     directory = Path(args.dir)
     try:
         hosts = {identity: tls.host_names(identity, args.host) for identity in tls.identities(team)}

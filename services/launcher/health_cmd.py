@@ -10,6 +10,7 @@ import msgspec
 from schemas import keys
 from schemas.messages import ServiceHealth
 from services.launcher.common import CliError, add_zenoh_options, zenoh_settings
+from services.runtime.errors import RuntimeFailure
 from services.runtime.health import query_health
 from services.runtime.zenoh_config import init_logging, open_session
 
@@ -70,7 +71,8 @@ def add_parser(commands) -> None:
         description="Query falconry/*/health/* and print one line per service: state, uptime, CPU share "
                     "since start, resident memory, messages received/published, payloads dropped as undecodable, "
                     f"handler errors. With --service, ask only those and exit 0 when every one answers in state "
-                    f"'{HEALTHY_STATE}', {UNHEALTHY} otherwise (a compose or systemd health check).",
+                    f"'{HEALTHY_STATE}', {UNHEALTHY} otherwise, a router out of reach included (a compose or "
+                    f"systemd health check); a usage mistake is 2, as for every command.",
     )
     p.add_argument("--service", action="append", default=[], metavar="UAV/SERVICE", type=service_name_argument,
                    help="a service that must be up, e.g. uav1/tracker or sim/simulator (repeatable)")
@@ -83,8 +85,17 @@ def add_parser(commands) -> None:
 def run_health(args: argparse.Namespace) -> int:
     if args.zenoh_profile == "embedded" and not args.connect and not args.zenoh_config:
         raise CliError("give the run to ask with --connect ENDPOINT (e.g. tcp/127.0.0.1:PORT)")
+    if not args.timeout > 0:
+        raise CliError(f"--timeout must be positive, not {args.timeout:g}")
     init_logging()
-    session = open_session(zenoh_settings(args))
+    try:
+        session = open_session(zenoh_settings(args))
+    except RuntimeFailure as exc:
+        if not args.service:
+            raise
+        # a health check's question is "are they up?": a router out of reach says no
+        print(f"unhealthy: {exc}")
+        return UNHEALTHY
     try:
         key_exprs = [keys.health(name.scope, name.service) for name in args.service] or None
         answers = query_health(session, args.timeout, key_exprs)

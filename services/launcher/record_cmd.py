@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import signal
 import threading
 import time
+from collections.abc import Callable
 
 import zenoh
 
@@ -52,9 +54,19 @@ def add_parser(commands) -> None:
 START_PLACEHOLDER = "{start}"
 
 
-def recording_path(template: str, start: datetime.datetime) -> str:
-    """The file name with {start} replaced by the UTC start time (ISO 8601 basic format: no ':' in names)."""
-    return template.replace(START_PLACEHOLDER, start.astimezone(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ"))
+def recording_path(template: str, start: datetime.datetime, exists: Callable[[str], bool] = os.path.exists) -> str:
+    """The file name with {start} replaced by the UTC start time (ISO 8601 basic format: no ':' in
+    names); a name taken already (a restart within the same second) gets -2, -3, ... before its
+    extension, so a {start} name never replaces a recording."""
+    path = template.replace(START_PLACEHOLDER, start.astimezone(datetime.timezone.utc).strftime("%Y%m%dT%H%M%SZ"))
+    if START_PLACEHOLDER not in template:
+        return path
+    stem, dot, extension = path.rpartition(".") if "." in os.path.basename(path) else (path, "", "")
+    candidate, number = path, 1
+    while exists(candidate):
+        number += 1
+        candidate = f"{stem}-{number}{dot}{extension}"
+    return candidate
 
 
 def check_key_exprs(exprs: list[str]) -> list[str]:

@@ -111,8 +111,9 @@ def router_unit(settings: UnitSettings) -> str:
 Description=Falconry Zenoh router of %i (its services and the partner UAVs' routers)
 Documentation=file:///opt/falconry/src/docs/deploy.md
 PartOf=falconry@%i.target
-After=network-online.target
-Wants=network-online.target
+# after time synchronisation too: without a real-time clock, certificates look not yet valid before
+After=network-online.target time-sync.target
+Wants=network-online.target time-sync.target
 StartLimitIntervalSec=0
 
 [Service]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 
 from schemas import keys
@@ -10,6 +11,8 @@ from services.launcher.systemd_units import DEFAULT_PREFIX, TARGET_UNIT, USER, U
 
 
 SYSTEM_UNITS = Path("/etc/systemd/system")
+ONBOARD_DETECTORS = [d for d in keys.DETECTORS if d != keys.ORACLE]  # the oracle reads ground truth
+ACCOUNT = re.compile(r"^[a-z_][a-z0-9_-]*$")  # what useradd accepts by default
 
 
 def add_parser(commands) -> None:
@@ -22,13 +25,15 @@ def add_parser(commands) -> None:
     p.add_argument("dir", metavar="DIR", help="where to write the units (created if missing)")
     p.add_argument("--prefix", default=DEFAULT_PREFIX, metavar="VENV",
                    help=f"the virtual environment falconry is installed in (default {DEFAULT_PREFIX})")
-    p.add_argument("--detector", choices=keys.DETECTORS, default=keys.DEFAULT_DETECTOR,
+    p.add_argument("--detector", choices=ONBOARD_DETECTORS, default=keys.DEFAULT_DETECTOR,
                    help="which per-UAV services to run, as `falconry sim --detector` (default %(default)s)")
     p.add_argument("--user", default=USER, help="the account the services run as (default %(default)s)")
     p.set_defaults(handler=run_units)
 
 
 def run_units(args: argparse.Namespace) -> int:
+    if not ACCOUNT.match(args.user):
+        raise CliError(f"--user {args.user!r}: an account name is lower-case letters, digits, '_' and '-'")
     if not args.prefix.startswith("/"):
         raise CliError(f"--prefix {args.prefix!r}: systemd needs an absolute path")
     out = Path(args.dir)
