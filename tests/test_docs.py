@@ -1,9 +1,17 @@
 """The docs a newcomer reads are generated from, or checked against, the code."""
 from __future__ import annotations
 
+import contextlib
+import io
+import re
+import shlex
+from pathlib import Path
 from typing import get_args
 
+import pytest
+
 from schemas import keys
+from services.launcher.cli import build_parser
 from schemas.messages import FaultKind
 from services.launcher.params_cmd import render
 from services.simulator import scenario
@@ -33,3 +41,41 @@ def test_readme_says_what_each_fault_does_and_what_the_team_does_about_it():
     first_cells = " ".join(row.split("|")[1] for row in table.splitlines()[2:])
     missing = [kind for kind in get_args(FaultKind) if f"`{kind}`" not in first_cells]
     assert not missing, f"README's fault table has no row for {missing}"
+
+
+def documented_commands(path: Path) -> list[list[str]]:
+    """Every `falconry ...` command in the file's shell code blocks, continuation lines joined."""
+    commands = []
+    for block in re.findall(r"```sh\n(.*?)```", path.read_text(), re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            lexer = shlex.shlex(line.replace("$service", "tracker"), posix=True, punctuation_chars=True)
+            lexer.whitespace_split = True
+            lexer.commenters = "#"
+            words: list[str] = []
+            for token in [*lexer, ";"]:  # shell operators (&&, ;, |, &, >) end a command
+                if token and set(token) <= set("&;|<>()"):
+                    # `falconry ...`, or a path to it behind runuser/env
+                    start = next((i for i, w in enumerate(words) if w.endswith("bin/falconry")),
+                                 0 if words[:1] == ["falconry"] else None)
+                    if start is not None:
+                        commands.append(words[start + 1:])
+                    words = []
+                else:
+                    words.append(token)
+    return commands
+
+
+@pytest.mark.parametrize("doc", ["docs/deploy.md", "deploy/README.md"])
+def test_every_falconry_command_of_the_deployment_guides_is_valid(doc):
+    """The guides are followed by people at a shell: each command line must be one the CLI
+    accepts (spelling, options, values), and there must be commands to check."""
+    commands = documented_commands(REPO / doc)
+    assert len(commands) >= 8, commands
+    for words in commands:
+        stderr = io.StringIO()
+        try:
+            with contextlib.redirect_stderr(stderr), contextlib.redirect_stdout(io.StringIO()):
+                build_parser().parse_args([w.replace("{start}", "x") for w in words])
+        except SystemExit as exc:  # --version and --help exit 0
+            if exc.code != 0:
+                pytest.fail(f"{doc}: `falconry {' '.join(words)}` is rejected: {stderr.getvalue().strip()}")

@@ -49,8 +49,9 @@ then authenticates and encrypts (only holders of a team certificate connect) but
 per-identity access control applies. Queries are admitted on falconry/** for every member,
 so a queryable must not act on a query (ours only answer: health, resume).
 
-This module is pure (no Zenoh, no files): it computes names, paths and configuration values;
-`python -m services.runtime.tls write-deploy-configs` writes the checked-in zenohd configs.
+Its functions are pure (no Zenoh, no files): they compute names, paths and configuration values.
+Only `main`, `python -m services.runtime.tls write-deploy-configs`, writes files: the checked-in
+zenohd configs.
 """
 from __future__ import annotations
 

@@ -49,7 +49,7 @@ from services.runtime.errors import RuntimeFailure, UsageError
 
 PROFILES = ("embedded", "router")
 CLIENT_RETRY_FIRST_MS, CLIENT_RETRY_MAX_MS = 250, 1000  # a router profile client's reconnection attempts
-DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+DEFAULT_ROUTER = f"tcp/127.0.0.1:{tls.ZENOH_PORT}"
 RETRY_FIRST_S = 0.5  # back-off between attempts to open a session: doubling up to RETRY_MAX_S
 RETRY_MAX_S = 5.0
 # Zenoh 1.x link protocols; an endpoint naming another is a typo, not an endpoint that is down.
