@@ -149,7 +149,7 @@ def test_router_config_file_mistakes_are_one_line(tmp_path, capsys):
     no_certificates = tmp_path / "router.json5"
     no_certificates.write_text((REPO / "deploy" / "onboard" / "uav1" / "router.json5").read_text()
                                .replace("/etc/falconry/tls/", f"{tmp_path / 'missing'}/"))
-    for argv, expected in ((["--zenoh-config", str(tmp_path / "none.json5")], "no such file"),
+    for argv, expected in ((["--zenoh-config", str(tmp_path / "none.json5")], "zenoh config file not found"),
                            (["--zenoh-config", str(client)], "a router's configuration"),
                            (["--zenoh-config", plain, "--tls", str(tmp_path), "--uavs", "2"], "its own TLS"),
                            (["--zenoh-config", str(no_certificates)], "cannot be read")):

@@ -20,7 +20,8 @@ import zenoh
 from services.launcher.common import CliError, add_team_options, team_of
 from services.runtime import tls
 from services.runtime.zenoh_config import (ZenohConfigError, ZenohUnreachable, check_endpoint, check_tls_endpoints,
-                                           default_router, init_logging, reason, tls_files)
+                                           default_router, init_logging, load_config_file, pem_file_problem, reason,
+                                           tls_files)
 
 POLL_S = 0.2
 
@@ -61,14 +62,19 @@ def add_parser(commands) -> None:
     p.set_defaults(handler=run_router)
 
 
-def router_config(listen: list[str], connect: list[str] = (), lease_ms: int | None = None, tls_dir: str | None = None,
-                  identity: str = tls.ROUTER, team: list[str] | None = None) -> zenoh.Config:
+def check_router_options(listen: list[str], connect: list[str], lease_ms: int | None) -> None:
+    """A malformed endpoint or lease is a usage error, not a wait."""
     for endpoint in listen:
-        check_endpoint(endpoint, listening=True)  # a malformed one is a usage error, not a wait
+        check_endpoint(endpoint, listening=True)
     for endpoint in connect:
         check_endpoint(endpoint, listening=False)
     if lease_ms is not None and lease_ms <= 0:
         raise ZenohConfigError(f"--lease-ms must be positive, not {lease_ms}")
+
+
+def router_config(listen: list[str], connect: list[str] = (), lease_ms: int | None = None, tls_dir: str | None = None,
+                  identity: str = tls.ROUTER, team: list[str] | None = None) -> zenoh.Config:
+    check_router_options(listen, connect, lease_ms)
     if (tls_dir is None) != (team is None):
         raise ZenohConfigError("--tls DIR and the team (--uavs N or --team) go together: the access control "
                                "identifies each party by its certificate" if tls_dir is None else
@@ -93,33 +99,24 @@ TLS_FILE_SETTINGS = ("root_ca_certificate", "listen_certificate", "listen_privat
 
 def router_config_from_file(path: str, listen: list[str], connect: list[str], lease_ms: int | None) -> zenoh.Config:
     """A router configuration file with the command line's endpoints and lease on top; a file
-    that is not a router's, or that names certificate files that are not there, is a usage error
+    that is not a router's, or that names certificate files Zenoh cannot load, is a usage error
     (Zenoh would refuse to open, and a supervisor would restart it for ever)."""
-    if not os.path.isfile(path):
-        raise CliError(f"--zenoh-config {path}: no such file")
-    try:
-        config = zenoh.Config.from_file(path)
-    except Exception as exc:
-        raise CliError(f"--zenoh-config {path} is invalid: {reason(exc)}") from None
+    config = load_config_file(path)
     mode = json.loads(config.get_json("mode") or "null")
     if mode != "router":
         raise CliError(f"--zenoh-config {path}: mode is {mode!r}, a router's configuration says mode: \"router\"")
     for name in TLS_FILE_SETTINGS:
         file = json.loads(config.get_json(f"transport/link/tls/{name}") or "null")
-        if file and not os.access(file, os.R_OK):
-            raise CliError(f"--zenoh-config {path}: {name} {file} cannot be read (create the certificates with "
-                           f"`falconry certs`, readable by this user)")
-    for endpoint in listen:
-        check_endpoint(endpoint, listening=True)
-    for endpoint in connect:
-        check_endpoint(endpoint, listening=False)
-    if lease_ms is not None and lease_ms <= 0:
-        raise CliError(f"--lease-ms must be positive, not {lease_ms}")
-    for key, value in (("listen/endpoints", listen), ("connect/endpoints", connect)):
+        if file and (problem := pem_file_problem(file)):
+            raise CliError(f"--zenoh-config {path}: {name} cannot be read: {problem} (create the "
+                           f"certificates with `falconry certs`, readable by this user)")
+    check_router_options(listen, connect, lease_ms)
+    inserts = {"listen/endpoints": listen, "connect/endpoints": connect}
+    if lease_ms:
+        inserts.update({"transport/link/tx/lease": lease_ms, "transport/link/tx/keep_alive": tls.KEEP_ALIVE})
+    for key, value in inserts.items():
         if value:
             config.insert_json5(key, json.dumps(value))
-    if lease_ms:
-        config.insert_json5("transport/link/tx/lease", json.dumps(lease_ms))
     return config
 
 

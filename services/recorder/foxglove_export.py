@@ -31,7 +31,6 @@ a NaN or infinite number, which JSON cannot carry) is skipped, counted and repor
 """
 from __future__ import annotations
 
-import base64
 import json
 from dataclasses import dataclass, field
 from typing import BinaryIO, Callable
@@ -46,7 +45,7 @@ from schemas.catalogue import catalogue_entry
 from schemas.messages import (CompressedFrame, Detections, GroundTruth, Header, Obstacle, Odometry, PointCloud,
                               Pose, Quat, Tracks, Vec3, WorldModel)
 from services.recorder.foxglove_schemas import json_schema_of
-from services.recorder.json_view import JsonView, NotFinite, json_bytes, struct_view
+from services.recorder.json_view import JsonView, NotFinite, base64_text, json_bytes, struct_view
 from services.recorder.mcap_io import ReadReport, read_recording
 from services.viz.style import DETECTION_COLOR, TRUTH_COLOR
 
@@ -149,7 +148,7 @@ def point_cloud(cloud: PointCloud, stamp: dict) -> dict:
     fields = [{"name": name, "offset": packed.dtype.fields[name][1], "type": FLOAT32} for name in columns]
     return {"timestamp": stamp, "frame_id": cloud.header.frame, "pose": foxglove_pose((0.0, 0.0, 0.0)),
             "point_stride": packed.dtype.itemsize, "fields": fields,
-            "data": _base64(packed.tobytes())}
+            "data": base64_text(packed.tobytes())}
 
 
 def pose_in_frame(odometry: Odometry, stamp: dict) -> dict:
@@ -164,11 +163,7 @@ def frame_transform(odometry: Odometry, child_frame: str, stamp: dict) -> dict:
 
 
 def compressed_image(frame: CompressedFrame, camera_frame: str, stamp: dict) -> dict:
-    return {"timestamp": stamp, "frame_id": camera_frame, "data": _base64(frame.jpeg), "format": "jpeg"}
-
-
-def _base64(data: bytes) -> str:
-    return base64.b64encode(data).decode("ascii")
+    return {"timestamp": stamp, "frame_id": camera_frame, "data": base64_text(frame.jpeg), "format": "jpeg"}
 
 
 # ----------------------------------------------------------------------------- scene updates

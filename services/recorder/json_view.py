@@ -70,7 +70,7 @@ def _view(info: mi.Type, where: str) -> JsonView:
     if isinstance(info, mi.LiteralType):
         return _literal(info, where)
     if isinstance(info, (mi.BytesType, mi.MemoryViewType)):
-        return JsonView({"type": "string", "contentEncoding": "base64"}, _base64)
+        return JsonView({"type": "string", "contentEncoding": "base64"}, base64_text)
     if isinstance(info, mi.TupleType):
         return _tuple(info, where)
     if isinstance(info, mi.ListType):
@@ -127,7 +127,8 @@ def _literal(info: mi.LiteralType, where: str) -> JsonView:
     raise TypeError(f"{where}: a Literal mixing types has no JSON view")
 
 
-def _base64(value: bytes | memoryview) -> str:
+def base64_text(value: bytes | memoryview) -> str:
+    """Bytes as JSON carries them (JSON Schema's contentEncoding base64, Foxglove's bytes)."""
     return base64.b64encode(value).decode("ascii")
 
 

@@ -165,6 +165,31 @@ def check_endpoint(endpoint: str, listening: bool) -> None:
                                    f"e.g. {protocol}/127.0.0.1:7447")
 
 
+def pem_file_problem(path: str | Path) -> str | None:
+    """Why Zenoh could not load this certificate or key file, naming it (None: it can): Zenoh
+    itself says only that the session would not open, which looks like a router that is down."""
+    path = Path(path)
+    if not path.exists():
+        return f"{path} is missing"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError as exc:
+        return f"cannot read {path}: {exc.strerror}"
+    return None if b"-----BEGIN" in head else f"{path} is not a PEM certificate or key"
+
+
+def load_config_file(path: str | Path) -> zenoh.Config:
+    """A JSON5 Zenoh configuration file; a missing or invalid one is a usage error."""
+    path = Path(path)
+    if not path.is_file():
+        raise ZenohConfigError(f"zenoh config file not found: {path}")
+    try:
+        return zenoh.Config.from_file(str(path))
+    except Exception as exc:
+        raise ZenohConfigError(f"zenoh config file {path} is invalid: {reason(exc)}") from None
+
+
 def tls_files(tls_dir: str, identity: str | None) -> tls.TlsFiles:
     """The certificate files of `identity` in `tls_dir`, each checked readable (a usage error
     naming the file otherwise)."""
@@ -178,16 +203,10 @@ def tls_files(tls_dir: str, identity: str | None) -> tls.TlsFiles:
         raise ZenohConfigError(f"--tls {tls_dir}: no such directory (create the team's certificates with "
                                f"`falconry certs {tls_dir}`)")
     for path in files.all():
-        if not path.exists():
-            raise ZenohConfigError(f"--tls {tls_dir}: {path} is missing (the {identity} certificate, its key and "
-                                   f"ca.crt come from `falconry certs`)")
-        try:
-            with open(path, "rb") as f:
-                head = f.read(64)
-        except OSError as exc:
-            raise ZenohConfigError(f"--tls {tls_dir}: cannot read {path}: {exc.strerror}") from None
-        if b"-----BEGIN" not in head:
-            raise ZenohConfigError(f"--tls {tls_dir}: {path} is not a PEM certificate or key")
+        if problem := pem_file_problem(path):
+            hint = f" (the {identity} certificate, its key and ca.crt come from `falconry certs`)" \
+                if not path.exists() else ""
+            raise ZenohConfigError(f"--tls {tls_dir}: {problem}{hint}")
     return files
 
 
@@ -209,13 +228,7 @@ def build(settings: ZenohSettings) -> zenoh.Config:
         raise ZenohConfigError(f"unknown zenoh profile {settings.profile!r} (choose from {', '.join(PROFILES)})")
     config_file = settings.config_file or os.environ.get("ZENOH_CONFIG")
     if config_file:
-        path = Path(config_file)
-        if not path.is_file():
-            raise ZenohConfigError(f"zenoh config file not found: {path}")
-        try:
-            config = zenoh.Config.from_file(str(path))
-        except Exception as exc:
-            raise ZenohConfigError(f"zenoh config file {path} is invalid: {exc}") from None
+        config = load_config_file(config_file)
     if settings.connect_timeout is not None and not settings.connect_timeout >= 0:
         raise ZenohConfigError(f"--connect-timeout must be 0 or more seconds, not {settings.connect_timeout:g}")
     for endpoint in settings.connect:
