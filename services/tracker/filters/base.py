@@ -106,6 +106,12 @@ class InnovationStatistics:
         self.nis_sum += innovation.squared_mahalanobis
         self.last_residual = float(np.linalg.norm(innovation.residual))
 
+    def merge(self, other: InnovationStatistics) -> None:
+        if other.updates:
+            self.updates += other.updates
+            self.nis_sum += other.nis_sum
+            self.last_residual = other.last_residual
+
     @property
     def mean_nis(self) -> float:
         return self.nis_sum / self.updates if self.updates else 0.0
