@@ -80,6 +80,7 @@ COLORS = "colors"  # a colour file sent live from the ground (`falconry colors p
 ALL_ALIVE = f"{ROOT}/*/alive/*"
 ALL_ACKS = f"{ROOT}/*/ack/*"
 ALL_STATUS = f"{ROOT}/*/status"
+ALL_TRACKS = f"{ROOT}/*/tracks"
 CLOCK = sim("clock")
 WORLD = sim("world")
 TRUTH = sim("truth")
@@ -91,6 +92,11 @@ RESUME = sim("resume")
 def is_ack(key: str) -> bool:
     parts = key.split("/")
     return len(parts) == 4 and parts[0] == ROOT and parts[2] == "ack"
+
+
+def uav_of(key: str) -> str:
+    """The UAV segment of a per-UAV key (falconry/uav2/tracks → uav2)."""
+    return key.split("/")[1]
 
 
 def parse_alive(key: str) -> tuple[str, str] | None:

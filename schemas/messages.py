@@ -168,6 +168,10 @@ class VoxelMap(msgspec.Struct, kw_only=True):
 
 
 class Track(msgspec.Struct, kw_only=True):
+    """One track, predicted to its Tracks' stamp. Consumers read `position`, `velocity` and
+    `trajectory`; `state` and `covariance` are the filter's own, in the layout `filter` names (the
+    constant-acceleration layout position, velocity, acceleration for every filter so far)."""
+
     id: int
     state: Array  # float64 (9,) position, velocity, acceleration
     covariance: Array  # float64 (9, 9)
@@ -175,6 +179,17 @@ class Track(msgspec.Struct, kw_only=True):
     confirmed: bool
     uncertainty_radius: float
     last_detection: int  # stamp, ns
+    # Appended (with defaults, so older recordings still decode):
+    filter: str = ""  # kf | adaptive | particle (services/tracker/filters)
+    position: Vec3 | None = None
+    velocity: Vec3 | None = None
+    trajectory_dt: float = 0.0  # s between the predicted positions
+    trajectory: Array | None = None  # float64 (K, 3): predicted positions at stamp + (i + 1)·trajectory_dt
+    updates: int = 0  # corrections by clouds or detections
+    mean_nis: float = 0.0  # mean normalised innovation squared; about 3 for a consistent filter
+    last_innovation: float = 0.0  # m, the last correction's innovation length
+    primary: bool = False  # the confirmed track with the most detections (seed 000 sec. III-F1)
+    source: str = ""  # the UAV whose tracker keeps it ("" in older recordings)
 
 
 class Tracks(msgspec.Struct, kw_only=True):
@@ -208,6 +223,11 @@ class MissionCommand(msgspec.Struct, kw_only=True):
     height: float = 5.0
     spacing: float = 10.0  # lawnmower line spacing, m
     profile: ConstraintProfile = msgspec.field(default_factory=ConstraintProfile)
+    # A moving target's predicted path (its tracker's trajectory, re-based to this command's stamp):
+    # positions at header.stamp + (i + 1)·target_path_dt; beyond it, straight on. `target` and
+    # `target_velocity` hold at header.stamp. None: a straight line from target along target_velocity.
+    target_path: Array | None = None  # float64 (K, 3)
+    target_path_dt: float = 0.0  # s
 
 
 class TrajectoryReference(msgspec.Struct, kw_only=True):

@@ -1,137 +1,263 @@
-"""Tracker core (first version): CA Kalman filter per track, gating, confirmation, dropping."""
+"""Tracker core: seed 000's buffered point-cloud multi-target tracker (Alg. 2)."""
 from __future__ import annotations
 
+import msgspec
 import numpy as np
+import pytest
 
-from services.tracker.core import (
-    TrackerCore, TrackerParams, measurement_noise, transition, uncertainty_radius,
-)
+from schemas.voxels import STATE_OCCUPIED
+from services.tracker.core import OccupiedVoxels, TrackerCore, TrackerParams
+from services.tracker.kernels import points_near
 
 NS = 1_000_000_000
-PERIOD = NS // 10  # 10 Hz detections
+PERIOD = NS // 10  # 10 Hz scans
 
 
 def stamp(k: int) -> int:
     return k * PERIOD
 
 
-def test_constant_velocity_target_gives_one_confirmed_track_with_its_velocity():
+def blob(centre, rng: np.random.Generator, count: int = 12, spread: float = 0.15) -> np.ndarray:
+    """The returns of a small flying object: a tight cluster around its centre."""
+    return np.asarray(centre, dtype=np.float32) + rng.normal(0.0, spread, (count, 3)).astype(np.float32)
+
+
+def cloud(*parts: np.ndarray) -> np.ndarray:
+    """An organised-looking scan: the objects' returns among rows of no return (NaN) and ground."""
+    ground = np.stack(np.meshgrid(np.arange(-20, 20, 1.0), np.arange(-20, 20, 1.0), [0.0]), -1).reshape(-1, 3)
+    missing = np.full((50, 3), np.nan)
+    return np.concatenate([ground, missing, *parts]).astype(np.float32)
+
+
+def moving(k: int) -> np.ndarray:
+    return np.array([2.0 + 3.0 * k / 10, 5.0, 6.0])  # 3 m/s along x
+
+
+def detections_only(k: int, rng) -> np.ndarray:
+    return moving(k)[None] + rng.normal(0.0, 0.1, (1, 3))
+
+
+def test_points_near_selects_each_balls_points_in_order():
+    points = np.array([[0, 0, 0], [1, 0, 0], [5, 0, 0], [np.nan, 0, 0], [0.5, 0, 0]], dtype=np.float32)
+    indices, starts = points_near(points, np.array([[0.0, 0, 0], [5.0, 0, 0]]), np.array([1.0, 0.1]))
+    assert list(indices[starts[0]:starts[1]]) == [0, 1, 4]
+    assert list(indices[starts[1]:starts[2]]) == [2]
+
+
+def test_a_target_seen_only_by_detections_gives_one_confirmed_track_with_its_velocity():
     rng = np.random.default_rng(7)
     tracker = TrackerCore()
-    velocity = np.array([4.0, 0.0, 0.0])
-    start = np.array([0.0, 10.0, 6.0])
-    for k in range(21):  # 0 .. 2 s
-        seen = start + velocity * k / 10 + rng.normal(0.0, 0.1, 3)
-        tracker.update(stamp(k), seen[None], np.eye(3)[None] * 0.02)
+    for k in range(21):
+        tracker.new_detections(stamp(k), detections_only(k, rng), np.eye(3)[None] * 0.02)
     [estimate] = tracker.estimates(stamp(20))
-    assert estimate.confirmed and estimate.detections == 21 and estimate.id == 1
-    assert np.linalg.norm(estimate.state[3:6] - velocity) < 0.5
-    assert np.linalg.norm(estimate.state[:3] - (start + velocity * 2.0)) < 0.3
-    assert estimate.uncertainty_radius == 2.5
-    assert estimate.last_detection == stamp(20)
+    assert estimate.confirmed and estimate.detections == 21 and estimate.id == 1 and estimate.primary
+    assert np.linalg.norm(estimate.velocity - [3.0, 0.0, 0.0]) < 0.5
+    assert np.linalg.norm(estimate.position - moving(20)) < 0.3
+    assert estimate.trajectory.shape == (8, 3)
+    assert np.linalg.norm(estimate.trajectory[-1] - moving(40)) < 1.5  # 2 s ahead
 
 
-def test_a_track_is_confirmed_after_two_detections():
+def test_clouds_correct_a_track_between_detections():
+    """One detection starts the track; the scans alone then carry it along (Alg. 2 line 14)."""
+    rng = np.random.default_rng(1)
     tracker = TrackerCore()
-    tracker.update(stamp(0), np.array([[1.0, 2.0, 5.0]]))
-    assert not tracker.estimates(stamp(0))[0].confirmed
-    tracker.update(stamp(1), np.array([[1.1, 2.0, 5.0]]))
-    assert tracker.estimates(stamp(1))[0].confirmed
+    tracker.new_point_cloud(stamp(0), cloud(blob(moving(0), rng)))
+    tracker.new_detections(stamp(0), moving(0)[None])
+    for k in range(1, 30):
+        tracker.new_point_cloud(stamp(k), cloud(blob(moving(k), rng)))
+    [estimate] = tracker.estimates(stamp(29))
+    assert estimate.detections == 1 and not estimate.confirmed  # clouds correct, only detections count
+    assert estimate.updates == 29
+    assert np.linalg.norm(estimate.position - moving(29)) < 0.25
+    assert np.linalg.norm(estimate.velocity - [3.0, 0.0, 0.0]) < 0.6
+    assert estimate.uncertainty_radius == TrackerParams().radius_min
 
 
-def test_two_separated_targets_keep_their_ids():
+def test_a_cloud_correction_moves_the_returns_centroid_to_the_targets_centre():
+    """A LiDAR sees a drone's near side only: the returns' centroid lies short of its centre along
+    the line of sight; with the sensor known the track is corrected to the centre, as detections are."""
+    rng = np.random.default_rng(8)
+    centre, sensor = np.array([20.0, 0.0, 6.0]), np.array([0.0, 0.0, 6.0])
+    normals = rng.normal(0.0, 1.0, (400, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    near_side = centre + 0.325 * normals[normals[:, 0] < -0.3]  # the hemisphere facing the sensor
+    errors = {}
+    for known in (True, False):
+        tracker = TrackerCore(TrackerParams(cloud_noise=1e-4))
+        tracker.new_detections(stamp(0), centre[None])
+        for k in range(1, 10):
+            tracker.new_point_cloud(stamp(k), cloud(near_side), sensor if known else None)
+        errors[known] = abs(tracker.estimates(stamp(9))[0].position[0] - centre[0])
+    assert errors[True] < 0.06 < 0.12 < errors[False]
+
+
+def test_a_late_detection_replayed_through_the_buffer_equals_in_order_processing():
+    """Latency compensation (lines 22-24): detections that arrive scans after their scan give the
+    same tracks as detections handed in right after their own scan."""
+    rng = np.random.default_rng(3)
+    scans = [cloud(blob(moving(k), rng)) for k in range(12)]
+    seen = [moving(k)[None] + rng.normal(0, 0.05, (1, 3)) for k in range(12)]
+    late, reference = TrackerCore(), TrackerCore()
+    for k in range(12):
+        late.new_point_cloud(stamp(k), scans[k])
+        if k >= 3:
+            late.new_detections(stamp(k - 3), seen[k - 3])  # the detector is three scans behind
+        reference.new_point_cloud(stamp(k), scans[k])
+        if k <= 8:
+            reference.new_detections(stamp(k), seen[k])  # the same detections, each right after its scan
+    [a], [b] = reference.estimates(stamp(11)), late.estimates(stamp(11))
+    assert a.id == b.id and a.detections == b.detections == 9
+    np.testing.assert_allclose(a.state, b.state, atol=1e-9)
+    np.testing.assert_allclose(a.covariance, b.covariance, atol=1e-9)
+
+
+def test_a_detection_rewinds_a_track_no_cloud_corrected_and_replays_it():
+    """A track whose returns the cloud update cannot use (here: no clouds hold the target) is
+    corrected by its detections as if they had come in order."""
+    rng = np.random.default_rng(5)
+    empty = [cloud() for _ in range(8)]
+    seen = [moving(k)[None] + rng.normal(0, 0.05, (1, 3)) for k in range(8)]
+    late, direct = TrackerCore(), TrackerCore()
+    for k in range(8):
+        late.new_point_cloud(stamp(k), empty[k])
+        if k >= 2:
+            late.new_detections(stamp(k - 2), seen[k - 2])
+        direct.new_point_cloud(stamp(k), empty[k])
+        if k <= 5:
+            direct.new_detections(stamp(k), seen[k])
+    [a], [b] = direct.estimates(stamp(7)), late.estimates(stamp(7))
+    np.testing.assert_allclose(a.state, b.state, atol=1e-9)
+    assert a.detections == b.detections == 6
+
+
+def test_clusters_next_to_occupied_voxels_do_not_correct_a_track():
+    """Line 39: a track passing a wall must not be pulled onto the wall's returns."""
+    rng = np.random.default_rng(2)
+    size, corner, shape = 0.5, np.zeros(3), np.array([40, 40, 20])
+    states = np.zeros(int(np.prod(shape)), dtype=np.uint8)
+    wall = np.array([10.0, 5.0, 6.0])
+    vx, vy, vz = (wall / size).astype(int)
+    states[(vx * shape[1] + vy) * shape[2] + vz] = STATE_OCCUPIED
+    tracker = TrackerCore()
+    tracker.set_occupied(OccupiedVoxels(states, corner, size, shape))
+    tracker.new_detections(stamp(0), np.array([[8.5, 5.0, 6.0]]))
+    for k in range(1, 6):  # only the wall's returns within reach, 1.5 m away from the track
+        tracker.new_point_cloud(stamp(k), cloud(blob(wall + [0.25, 0.25, 0.25], rng, spread=0.05)))
+    [estimate] = tracker.estimates(stamp(5))
+    assert estimate.updates == 0 and abs(estimate.position[0] - 8.5) < 1e-9
+    tracker.set_occupied(None)  # without the map the same returns do pull it
+    tracker.new_point_cloud(stamp(6), cloud(blob(wall + [0.25, 0.25, 0.25], rng, spread=0.05)))
+    assert tracker.estimates(stamp(6))[0].updates == 1
+
+
+def test_a_track_no_scan_or_detection_supports_is_dropped_once_its_radius_exceeds_r_max():
+    tracker = TrackerCore()
+    rng = np.random.default_rng(0)
+    for k in range(10):
+        tracker.new_point_cloud(stamp(k), cloud())
+        tracker.new_detections(stamp(k), detections_only(k, rng))
+    dropped_at = None
+    for k in range(10, 200):
+        dropped = tracker.new_point_cloud(stamp(k), cloud())
+        if dropped:
+            dropped_at = k
+            assert dropped == [1]
+            break
+        assert tracker.estimates(stamp(k))[0].uncertainty_radius <= 5.0
+    assert dropped_at is not None and len(tracker) == 0
+    assert 1.0 < (dropped_at - 9) / 10 < 8.0
+
+
+def test_sporadic_false_detections_never_become_confirmed_tracks():
+    rng = np.random.default_rng(11)
+    tracker = TrackerCore()
+    confirmed, false_starts = set(), 0
+    for k in range(300):
+        tracker.new_point_cloud(stamp(k), cloud(blob(moving(k), rng)))
+        seen = [moving(k) + rng.normal(0, 0.05, 3)]
+        if rng.random() < 0.2:  # a false detection somewhere in the arena, now and then
+            seen.append(rng.uniform([-40, -40, 1], [40, 40, 15]))
+            false_starts += 1
+        tracker.new_detections(stamp(k), np.array(seen))
+        confirmed |= {e.id for e in tracker.estimates(stamp(k), trajectory=False) if e.confirmed}
+    [target] = [e for e in tracker.estimates(stamp(299), trajectory=False) if e.confirmed]
+    assert np.linalg.norm(target.position - moving(299)) < 0.5
+    assert confirmed == {target.id} and false_starts > 40
+
+
+def test_two_targets_keep_their_identities_and_one_set_of_detections_never_feeds_one_track_twice():
     rng = np.random.default_rng(1)
     tracker = TrackerCore()
     for k in range(30):
         t = k / 10
-        a = np.array([2.0 * t, 0.0, 5.0])
-        b = np.array([20.0, 10.0 - 3.0 * t, 7.0])
+        a, b = np.array([2.0 * t, 0.0, 5.0]), np.array([1.5 + 2.0 * t, 2.0, 5.0])  # 2.5 m apart
+        tracker.new_point_cloud(stamp(k), cloud(blob(a, rng, spread=0.05), blob(b, rng, spread=0.05)))
         order = [a, b] if k % 2 == 0 else [b, a]  # detection order must not matter
-        ids = tracker.update(stamp(k), np.array(order) + rng.normal(0, 0.05, (2, 3)))
-        assert ids == ([1, 2] if k % 2 == 0 else [2, 1])
-    estimates = tracker.estimates(stamp(29))
+        ids = tracker.new_detections(stamp(k), np.array(order) + rng.normal(0, 0.05, (2, 3)))
+        assert len(set(ids)) == 2
+    estimates = sorted(tracker.estimates(stamp(29)), key=lambda e: e.id)
     assert [e.id for e in estimates] == [1, 2] and all(e.confirmed for e in estimates)
-    assert np.linalg.norm(estimates[0].state[3:6] - [2.0, 0.0, 0.0]) < 0.5
-    assert np.linalg.norm(estimates[1].state[3:6] - [0.0, -3.0, 0.0]) < 0.5
-
-
-def test_track_without_detections_is_dropped_once_radius_exceeds_5_m():
-    params = TrackerParams()
-    tracker = TrackerCore(params)
-    for k in range(10):
-        tracker.update(stamp(k), np.array([[float(k) * 0.3, 0.0, 5.0]]))
-    last = stamp(9)
-    dropped_at = None
-    for k in range(1, 200):  # 20 Hz ticks
-        now = last + k * NS // 20
-        radius = tracker.estimates(now)[0].uncertainty_radius if len(tracker) else None
-        dropped = tracker.prune(now)
-        if dropped:
-            dropped_at = now
-            assert dropped == [1] and radius > 5.0
-            break
-        assert radius <= 5.0
-    assert dropped_at is not None and len(tracker) == 0
-    assert 1.0 < (dropped_at - last) / NS < 6.0
-
-
-def test_far_detection_starts_a_new_tentative_track():
-    tracker = TrackerCore()
-    for k in range(5):
-        tracker.update(stamp(k), np.array([[0.0, 0.0, 5.0]]))
-    ids = tracker.update(stamp(5), np.array([[0.1, 0.0, 5.0], [10.0, 0.0, 5.0]]))
-    assert ids == [1, 2]
-    new = {e.id: e for e in tracker.estimates(stamp(5))}[2]
-    assert not new.confirmed and new.detections == 1
-    assert np.allclose(new.state[:3], [10.0, 0.0, 5.0]) and np.allclose(new.state[3:], 0.0)
-    # Just outside the 2.5 m gate of track 1 is also a new track.
-    assert tracker.update(stamp(6), np.array([[0.0, 2.7, 5.0]])) == [3]
+    assert np.linalg.norm(estimates[0].position - [5.8, 0.0, 5.0]) < 0.4
+    assert np.linalg.norm(estimates[1].position - [7.3, 2.0, 5.0]) < 0.4
 
 
 def test_estimates_do_not_change_the_filters():
     tracker = TrackerCore()
-    tracker.update(stamp(0), np.array([[0.0, 0.0, 5.0]]))
-    tracker.update(stamp(1), np.array([[0.4, 0.0, 5.0]]))
+    tracker.new_detections(stamp(0), np.array([[0.0, 0.0, 5.0]]))
+    tracker.new_detections(stamp(1), np.array([[0.4, 0.0, 5.0]]))
     first = tracker.estimates(stamp(30))[0]
     second = tracker.estimates(stamp(30))[0]
     assert np.array_equal(first.state, second.state) and np.array_equal(first.covariance, second.covariance)
     assert tracker.estimates(stamp(1))[0].covariance[0, 0] < first.covariance[0, 0]
 
 
-def test_model_pieces():
-    f = transition(0.5)
-    x = np.array([0, 0, 0, 1, 2, 3, 2, 0, 0], dtype=float)
-    assert np.allclose((f @ x)[:3], [0.5 + 0.25, 1.0, 1.5])
-    params = TrackerParams()
-    assert uncertainty_radius(params, np.eye(9) * 0.3) == 2.5
-    assert np.isclose(uncertainty_radius(params, np.eye(9) * 8.0), 1.5 * 8.0)
-    assert type(uncertainty_radius(params, np.eye(9) * 8.0)) is float  # goes into a Track message
-    r = measurement_noise(params, np.diag([0.02, 0.5, 0.05]))
-    assert np.allclose(np.diag(r), [0.1, 0.5, 0.1])
-    assert np.allclose(measurement_noise(params, None), 0.1 * np.eye(3))
-
-
 def test_the_number_of_tracks_is_bounded_whatever_the_detections():
-    import numpy as np
-    from services.tracker.core import TrackerCore, TrackerParams
-
     core = TrackerCore(TrackerParams(max_tracks=10))
     rng = np.random.default_rng(3)
     for k in range(5):
-        ids = core.update(k * 100_000_000, rng.uniform(-50, 50, size=(300, 3)), None)
-        assert len(set(i for i in ids if i >= 0)) <= 10
-    assert len(core.estimates(500_000_000)) <= 10
+        core.new_point_cloud(stamp(k), rng.uniform(-50, 50, size=(20000, 3)))
+        ids = core.new_detections(stamp(k), rng.uniform(-50, 50, size=(300, 3)))
+        assert len({i for i in ids if i >= 0}) <= 10
+    assert len(core.estimates(stamp(5))) <= 10
 
 
 def test_detections_that_would_poison_the_filters_are_dropped_and_counted():
     """Found by tests/test_fuzz_messages.py: one NaN detection made a NaN track, after which every
     association raised; an indefinite covariance made the filter's innovation singular."""
     tracker = TrackerCore()
-    tracker.update(stamp(0), np.array([[1.0, 2.0, 5.0]]))
+    tracker.new_detections(stamp(0), np.array([[1.0, 2.0, 5.0]]))
     not_a_covariance = np.array([[[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]]])
-    assert tracker.update(stamp(1), np.array([[np.nan, 2.0, 5.0]])) == [-1]
-    assert tracker.update(stamp(2), np.array([[1.0, 2.0, 5.0]]), not_a_covariance) == [-1]
-    assert tracker.update(stamp(3), np.array([[1.0, 2.0, 5.0]]), np.eye(3)[None] * 0.02) == [1]
-    assert tracker.rejected_detections == 2 and tracker.diverged_tracks == 0
-    tracker._tracks[0].kf.x[0] = np.inf  # what extreme (finite) detections can drive a filter to
-    assert tracker.prune(stamp(4)) == [] and tracker.ids == [] and tracker.diverged_tracks == 1
+    assert tracker.new_detections(stamp(1), np.array([[np.nan, 2.0, 5.0]])) == [-1]
+    assert tracker.new_detections(stamp(2), np.array([[1.0, 2.0, 5.0]]), not_a_covariance) == [-1]
+    assert tracker.new_detections(stamp(3), np.array([[1.0, 2.0, 5.0]]), np.eye(3)[None] * 0.02) == [1]
+    assert tracker.counters.rejected_detections == 2 and tracker.counters.diverged_tracks == 0
+    assert tracker.new_point_cloud(stamp(4), np.full((10, 3), np.inf)) == []  # infinite returns select nothing
+    assert tracker.ids == [1]
+
+
+def test_clouds_older_than_the_whole_buffer_are_counted_not_used():
+    tracker = TrackerCore(TrackerParams(buffer_size=3))
+    for k in range(5, 8):
+        tracker.new_point_cloud(stamp(k), cloud())
+    tracker.new_point_cloud(stamp(2), cloud())
+    assert tracker.counters.late_clouds == 1 and [c.stamp for c in tracker.buffer] == [stamp(5), stamp(6), stamp(7)]
+    tracker.new_point_cloud(stamp(6) + 1, cloud())  # out of order but inside: kept in stamp order
+    assert [c.stamp for c in tracker.buffer] == [stamp(6), stamp(6) + 1, stamp(7)]
+
+
+@pytest.mark.parametrize("name", ["kf", "adaptive", "particle"])
+def test_every_filter_runs_the_same_tracker(name):
+    rng = np.random.default_rng(4)
+    tracker = TrackerCore(TrackerParams(filter=name))
+    for k in range(20):
+        tracker.new_point_cloud(stamp(k), cloud(blob(moving(k), rng)))
+        tracker.new_detections(stamp(k), moving(k)[None] + rng.normal(0, 0.05, (1, 3)))
+    [estimate] = tracker.estimates(stamp(19))
+    assert estimate.confirmed and np.linalg.norm(estimate.position - moving(19)) < 0.5
+
+
+def test_params_name_a_known_filter():
+    with pytest.raises(msgspec.ValidationError, match="kf, adaptive, particle"):
+        msgspec.convert({"filter": "ukf"}, TrackerParams)
+    params = msgspec.convert({"filter": "adaptive", "noise": {"q_velocity": 2.0}}, TrackerParams)
+    assert params.noise.q_velocity == 2.0

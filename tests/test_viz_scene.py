@@ -27,8 +27,9 @@ from schemas.messages import (
     VoxelMap,
     WorldModel,
 )
+from services.tracker.view import predicted_path
 from services.viz import draw
-from services.viz.geometry import cone_mesh, constant_acceleration_path, covariance_ellipsoids, thin_out
+from services.viz.geometry import cone_mesh, covariance_ellipsoids, thin_out
 from services.viz.mapview import MapView
 from services.viz.scene import SceneBuilder
 from services.viz.settings import ViewParams
@@ -61,12 +62,17 @@ def test_covariance_ellipsoid_axes_and_rotation_rebuild_the_covariance():
     assert np.isfinite(half).all() and half[0].min() == 0.0
 
 
-def test_constant_acceleration_path_follows_the_tracker_model():
+def test_a_tracks_predicted_path_is_its_filters_trajectory_or_the_tracker_model():
     state = np.array([1.0, 2.0, 3.0, 1.0, 0.0, -1.0, 0.0, 2.0, 0.0])
-    path = constant_acceleration_path(state, horizon=2.0, step=0.5)
+    old = Track(id=1, state=from_numpy(state), covariance=from_numpy(np.eye(9)), detections=3, confirmed=True,
+                uncertainty_radius=2.5, last_detection=0)  # a recording made before trajectories
+    path = predicted_path(old, horizon=2.0, step=0.5)
     assert path.shape == (5, 3)
     assert np.allclose(path[0], [1, 2, 3])
     assert np.allclose(path[-1], [3.0, 2.0 + 0.5 * 2.0 * 4.0, 1.0])
+    ahead = np.array([[1.5, 2.0, 3.0], [2.0, 2.1, 3.0], [2.5, 2.3, 3.0]])
+    new = msgspec.structs.replace(old, position=(1.0, 2.0, 3.0), trajectory=from_numpy(ahead), trajectory_dt=0.5)
+    assert np.allclose(predicted_path(new, horizon=1.0), [[1, 2, 3], ahead[0], ahead[1]])
 
 
 def test_thin_out_and_cone_mesh():

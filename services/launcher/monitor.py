@@ -20,6 +20,7 @@ from schemas.messages import (Detections, GroundTruth, MissionCommand, PointTrut
 from services import evaluation
 from services.geometry import pairwise_gaps
 from services.runtime.clock import StampOrigin, seconds
+from services.tracker.view import track_positions
 
 _LENGTH = struct.Struct("<I")
 DETECTED_WITHIN = 1.5  # m between a detection and a target's true position for "first detected"
@@ -206,7 +207,7 @@ class RunMonitor:
         confirmed = [track for track in tracks.tracks if track.confirmed]
         u.confirmed_tracks.update(track.id for track in confirmed)
         if confirmed:
-            positions = np.array([to_numpy(track.state)[:3] for track in confirmed])
+            positions = track_positions(confirmed)
             targets = np.array(list(self._targets_at(tracks.header.stamp).values())).reshape(-1, 3)
             u.perception.add_tracks(self._seconds(tracks.header.stamp), [track.id for track in confirmed],
                                     positions, targets)

@@ -25,14 +25,20 @@ def render(services: list[str]) -> str:
     blocks = []
     for service in services:
         params_type = node_class(service).params_type
-        lines = [f"[{service}]"]
-        defaults = params_type()
-        for field in msgspec.structs.fields(params_type):
-            lines.append(f"{field.name} = {_toml_value(getattr(defaults, field.name))}")
-        if len(lines) == 1:
-            lines.append("# (no parameters)")
-        blocks.append("\n".join(lines))
+        blocks.extend(_tables(service, params_type()) or [f"[{service}]\n# (no parameters)"])
     return "\n\n".join(blocks) + "\n"
+
+
+def _tables(name: str, values: msgspec.Struct) -> list[str]:
+    """The table of `values` and, after it, one `[name.field]` table per nested parameter struct."""
+    lines, nested = [f"[{name}]"], []
+    for field in msgspec.structs.fields(type(values)):
+        value = getattr(values, field.name)
+        if isinstance(value, msgspec.Struct):
+            nested.extend(_tables(f"{name}.{field.name}", value))
+        else:
+            lines.append(f"{field.name} = {_toml_value(value)}")
+    return (["\n".join(lines)] if len(lines) > 1 else []) + nested
 
 
 def add_parser(commands) -> None:

@@ -47,6 +47,7 @@ from schemas.messages import (CompressedFrame, Detections, GroundTruth, Header, 
 from services.recorder.foxglove_schemas import json_schema_of
 from services.recorder.json_view import JsonView, NotFinite, base64_text, json_bytes, struct_view
 from services.recorder.mcap_io import ReadReport, read_recording
+from services.tracker.view import track_position
 from services.viz.style import DETECTION_COLOR, TRUTH_COLOR
 
 MESSAGE_ENCODING = "json"
@@ -198,7 +199,7 @@ def scene_update(stamp: dict, entities: list[dict]) -> dict:
 def tracks_scene(tracks: Tracks, stamp: dict) -> dict:
     entities = []
     for track in tracks.tracks:
-        position = tuple(float(v) for v in to_numpy(track.state)[:3])
+        position = tuple(float(v) for v in track_position(track))
         diameter = max(2 * track.uncertainty_radius, MIN_SIZE)
         color = CONFIRMED_TRACK if track.confirmed else TENTATIVE_TRACK
         entities.append(_entity(

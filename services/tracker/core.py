@@ -1,77 +1,139 @@
-"""Tracker core: multi-target tracking of flying-object detections with one
-constant-acceleration Kalman filter per track (seed 000, sec. III-F, eq. 24-33).
+"""Tracker core: seed 000's buffered point-cloud multi-target tracker (sec. III-F, Alg. 2).
 
-FIRST VERSION (walking skeleton): tracks are updated from the classifier's detections only,
-associated by global nearest neighbour (scipy's linear_sum_assignment) inside each track's
-uncertainty radius r = max(r_min, c_r * cbrt(det P_pos)) (eq. 26). Unmatched detections start
-tentative tracks (eq. 32-33), a track is confirmed after 2 detections and dropped once r > r_max.
-Later issues deepen it to Alg. 2: a buffer of the last N point clouds through which each
-detection is tracked to the newest scan, point clusters inside r as measurements, rejection
-of clusters near occupied map voxels, track merging by similarity, and alternative filters
-(adaptive EKF of seed 002, particle filter baseline).
+Inputs are the LiDAR's clouds, the detector's detections and the map's occupied voxels, each by
+its stamp. The core keeps a FIFO buffer B of the last N_buf clouds and a set of tracks, each a
+filter estimate (services/tracker/filters: the constant-acceleration Kalman filter of eq. 27-31,
+seed 002's adaptive EKF or the particle filter, chosen by `filter`) with its detection count.
 
-The Kalman algebra is filterpy's. Pure: stamps are int ns handed in by the node.
+- `new_point_cloud` (Alg. 2 lines 8-18) updates every track with the cloud and drops those whose
+  uncertainty radius r_unc (eq. 26) exceeds r_max.
+- `update_track` (lines 33-46) predicts a track to the cloud's stamp, takes the returns within
+  r_unc of it, clusters them (the classifier's Euclidean clusters, sec. III-B), drops clusters
+  whose centroid lies within d_min of an occupied voxel and corrects with the nearest centroid.
+- `new_detections` (lines 19-32) starts a tentative track per detection (eq. 32-33), replays it
+  through the buffered clouds newer than the detection (the detector's latency is compensated)
+  and either counts it to a similar track or adds it.
+
+Where Falconry departs from the seed, and why:
+- Line 26 reads "if ∀T ∈ 𝒯" but the text says "if a similar track already exists": it is ∃.
+  Among the similar tracks the nearest takes the detection, and within one set of detections a
+  track takes at most one (two targets closer than r_unc(T) + r_unc(T*) would otherwise share one
+  track forever).
+- A detection counted to a track that no cloud has corrected since the detection was taken also
+  corrects it: the track is rewound to its last correction, corrected with the detection at the
+  detection's stamp and replayed through the newer buffered clouds. Replay makes this exactly
+  what in-order processing would have given. Without it a target whose returns the cloud update
+  rejects (a balloon beside its pole, a target the map has not yet cleared) would only ever be
+  predicted, and dropped at r_max while its detections keep coming.
+- Two tracks that end up on the same cluster are merged, keeping the older identity: the cloud
+  update lets both take the nearest centroid, and two copies of one target would otherwise
+  coexist until one drifts off.
+- Clouds arriving out of stamp order are inserted in order; a track never predicts backwards,
+  so a cloud older than a track's estimate does not update it.
+
+Pure: stamps are int ns handed in by the node; the map is a replica the node keeps current.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import bisect
+from collections import deque
+from dataclasses import dataclass, field, replace
 
 import msgspec
 import numpy as np
 
+from services.classifier.core import surface_offset
 from services.geometry import is_covariance, with_variance_floor
-
-NS = 1_000_000_000
-H = np.hstack([np.eye(3), np.zeros((3, 6))])  # eq. 30: the measurement is the position
+from services.tracker.filters import FILTERS, FilterParams, make_filter
+from services.tracker.filters.base import NS, Estimate, InnovationStatistics
+from services.tracker.filters.models import uncertainty_radius
+from services.tracker.kernels import points_near
+from services.voxels.kernels import clusters_near_occupied, euclidean_clusters
 
 
 class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
-    # Process noise, per second of prediction (eq. 31): variances of position, velocity, acceleration.
-    q_position: float = 0.01
-    q_velocity: float = 0.8
-    q_acceleration: float = 0.05
-    # Initial covariance of a new track (eq. 33), variances.
-    p0_position: float = 0.3
-    p0_velocity: float = 1.0
-    p0_acceleration: float = 0.05
-    measurement_variance: float = 0.1  # R = 0.1 I, raised to the detection covariance where larger
+    filter: str = "kf"  # kf | adaptive | particle (services/tracker/filters)
+    noise: FilterParams = msgspec.field(default_factory=FilterParams)  # the filter's noise and initial covariance
+    buffer_size: int = 6  # N_buf clouds: a detection up to this many scans old is replayed
     radius_min: float = 2.5  # m, r_min of eq. 26
     radius_confidence: float = 1.5  # c_r of eq. 26
-    radius_max: float = 5.0  # m, tracks more uncertain than this are dropped
-    confirm_detections: int = 2
+    radius_max: float = 5.0  # m, tracks more uncertain than this are dropped (Alg. 2 line 15)
+    cluster_distance: float = 0.5  # m, returns closer than this are one cluster (sec. III-B)
+    # A cluster whose centroid is this close to an occupied voxel's centre is background (line 39).
+    # Smaller than the classifier's d_close: the track already knows the target is not background.
+    occupied_distance: float = 0.8
+    cloud_noise: float = 0.02  # m², the variance of a cluster centroid as a measurement (eq. 29's Z²)
+    surface_bias: float = 0.667  # the classifier's: × the cluster's half-width, away from the sensor
+    confirm_detections: int = 3  # n_det at which a track is confirmed (sporadic false positives stay below)
     # Bounded work per scan whatever the input: a LiDAR returning garbage must not make the
     # tracker spend the whole tick on thousands of spurious tracks.
     max_tracks: int = 64
+    trajectory_horizon: float = 2.0  # s of predicted positions published with each track
+    trajectory_step: float = 0.25  # s between them
     alive_period: float = 1.0  # s; the node sends an empty Tracks at least this often
+    fleet: bool = True  # join the partners' tracks into the published picture (fleet.py)
+    partner_timeout: float = 1.0  # s without a partner's tracks before they are left out
+
+    def __post_init__(self) -> None:
+        if self.filter not in FILTERS:
+            raise msgspec.ValidationError(f"filter must be one of {', '.join(FILTERS)}, not {self.filter!r}")
+        for name in ("radius_min", "radius_confidence", "radius_max", "cluster_distance", "cloud_noise",
+                     "trajectory_step"):
+            if not getattr(self, name) > 0:
+                raise msgspec.ValidationError(f"{name} must be positive")
+        if not 0.0 <= self.surface_bias <= 1.0:
+            raise msgspec.ValidationError("surface_bias must be from 0 to 1")
+        if self.buffer_size < 1 or self.confirm_detections < 1 or self.max_tracks < 1:
+            raise msgspec.ValidationError("buffer_size, confirm_detections and max_tracks must be at least 1")
 
 
-def transition(dt: float) -> np.ndarray:
-    """State-transition matrix of the constant-acceleration model (eq. 27)."""
-    eye = np.eye(3)
-    return np.block([
-        [eye, dt * eye, 0.5 * dt * dt * eye],
-        [np.zeros((3, 3)), eye, dt * eye],
-        [np.zeros((3, 3)), np.zeros((3, 3)), eye],
-    ])
+@dataclass(frozen=True)
+class Cloud:
+    stamp: int
+    points: np.ndarray  # (N, 3) float32 world frame; NaN rows (no return) are never selected
+    sensor: np.ndarray | None = None  # (3,) where the scan was taken from (the centroid's surface correction)
 
 
-def process_noise(params: TrackerParams, dt: float) -> np.ndarray:
-    rates = np.repeat([params.q_position, params.q_velocity, params.q_acceleration], 3)
-    return np.diag(rates * dt)
+@dataclass(frozen=True)
+class OccupiedVoxels:
+    """The map's voxel states (schemas/voxels.py codes) and geometry, as Alg. 2's 𝒪."""
 
-
-def uncertainty_radius(params: TrackerParams, covariance: np.ndarray) -> float:
-    """Eq. 26: r = max(r_min, c_r * cbrt(det(H P H^T)))."""
-    det = max(float(np.linalg.det(covariance[:3, :3])), 0.0)
-    return float(max(params.radius_min, params.radius_confidence * np.cbrt(det)))
-
-
-def measurement_noise(params: TrackerParams, detection_covariance: np.ndarray | None) -> np.ndarray:
-    """R = the detection covariance with each variance raised to at least the floor (stays PSD)."""
-    return with_variance_floor(detection_covariance, params.measurement_variance)
+    states: np.ndarray  # (V,) uint8, flat C order
+    corner: np.ndarray  # (3,)
+    voxel_size: float
+    shape: np.ndarray  # (3,) int
 
 
 @dataclass
+class _Track:
+    id: int
+    estimate: Estimate
+    corrected: Estimate  # the estimate right after its last correction (what a detection rewinds to)
+    detections: int
+    last_detection: int  # ns
+    statistics: InnovationStatistics = field(default_factory=InnovationStatistics)
+
+
+@dataclass(frozen=True)
+class Replayed:
+    """A tentative track carried through the buffered clouds newer than its detection."""
+
+    estimate: Estimate
+    corrected: Estimate  # right after its last correction
+    statistics: InnovationStatistics
+
+
+@dataclass(frozen=True)
+class SimilarityView:
+    """The tracks as line 26 compares them: predicted to one stamp (tracks added later are not in it)."""
+
+    stamp: int
+    ids: np.ndarray  # (T,)
+    positions: np.ndarray  # (T, 3)
+    radii: np.ndarray  # (T,)
+
+
+@dataclass(frozen=True)
 class TrackEstimate:
     id: int
     state: np.ndarray  # (9,) position, velocity, acceleration
@@ -80,35 +142,38 @@ class TrackEstimate:
     confirmed: bool
     uncertainty_radius: float
     last_detection: int  # ns
+    trajectory: np.ndarray  # (K, 3) predicted positions at stamp + (i + 1)·trajectory_step
+    updates: int
+    mean_nis: float
+    last_innovation: float
+    primary: bool = False
+
+    @property
+    def position(self) -> np.ndarray:
+        return self.state[:3]
+
+    @property
+    def velocity(self) -> np.ndarray:
+        return self.state[3:6]
 
 
-class _Track:
-    def __init__(self, track_id: int, params: TrackerParams, position: np.ndarray, stamp_ns: int) -> None:
-        self.id = track_id
-        from filterpy.kalman import KalmanFilter  # imported here: see services/runtime/warmup.py
-
-        self.kf = KalmanFilter(dim_x=9, dim_z=3)
-        self.kf.H = H.copy()
-        self.kf.x = np.concatenate([position, np.zeros(6)])
-        self.kf.P = np.diag(np.repeat([params.p0_position, params.p0_velocity, params.p0_acceleration], 3))
-        self.stamp_ns = stamp_ns  # time of the filter's state
-        self.detections = 1
-        self.last_detection = stamp_ns
-
-    def predict_to(self, params: TrackerParams, stamp_ns: int) -> None:
-        dt = (stamp_ns - self.stamp_ns) / NS
-        if dt > 0:  # never predict backwards: an older detection is applied to the current state
-            self.kf.predict(F=transition(dt), Q=process_noise(params, dt))
-            self.stamp_ns = stamp_ns
+@dataclass
+class TrackerCounters:
+    rejected_detections: int = 0  # a non-finite position or an impossible covariance: one would poison every track
+    diverged_tracks: int = 0  # filters driven to inf or NaN (by extreme input): dropped
+    merged_tracks: int = 0  # duplicates of one target
+    late_clouds: int = 0  # clouds older than the buffer's oldest: no detection can need them
 
 
 class TrackerCore:
     def __init__(self, params: TrackerParams | None = None) -> None:
         self.params = params or TrackerParams()
+        self.filter = make_filter(self.params.filter, self.params.noise)
+        self.buffer: deque[Cloud] = deque()
+        self.occupied: OccupiedVoxels | None = None
+        self.counters = TrackerCounters()
         self._tracks: list[_Track] = []
         self._next_id = 1
-        self.rejected_detections = 0  # a non-finite position or an impossible covariance: one would poison every track
-        self.diverged_tracks = 0  # filters driven to inf or NaN (by extreme detections): dropped
 
     def __len__(self) -> int:
         return len(self._tracks)
@@ -117,76 +182,262 @@ class TrackerCore:
     def ids(self) -> list[int]:
         return [t.id for t in self._tracks]
 
-    def update(self, stamp_ns: int, positions: np.ndarray, covariances: np.ndarray | None = None) -> list[int]:
-        """Apply one set of detections (N, 3) taken at stamp_ns; returns the track id each went to
-        (-1: none; a detection with a non-finite position or an impossible covariance is dropped and counted)."""
+    def radius(self, estimate: Estimate) -> float:
+        return self.radius_of(estimate.covariance)
+
+    def radius_of(self, covariance: np.ndarray) -> float:
+        """r_unc of eq. 26 for a state covariance."""
         p = self.params
-        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        sound = np.isfinite(positions).all(axis=1)
-        if covariances is not None:
-            sound &= [is_covariance(c) for c in np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)]
-        usable = np.flatnonzero(sound)
-        self.rejected_detections += len(positions) - len(usable)
-        for track in self._tracks:
-            track.predict_to(p, stamp_ns)
+        return uncertainty_radius(covariance, p.radius_min, p.radius_confidence)
+
+    # ------------------------------------------------------------------ map
+    def set_occupied(self, occupied: OccupiedVoxels | None) -> None:
+        self.occupied = occupied
+
+    # ---------------------------------------------------------------- clouds
+    def new_point_cloud(self, stamp: int, points: np.ndarray, sensor: np.ndarray | None = None) -> list[int]:
+        """Alg. 2 lines 8-18: buffer the cloud (taken from `sensor`, if known), update every track
+        with it, drop the too uncertain. Returns the ids dropped."""
+        cloud = Cloud(stamp, np.asarray(points, dtype=np.float32).reshape(-1, 3),
+                      None if sensor is None else np.asarray(sensor, dtype=np.float64).reshape(3))
+        if not self._buffer(cloud):
+            return []
+        updated = self._update_tracks([t.estimate for t in self._tracks], cloud)
+        for track, (estimate, measured) in zip(self._tracks, updated):
+            track.estimate = estimate
+            if measured is not None:
+                track.corrected = estimate
+                track.statistics.add(measured)
         self._drop_diverged()
-        self._tracks = [t for t in self._tracks if uncertainty_radius(p, t.kf.P) <= p.radius_max]
+        dropped = [t.id for t in self._tracks if self.radius(t.estimate) > self.params.radius_max]
+        self._tracks = [t for t in self._tracks if t.id not in dropped]
+        self._merge_duplicates()
+        return dropped
 
+    def _buffer(self, cloud: Cloud) -> bool:
+        """Insert by stamp; False (and counted) when it is older than everything the buffer holds."""
+        stamps = [c.stamp for c in self.buffer]
+        if len(stamps) >= self.params.buffer_size and cloud.stamp <= stamps[0]:
+            self.counters.late_clouds += 1
+            return False
+        self.buffer.insert(bisect.bisect_right(stamps, cloud.stamp), cloud)
+        while len(self.buffer) > self.params.buffer_size:
+            self.buffer.popleft()
+        return True
+
+    def _update_tracks(self, estimates: list[Estimate], cloud: Cloud):
+        """updateTrack (lines 33-46) for several estimates against one cloud, sharing the per-point pass.
+        Returns (estimate, innovation or None) per input."""
+        if not estimates:
+            return []
+        predictor = self.filter.predictor
+        predicted = [predictor.predict(e, cloud.stamp) if e.stamp <= cloud.stamp else e for e in estimates]
+        centres = np.array([e.position for e in predicted], dtype=np.float64)
+        radii = np.array([self.radius(e) for e in predicted], dtype=np.float64)
+        fresh = np.array([e.stamp <= cloud.stamp for e in estimates])
+        if not np.isfinite(centres).all() or not np.isfinite(radii).all():
+            return [(e, None) for e in predicted]  # a diverged filter: dropped by the caller
+        indices, starts = points_near(cloud.points, centres, radii)
+        out = []
+        for k, estimate in enumerate(predicted):
+            selected = cloud.points[indices[starts[k]:starts[k + 1]]].astype(np.float64)
+            centroid = self._nearest_clear_centroid(selected, estimate.position, cloud.sensor) if fresh[k] else None
+            if centroid is None:
+                out.append((estimate, None))
+                continue
+            noise = self.params.cloud_noise * np.eye(3)
+            update = self.filter.updater.update(estimate, centroid, noise)
+            out.append((update.estimate, update.innovation))
+        return out
+
+    def _nearest_clear_centroid(self, points: np.ndarray, position: np.ndarray,
+                                sensor: np.ndarray | None) -> np.ndarray | None:
+        """Lines 37-43: clusters of the selected returns, those clear of occupied voxels, the
+        nearest centroid to the track's position, moved from the returns' centroid to the
+        target's centre as the classifier moves its detections (`surface_bias`: a LiDAR sees only
+        the near side, so the returns' centroid lies short of the centre along the line of sight)."""
+        if len(points) == 0:
+            return None
+        labels, count = euclidean_clusters(points, self.params.cluster_distance)
+        sizes = np.bincount(labels, minlength=count).astype(np.float64)
+        centroids = np.stack([np.bincount(labels, points[:, axis], minlength=count) for axis in range(3)], axis=1)
+        centroids /= sizes[:, None]
+        clear = np.flatnonzero(~self._near_occupied(centroids))
+        if not len(clear):
+            return None
+        best = int(clear[np.argmin(np.linalg.norm(centroids[clear] - position, axis=1))])
+        if sensor is None:
+            return centroids[best]
+        return centroids[best] + surface_offset(points[labels == best], centroids[best], sensor,
+                                                self.params.surface_bias)
+
+    def _near_occupied(self, centroids: np.ndarray) -> np.ndarray:
+        occupied = self.occupied
+        if occupied is None:
+            return np.zeros(len(centroids), dtype=bool)
+        count = len(centroids)
+        return clusters_near_occupied(centroids, np.arange(count), count, np.ones(count, dtype=np.bool_),
+                                      occupied.states, occupied.corner, occupied.voxel_size, occupied.shape,
+                                      self.params.occupied_distance)
+
+    def _replay(self, estimates: list[Estimate], after: int) -> list[Replayed]:
+        """Lines 22-24 for several estimates at once (one per-point pass per cloud): carry each
+        through every buffered cloud newer than `after`."""
+        current = list(estimates)
+        corrected = list(estimates)
+        statistics = [InnovationStatistics() for _ in estimates]
+        for cloud in self.buffer:
+            if cloud.stamp <= after or not current:
+                continue
+            for k, (estimate, measured) in enumerate(self._update_tracks(current, cloud)):
+                current[k] = estimate
+                if measured is not None:
+                    corrected[k] = estimate
+                    statistics[k].add(measured)
+        return [Replayed(*parts) for parts in zip(current, corrected, statistics)]
+
+    # ------------------------------------------------------------ detections
+    def new_detections(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None) -> list[int]:
+        """Alg. 2 lines 19-32 for one set of detections (N, 3) taken at `stamp`; returns the track
+        id each went to (-1: none: an unusable detection, dropped and counted, or a tentative track
+        that its replay made too uncertain, or no room for another track)."""
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        usable = self._usable(positions, covariances)
+        covs = None if covariances is None else np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
         assigned = [-1] * len(positions)
-        if self._tracks and len(usable):
-            predicted = np.array([t.kf.x[:3] for t in self._tracks])
-            gates = np.array([uncertainty_radius(p, t.kf.P) for t in self._tracks])
-            distances = np.linalg.norm(predicted[:, None, :] - positions[None, usable, :], axis=2)
-            outside = distances > gates[:, None]
-            from scipy.optimize import linear_sum_assignment
-
-            rows, cols = linear_sum_assignment(np.where(outside, 1e9, distances))
-            for row, col in zip(rows, cols):
-                if outside[row, col]:
-                    continue
-                track, col = self._tracks[row], usable[col]
-                cov = None if covariances is None else covariances[col]
-                track.kf.update(positions[col], R=measurement_noise(p, cov))
-                track.detections += 1
-                track.last_detection = max(track.last_detection, stamp_ns)
-                assigned[col] = track.id
-        for col in usable:
-            if assigned[col] < 0 and len(self._tracks) < p.max_tracks:
-                track = _Track(self._next_id, p, positions[col], stamp_ns)
-                self._next_id += 1
-                self._tracks.append(track)
-                assigned[col] = track.id
+        rows = np.flatnonzero(usable)
+        noises = [with_variance_floor(None if covs is None else covs[k], self.params.noise.measurement_variance)
+                  for k in rows]
+        initiate = self.filter.initiator.initiate
+        replayed = self._replay([initiate(positions[k], noise, stamp) for k, noise in zip(rows, noises)], stamp)
+        view = self._similarity_view(max([r.estimate.stamp for r in replayed] +
+                                         [t.estimate.stamp for t in self._tracks], default=stamp))
+        taken: set[int] = set()
+        for k, noise, tentative in zip(rows, noises, replayed):
+            assigned[k] = self._admit(stamp, positions[k], noise, tentative, view, taken)
         return assigned
 
+    def _usable(self, positions: np.ndarray, covariances: np.ndarray | None) -> np.ndarray:
+        sound = np.isfinite(positions).all(axis=1)
+        if covariances is not None:
+            covs = np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
+            sound &= np.array([is_covariance(c) for c in covs], dtype=bool)
+        self.counters.rejected_detections += int((~sound).sum())
+        return sound
+
+    def _admit(self, stamp: int, position: np.ndarray, noise: np.ndarray, tentative: Replayed,
+               view: SimilarityView, taken: set[int]) -> int:
+        """Lines 25-31 for one replayed tentative track: dropped, counted to a similar track, or added."""
+        if self.radius(tentative.estimate) > self.params.radius_max:
+            return -1  # lost or a false positive (line 25)
+        similar = self._most_similar(tentative.estimate, view, taken)
+        if similar is not None:
+            self._count(similar, stamp, position, noise)
+            taken.add(similar.id)
+            return similar.id
+        if len(self._tracks) >= self.params.max_tracks:
+            return -1
+        track = _Track(self._next_id, tentative.estimate, tentative.corrected, 1, stamp, tentative.statistics)
+        self._next_id += 1
+        self._tracks.append(track)
+        taken.add(track.id)
+        return track.id
+
+    def _most_similar(self, tentative: Estimate, view: SimilarityView, taken: set[int]) -> _Track | None:
+        """Line 26: the nearest track T with ‖r_T - r_T*‖ ≤ r_unc(T) + r_unc(T*), both at the view's stamp."""
+        if not len(view.radii):
+            return None
+        at = self.filter.predictor.predict(tentative, view.stamp)
+        gaps = np.linalg.norm(view.positions - at.position, axis=1)
+        similar = (gaps <= view.radii + self.radius(at)) & ~np.isin(view.ids, list(taken))
+        if not similar.any():
+            return None
+        best = int(np.flatnonzero(similar)[np.argmin(gaps[similar])])
+        return self._tracks[best]
+
+    def _similarity_view(self, stamp: int) -> SimilarityView:
+        """The tracks' positions and radii predicted to one stamp, once per set of detections."""
+        predict = self.filter.predictor.predict
+        at = [predict(track.estimate, stamp) for track in self._tracks]
+        return SimilarityView(stamp, np.array([t.id for t in self._tracks], dtype=np.int64),
+                              np.array([e.position for e in at], dtype=np.float64).reshape(-1, 3),
+                              np.array([self.radius(e) for e in at], dtype=np.float64))
+
+    def _count(self, track: _Track, stamp: int, position: np.ndarray, noise: np.ndarray) -> None:
+        """Line 27, plus the correction of a track no cloud has corrected since the detection."""
+        track.detections += 1
+        track.last_detection = max(track.last_detection, stamp)
+        if track.corrected.stamp >= stamp:
+            return
+        at_detection = self.filter.predictor.predict(track.corrected, stamp)
+        update = self.filter.updater.update(at_detection, position, noise)
+        track.statistics.add(update.innovation)
+        [replayed] = self._replay([update.estimate], stamp)
+        track.estimate = replayed.estimate if replayed.estimate.stamp >= track.estimate.stamp else \
+            self.filter.predictor.predict(replayed.estimate, track.estimate.stamp)
+        track.corrected = replayed.corrected
+        track.statistics.merge(replayed.statistics)  # these clouds did not correct it when they first came
+
+    # ----------------------------------------------------------- bookkeeping
     def _drop_diverged(self) -> None:
         """A filter at inf or NaN never recovers, and one NaN distance fails every association."""
-        finite = [t for t in self._tracks if np.isfinite(t.kf.x).all() and np.isfinite(t.kf.P).all()]
-        self.diverged_tracks += len(self._tracks) - len(finite)
+        finite = [t for t in self._tracks
+                  if np.isfinite(t.estimate.mean).all() and np.isfinite(t.estimate.covariance).all()]
+        self.counters.diverged_tracks += len(self._tracks) - len(finite)
         self._tracks = finite
+
+    def _merge_duplicates(self) -> None:
+        """Tracks whose estimates sit within one cluster distance of each other follow one target:
+        keep the older identity (the lower id) and the sum of the detections."""
+        kept: list[_Track] = []
+        for track in sorted(self._tracks, key=lambda t: t.id):
+            twin = next((k for k in kept if np.linalg.norm(k.estimate.position - track.estimate.position)
+                         <= self.params.cluster_distance), None)
+            if twin is None:
+                kept.append(track)
+                continue
+            twin.detections += track.detections
+            twin.last_detection = max(twin.last_detection, track.last_detection)
+            self.counters.merged_tracks += 1
+        self._tracks = kept
 
     def prune(self, now_ns: int) -> list[int]:
         """Drop the tracks whose uncertainty radius predicted to now_ns exceeds r_max (and diverged ones)."""
         self._drop_diverged()
-        dropped = [e.id for e in self.estimates(now_ns) if e.uncertainty_radius > self.params.radius_max]
+        dropped = [e.id for e in self.estimates(now_ns, trajectory=False) if e.uncertainty_radius > self.params.radius_max]
         self._tracks = [t for t in self._tracks if t.id not in dropped]
         return dropped
 
-    def estimates(self, now_ns: int) -> list[TrackEstimate]:
-        """Every track predicted to now_ns, without changing the filters."""
-        p = self.params
+    def estimates(self, now_ns: int, trajectory: bool = True) -> list[TrackEstimate]:
+        """Every track predicted to now_ns (never backwards), without changing the filters; the
+        confirmed track with the most detections is marked primary."""
+        p, predict = self.params, self.filter.predictor.predict
         out = []
         for track in self._tracks:
-            dt = max(0.0, (now_ns - track.stamp_ns) / NS)
-            from filterpy.kalman import predict as kf_predict
-
-            state, cov = kf_predict(track.kf.x, track.kf.P, F=transition(dt), Q=process_noise(p, dt))
+            now = predict(track.estimate, now_ns)
             out.append(TrackEstimate(
                 id=track.id,
-                state=np.asarray(state, dtype=np.float64).reshape(9),
-                covariance=np.asarray(cov, dtype=np.float64),
+                state=np.asarray(now.mean, dtype=np.float64).reshape(9),
+                covariance=np.asarray(now.covariance, dtype=np.float64),
                 detections=track.detections,
                 confirmed=track.detections >= p.confirm_detections,
-                uncertainty_radius=uncertainty_radius(p, cov),
+                uncertainty_radius=self.radius(now),
                 last_detection=track.last_detection,
+                trajectory=self._trajectory(now) if trajectory else np.zeros((0, 3)),
+                updates=track.statistics.updates,
+                mean_nis=track.statistics.mean_nis,
+                last_innovation=track.statistics.last_residual,
             ))
+        confirmed = [e for e in out if e.confirmed]
+        if confirmed:
+            best = max(confirmed, key=lambda e: (e.detections, -e.id))
+            out = [replace(e, primary=e is best) for e in out]
         return out
+
+    def _trajectory(self, estimate: Estimate) -> np.ndarray:
+        p = self.params
+        steps = int(p.trajectory_horizon / p.trajectory_step)
+        step_ns = int(round(p.trajectory_step * NS))
+        predict = self.filter.predictor.predict
+        return np.array([predict(estimate, estimate.stamp + (i + 1) * step_ns).position for i in range(steps)],
+                        dtype=np.float64).reshape(-1, 3)

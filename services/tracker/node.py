@@ -1,64 +1,147 @@
-"""tracker node: detections in, tracks out (first version, see core.py).
+"""tracker node: clouds, detections and the map in, tracks out (seed 000 Alg. 2; see core.py).
 
-Subscribes falconry/<uav>/detections (Detections). Publishes falconry/<uav>/tracks (Tracks)
-on every tick while there are tracks, each predicted to the tick's time, and an empty Tracks
-at least once per second of mission time otherwise so subscribers know the tracker is alive.
-Later versions also subscribe falconry/<uav>/points and falconry/<uav>/map (Alg. 2).
+Subscribes falconry/<uav>/map (VoxelMap: the occupied voxels line 39 keeps clusters away from),
+falconry/<uav>/points (PointCloud: every scan updates every track) and falconry/<uav>/detections
+(Detections: each starts or counts to a track, replayed through the buffered scans newer than
+it). Lockstep releases a tick's scan before its detections (subscription order; the sensor
+driver is upstream of the detector anyway). Publishes falconry/<uav>/tracks (Tracks) on every
+tick while there are tracks, each predicted to the tick's time with a short predicted
+trajectory, and an empty Tracks at least once per alive_period of mission time otherwise so
+subscribers know the tracker is alive.
+
+The fleet picture (fleet.py): it also subscribes every partner's falconry/<partner>/tracks and
+publishes its own tracks fused (covariance intersection) with the partners' tracks of the same
+targets, plus the partners' other confirmed tracks under fleet ids with `source` = the partner.
 """
 from __future__ import annotations
 
+import numpy as np
+
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
-from schemas.messages import Detections, Header, Track, Tracks
+from schemas.messages import Detections, Header, PointCloud, Track, Tracks, VoxelMap
 from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
-from services.runtime.warmup import preload
-from services.tracker.core import TrackerCore, TrackerParams
+from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams
+from services.tracker.fleet import (FleetPicture, FleetTrack, FusionParams, PartnerTrack, ca_trajectory,
+                                    sound_partner_track)
+from services.voxels.replica import MapReplica
 
 
 class TrackerNode(Node):
     service = "tracker"
-    upstream = ("classifier", keys.ORACLE)  # whichever detector runs
+    upstream = ("sensor_driver", "classifier", keys.ORACLE)  # the scans and whichever detector runs
     params_type = TrackerParams
 
     def setup(self) -> None:
-        preload("filterpy.kalman", "scipy.optimize")  # the Kalman and assignment libraries, beside start-up
         self.core = TrackerCore(self.params)
+        self.replica: MapReplica | None = None
         self.tracks_pub = self.publisher(self.topic("tracks"), Tracks)
+        self.subscribe(self.topic("map"), VoxelMap, self.on_map, keep=None)  # deltas: each one counts
+        self.subscribe(self.topic("points"), PointCloud, self.on_points)
         self.subscribe(self.topic("detections"), Detections, self.on_detections)
+        self.subscribe(keys.ALL_TRACKS, Tracks, self.on_partner_tracks)
+        p = self.params
+        self.fleet = FleetPicture(FusionParams(p.radius_min, p.radius_confidence,
+                                               (p.noise.q_position, p.noise.q_velocity, p.noise.q_acceleration),
+                                               p.partner_timeout))
+        self._refused_partner_tracks = 0
         self._alive_period_ns = to_ns(self.params.alive_period)
         self._last_published_ns: int | None = None
+        self._refused_maps = 0
         self._bad_input = CountedWarnings(self.log)
+
+    def on_map(self, msg: VoxelMap, key: str) -> None:
+        try:
+            if self.replica is None:
+                if not msg.snapshot:
+                    return  # a delta means nothing before the first snapshot
+                self.replica = MapReplica(msg.origin, msg.shape, msg.voxel_size, msg.default_value)
+            self.replica.apply(msg.snapshot, msg.origin, msg.shape, msg.voxel_size, msg.default_value,
+                               to_numpy(msg.indices), to_numpy(msg.values))
+        except (ValueError, MemoryError):  # an impossible geometry or contents, or a grid too large to hold
+            self._refused_maps += 1
+            self._report()
+            return
+        r = self.replica
+        self.core.set_occupied(OccupiedVoxels(r.states, np.asarray(r.origin, dtype=np.float64), r.voxel_size,
+                                              np.asarray(r.shape, dtype=np.int64)))
+
+    def on_points(self, msg: PointCloud, key: str) -> None:
+        for track_id in self.core.new_point_cloud(msg.header.stamp, to_numpy(msg.points), msg.sensor_pose.position):
+            self.log.debug("track %d lost", track_id)
+        self._report()
 
     def on_detections(self, msg: Detections, key: str) -> None:
         positions = to_numpy(msg.positions)
         covariances = to_numpy(msg.covariances) if len(positions) else None
-        self.core.update(msg.header.stamp, positions, covariances)
+        self.core.new_detections(msg.header.stamp, positions, covariances)
+        self._report()
+
+    def on_partner_tracks(self, msg: Tracks, key: str) -> None:
+        partner = keys.uav_of(key)
+        if partner == self.uav or not self.params.fleet:
+            return
+        tracks = []
+        for track in msg.tracks:
+            if not track.confirmed or track.source != partner:
+                continue  # a partner's fleet tracks come from their own keepers, heard directly
+            mean, covariance = to_numpy(track.state).reshape(-1), to_numpy(track.covariance)
+            covariance = covariance.reshape(9, 9) if covariance.size == 81 else covariance
+            if not sound_partner_track(mean, covariance):
+                self._refused_partner_tracks += 1
+                continue
+            tracks.append(PartnerTrack(track.id, msg.header.stamp, mean, covariance, track.detections))
+        self.fleet.partner_tracks(partner, msg.header.stamp, tracks)
+        self._report()
+
+    def _report(self) -> None:
+        c = self.core.counters
         self._bad_input.update({"detections with a non-finite position or an impossible covariance dropped":
-                                self.core.rejected_detections,
-                                "tracks dropped whose filter diverged to inf or NaN": self.core.diverged_tracks})
+                                c.rejected_detections,
+                                "tracks dropped whose filter diverged to inf or NaN": c.diverged_tracks,
+                                "map messages refused (impossible geometry or contents)": self._refused_maps,
+                                "partner tracks refused (not a finite positive-definite CA state)":
+                                self._refused_partner_tracks})
 
     def on_tick(self, now_ns: int) -> None:
         for track_id in self.core.prune(now_ns):
             self.log.debug("track %d lost", track_id)
-        estimates = self.core.estimates(now_ns)
+        estimates = {e.id: e for e in self.core.estimates(now_ns)}
+        own = [FleetTrack(e.id, e.state, e.covariance, e.detections, e.confirmed, self.uav) for e in estimates.values()]
+        fleet = self.fleet.fuse(own, now_ns) if self.params.fleet else own
         quiet = self._last_published_ns is None or now_ns - self._last_published_ns >= self._alive_period_ns
-        if not estimates and not quiet:
+        if not fleet and not quiet:
             return
         self._last_published_ns = now_ns
-        self.tracks_pub.put(Tracks(header=Header(stamp=now_ns), tracks=[
-            Track(
-                id=e.id,
-                state=from_numpy(e.state),
-                covariance=from_numpy(e.covariance),
-                detections=e.detections,
-                confirmed=e.confirmed,
-                uncertainty_radius=e.uncertainty_radius,
-                last_detection=e.last_detection,
-            )
-            for e in estimates
-        ]))
+        self.tracks_pub.put(Tracks(header=Header(stamp=now_ns),
+                                   tracks=[self._track(f, estimates.get(f.id)) for f in fleet]))
+
+    def _track(self, track: FleetTrack, own: TrackEstimate | None) -> Track:
+        """A fleet track as sent; an own track unfused keeps its filter's trajectory and statistics."""
+        p = self.params
+        trajectory = own.trajectory if own is not None and not track.fused_with else \
+            ca_trajectory(track.mean, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step))
+        return Track(
+            id=track.id,
+            state=from_numpy(track.mean),
+            covariance=from_numpy(track.covariance),
+            detections=track.detections,
+            confirmed=track.confirmed,
+            uncertainty_radius=self.core.radius_of(track.covariance),
+            last_detection=own.last_detection if own is not None else 0,
+            filter=p.filter if own is not None else "fleet",
+            position=tuple(float(v) for v in track.mean[:3]),
+            velocity=tuple(float(v) for v in track.mean[3:6]),
+            trajectory_dt=p.trajectory_step,
+            trajectory=from_numpy(trajectory),
+            updates=own.updates if own is not None else 0,
+            mean_nis=own.mean_nis if own is not None else 0.0,
+            last_innovation=own.last_innovation if own is not None else 0.0,
+            primary=own.primary if own is not None else False,
+            source=track.source,
+        )
 
 
 NODE = TrackerNode

@@ -30,15 +30,6 @@ def covariance_ellipsoids(covariances: np.ndarray, sigma: float) -> tuple[np.nda
     return half, Rotation.from_matrix(vectors).as_quat()
 
 
-def constant_acceleration_path(state: np.ndarray, horizon: float, step: float) -> np.ndarray:
-    """Positions (K, 3) from now to `horizon` s ahead of a (9,) position-velocity-acceleration state
-    (the tracker's model, seed 000 eq. 27)."""
-    s = np.asarray(state, dtype=np.float64).reshape(-1)
-    t = np.arange(0.0, horizon + 1e-9, step)[:, None]
-    acceleration = s[6:9] if len(s) >= 9 else np.zeros(3)
-    return s[0:3] + s[3:6] * t + 0.5 * acceleration * t * t
-
-
 def wxyz_to_xyzw(quaternion) -> np.ndarray:
     w, x, y, z = (float(v) for v in quaternion)
     return np.array([x, y, z, w])

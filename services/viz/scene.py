@@ -53,13 +53,13 @@ from schemas.messages import (
 from services import evaluation
 from services.geometry import pairwise_gaps
 from services.runtime.clock import NS, StampOrigin
+from services.tracker.view import predicted_path, track_positions
 from services.viz import draw
 from services.viz.geometry import (
     TERRAIN,
     Color,
     closed_polygon,
     cone_mesh,
-    constant_acceleration_path,
     covariance_ellipsoids,
     height_colors,
     merge_meshes,
@@ -463,16 +463,15 @@ class SceneBuilder:
         uav.track_set = track_set
         for confirmed in (True, False):
             chosen = [t for t in tracks.tracks if t.confirmed == confirmed]
-            states = np.array([to_numpy(t.state)[:9] for t in chosen]).reshape(-1, 9)
             covariances = np.array([to_numpy(t.covariance).reshape(9, 9)[:3, :3] for t in chosen]).reshape(-1, 3, 3)
             half, rotations = covariance_ellipsoids(covariances, p.ellipsoid_sigma)
             kind = "confirmed" if confirmed else "tentative"
             color = uav.color if confirmed else (200, 200, 200, 200)
             self._log(f"{name}/tracks/{kind}", draw.Ellipsoids(
-                states[:, :3], half, rotations, color,
+                track_positions(chosen), half, rotations, color,
                 [f"#{t.id} r={t.uncertainty_radius:.1f} m, {t.detections} det" for t in chosen]))
             if confirmed:
-                paths = [constant_acceleration_path(s, p.prediction_horizon, 0.1) for s in states]
+                paths = [predicted_path(t, p.prediction_horizon) for t in chosen]
                 self._log(f"{name}/tracks/predicted", draw.Lines(paths, uav.color, 0.04, [f"#{t.id}" for t in chosen]))
                 for t in chosen:
                     self._log(f"plots/track_uncertainty/{name}/{t.id}", draw.Scalar(t.uncertainty_radius))

@@ -1,0 +1,167 @@
+"""The fleet picture: a UAV's own tracks joined with the confirmed tracks its partners keep.
+
+Each tracker publishes its tracks; each also listens to its partners' and publishes the union:
+- an own track and a partner's track of the same target (positions within the sum of their
+  uncertainty radii, seed 000's similarity rule of Alg. 2 line 26; nearest first, one to one)
+  are fused by covariance intersection (Julier & Uhlmann 1997):
+      P⁻¹ = ω P_a⁻¹ + (1 − ω) P_b⁻¹,   x = P (ω P_a⁻¹ x_a + (1 − ω) P_b⁻¹ x_b),
+  with ω ∈ [0, 1] minimising trace(P) (scipy's bounded scalar minimiser). CI is consistent
+  whatever the correlation between the two estimates, which is unknown here: the two trackers
+  saw the same target, often in the same scans' time, and each may already hold the other's
+  information from an earlier exchange. A Kalman-style fusion would count it twice and grow
+  overconfident;
+- a partner's track no own track matches is published as a track of ours with `source` set to
+  the partner, under a fleet id: 1,000,000 × the partner's number + its id (stable while the
+  partner keeps its id, never equal to an own id), so a UAV can go for a target only a partner sees.
+
+Only a partner's own tracks are taken (`source` = that partner): the fleet tracks it publishes
+came from someone else, who is heard directly. The fusion is on output only: own filters never
+take partner data, so a partner's error cannot feed back into our tracks. Partner tracks are
+carried to the output's stamp by the constant-acceleration model (eq. 27) and dropped once
+older than `stale_after`: a cut link or a fallen partner only removes its contribution.
+
+Pure: stamps are int ns handed in by the node.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from services.tracker.filters.base import NS
+from services.tracker.filters.models import process_noise, transition, uncertainty_radius
+
+FLEET_ID_BASE = 1_000_000
+
+
+@dataclass(frozen=True)
+class PartnerTrack:
+    id: int  # the partner's own id
+    stamp: int  # ns, the time its mean and covariance hold at
+    mean: np.ndarray  # (9,) position, velocity, acceleration
+    covariance: np.ndarray  # (9, 9)
+    detections: int
+
+
+@dataclass(frozen=True)
+class FleetTrack:
+    """One track of the fleet picture at the output's stamp."""
+
+    id: int
+    mean: np.ndarray  # (9,)
+    covariance: np.ndarray  # (9, 9)
+    detections: int
+    confirmed: bool
+    source: str  # the UAV that keeps it (ours for an own track, fused or not)
+    fused_with: tuple[str, ...] = ()  # partners whose tracks were fused into an own track
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    radius_min: float
+    radius_confidence: float
+    process_rates: tuple[float, float, float]  # per-second variances of position, velocity, acceleration
+    stale_after: float = 1.0  # s without news from a partner before its tracks are left out
+
+
+def covariance_intersection(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.ndarray,
+                            omega: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """Fused (mean, covariance, ω); ω = None picks the trace-minimising one in [0, 1]."""
+    info_a, info_b = np.linalg.inv(cov_a), np.linalg.inv(cov_b)
+
+    def fused_covariance(w: float) -> np.ndarray:
+        return np.linalg.inv(w * info_a + (1.0 - w) * info_b)
+
+    if omega is None:
+        omega = float(minimize_scalar(lambda w: np.trace(fused_covariance(w)), bounds=(0.0, 1.0),
+                                      method="bounded", options={"xatol": 1e-4}).x)
+    covariance = fused_covariance(omega)
+    mean = covariance @ (omega * info_a @ mean_a + (1.0 - omega) * info_b @ mean_b)
+    return mean, 0.5 * (covariance + covariance.T), omega
+
+
+def partner_number(name: str) -> int:
+    """uav2 → 2 (a fleet id's prefix); 0 for a name without a number."""
+    found = re.search(r"(\d+)$", name)
+    return int(found.group(1)) if found else 0
+
+
+class FleetPicture:
+    def __init__(self, params: FusionParams) -> None:
+        self.params = params
+        self._partners: dict[str, tuple[int, list[PartnerTrack]]] = {}  # name → (when heard, tracks)
+
+    def partner_tracks(self, partner: str, heard: int, tracks: list[PartnerTrack]) -> None:
+        """A partner's latest confirmed own tracks (replacing what it said before)."""
+        self._partners[partner] = (heard, list(tracks))
+
+    def partners(self, now: int) -> dict[str, list[PartnerTrack]]:
+        """The partners heard within stale_after of `now`, with their tracks."""
+        limit = int(self.params.stale_after * NS)
+        return {name: tracks for name, (heard, tracks) in sorted(self._partners.items()) if now - heard <= limit}
+
+    def fuse(self, own: list[FleetTrack], now: int) -> list[FleetTrack]:
+        """`own` (at `now`) joined with every fresh partner's tracks carried to `now`."""
+        out = list(own)
+        for partner, tracks in self.partners(now).items():
+            carried = [self._carried(t, now) for t in tracks]
+            matches = self._matches(out, carried)
+            for k, track in enumerate(carried):
+                if k in matches:
+                    out[matches[k]] = self._fused(out[matches[k]], track, partner)
+                else:
+                    out.append(FleetTrack(partner_number(partner) * FLEET_ID_BASE + track.id, track.mean,
+                                          track.covariance, track.detections, True, partner))
+        return out
+
+    def _carried(self, track: PartnerTrack, now: int) -> PartnerTrack:
+        dt = max(0.0, (now - track.stamp) / NS)
+        f = transition(dt)
+        covariance = f @ track.covariance @ f.T + process_noise(self.params.process_rates, dt)
+        return replace(track, stamp=now, mean=f @ track.mean, covariance=covariance)
+
+    def _radius(self, covariance: np.ndarray) -> float:
+        return uncertainty_radius(covariance, self.params.radius_min, self.params.radius_confidence)
+
+    def _matches(self, own: list[FleetTrack], theirs: list[PartnerTrack]) -> dict[int, int]:
+        """Partner track index → output track index: similar pairs (Alg. 2 line 26), nearest first,
+        each track used once (a track another partner added takes part too: two partners seeing
+        one target we do not see give one track)."""
+        pairs = []
+        for i, mine in enumerate(own):
+            for k, track in enumerate(theirs):
+                gap = float(np.linalg.norm(mine.mean[:3] - track.mean[:3]))
+                if gap <= self._radius(mine.covariance) + self._radius(track.covariance):
+                    pairs.append((gap, i, k))
+        used_own, matches = set(), {}
+        for _, i, k in sorted(pairs):
+            if i not in used_own and k not in matches:
+                used_own.add(i)
+                matches[k] = i
+        return matches
+
+    def _fused(self, mine: FleetTrack, theirs: PartnerTrack, partner: str) -> FleetTrack:
+        try:
+            mean, covariance, _ = covariance_intersection(mine.mean, mine.covariance, theirs.mean, theirs.covariance)
+        except np.linalg.LinAlgError:  # a singular covariance (a degenerate filter): keep ours
+            return mine
+        return replace(mine, mean=mean, covariance=covariance, detections=max(mine.detections, theirs.detections),
+                       confirmed=True, fused_with=mine.fused_with + (partner,))
+
+
+def ca_trajectory(mean: np.ndarray, step: float, count: int) -> np.ndarray:
+    """(count, 3) positions every `step` s ahead of a constant-acceleration state (eq. 27)."""
+    return np.array([(transition(step * (i + 1)) @ mean)[:3] for i in range(count)], dtype=np.float64).reshape(-1, 3)
+
+
+def sound_partner_track(mean: np.ndarray, covariance: np.ndarray) -> bool:
+    """A partner's state and covariance we can fuse: the CA layout, finite, symmetric positive definite."""
+    if mean.shape != (9,) or covariance.shape != (9, 9):
+        return False
+    if not (np.isfinite(mean).all() and np.isfinite(covariance).all()):
+        return False
+    if not np.allclose(covariance, covariance.T, atol=1e-9 * max(1.0, float(np.abs(covariance).max()))):
+        return False
+    return bool(np.linalg.eigvalsh(covariance).min() > 0)

@@ -1,0 +1,99 @@
+"""The fleet picture: own tracks joined with the partners' by covariance intersection (services/tracker/fleet.py)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
+                                    covariance_intersection, sound_partner_track)
+
+NS = 1_000_000_000
+PARAMS = FusionParams(radius_min=2.5, radius_confidence=1.5, process_rates=(0.01, 0.8, 0.05), stale_after=1.0)
+
+
+def random_covariance(rng: np.random.Generator, size: int = 9) -> np.ndarray:
+    a = rng.normal(0.0, 1.0, (size, size))
+    return a @ a.T + 0.1 * np.eye(size)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.floats(0.05, 0.95))
+def test_covariance_intersection_agrees_with_stone_soup(seed, omega):
+    from stonesoup.mixturereducer.gaussianmixture import CovarianceIntersection
+    from stonesoup.types.state import GaussianState
+
+    rng = np.random.default_rng(seed)
+    mean_a, mean_b = rng.normal(0, 5, 9), rng.normal(0, 5, 9)
+    cov_a, cov_b = random_covariance(rng), random_covariance(rng)
+    mean, covariance, _ = covariance_intersection(mean_a, cov_a, mean_b, cov_b, omega)
+    oracle = CovarianceIntersection.merge_components(GaussianState(mean_a[:, None], cov_a),
+                                                     GaussianState(mean_b[:, None], cov_b), weights=[omega, 1 - omega])
+    np.testing.assert_allclose(mean, np.asarray(oracle.state_vector, dtype=float).ravel(), rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(covariance, np.asarray(oracle.covar, dtype=float), rtol=1e-7, atol=1e-7)
+
+
+def test_the_chosen_omega_is_never_worse_than_either_estimate_and_stays_consistent():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        cov_a, cov_b = random_covariance(rng), random_covariance(rng)
+        _, fused, omega = covariance_intersection(np.zeros(9), cov_a, np.ones(9), cov_b)
+        assert 0.0 <= omega <= 1.0
+        assert np.trace(fused) <= min(np.trace(cov_a), np.trace(cov_b)) + 1e-6
+        # CI's guarantee: the fused covariance bounds the convex combination of the two
+        bound = np.linalg.inv(omega * np.linalg.inv(cov_a) + (1 - omega) * np.linalg.inv(cov_b))
+        assert np.allclose(fused, bound)
+    same = random_covariance(rng)  # identical information fused with itself is not doubled
+    _, fused, _ = covariance_intersection(np.zeros(9), same, np.zeros(9), same)
+    assert np.allclose(fused, same)
+
+
+def own(track_id: int, position, variance: float = 0.2, confirmed: bool = True) -> FleetTrack:
+    mean = np.concatenate([position, [1.0, 0.0, 0.0], np.zeros(3)])
+    return FleetTrack(track_id, mean, np.eye(9) * variance, 5, confirmed, "uav1")
+
+
+def theirs(track_id: int, position, stamp: int = 0, variance: float = 0.2) -> PartnerTrack:
+    mean = np.concatenate([position, [1.0, 0.0, 0.0], np.zeros(3)])
+    return PartnerTrack(track_id, stamp, mean, np.eye(9) * variance, 8)
+
+
+def test_a_target_both_see_is_one_fused_track_and_one_only_a_partner_sees_is_added():
+    fleet = FleetPicture(PARAMS)
+    fleet.partner_tracks("uav2", 0, [theirs(4, [10.3, 0.0, 5.0]), theirs(9, [40.0, 20.0, 6.0])])
+    out = fleet.fuse([own(1, [10.0, 0.0, 5.0], confirmed=False)], 0)
+    fused, added = out
+    assert fused.id == 1 and fused.source == "uav1" and fused.fused_with == ("uav2",) and fused.confirmed
+    assert 10.0 < fused.mean[0] < 10.3 and fused.detections == 8
+    assert added.id == 2 * FLEET_ID_BASE + 9 and added.source == "uav2" and added.confirmed
+    assert np.allclose(added.mean[:3], [40.0, 20.0, 6.0])
+
+
+def test_partner_tracks_are_carried_to_now_and_dropped_when_the_partner_falls_silent():
+    fleet = FleetPicture(PARAMS)
+    fleet.partner_tracks("uav2", 0, [theirs(9, [40.0, 20.0, 6.0])])
+    [carried] = fleet.fuse([], NS // 2)
+    assert np.allclose(carried.mean[:3], [40.5, 20.0, 6.0]) and carried.covariance[0, 0] > 0.2
+    assert fleet.fuse([], NS + NS // 10) == []  # a cut link: its tracks leave the picture, ours stay
+    mine = own(1, [0.0, 0.0, 5.0])
+    assert fleet.fuse([mine], 2 * NS) == [mine]
+
+
+def test_two_partners_seeing_a_target_we_do_not_give_one_track():
+    fleet = FleetPicture(PARAMS)
+    fleet.partner_tracks("uav2", 0, [theirs(3, [20.0, 5.0, 6.0])])
+    fleet.partner_tracks("uav3", 0, [theirs(7, [20.4, 5.0, 6.0])])
+    [one] = fleet.fuse([], 0)
+    assert one.id == 2 * FLEET_ID_BASE + 3 and one.fused_with == ("uav3",)
+
+
+@pytest.mark.parametrize("mean, covariance, sound", [
+    (np.zeros(9), np.eye(9), True),
+    (np.zeros(6), np.eye(6), False),  # another filter's layout
+    (np.full(9, np.nan), np.eye(9), False),
+    (np.zeros(9), -np.eye(9), False),
+    (np.zeros(9), np.triu(np.ones((9, 9))), False),
+])
+def test_only_finite_positive_definite_ca_states_are_fused(mean, covariance, sound):
+    assert sound_partner_track(mean, covariance) is sound
