@@ -331,6 +331,65 @@ def test_moving_target_is_intercepted_static_preferred():
     assert rig2.last.target_velocity == (4.0, 0.0, 0.0)
 
 
+def test_a_mover_is_intercepted_along_its_tracks_predicted_path_by_the_tracks_identity():
+    """The intercept command carries the tracker's prediction (curved here), re-based to the
+    command's time; a new identity for the same target is followed; a prediction that still holds
+    sends nothing new."""
+    def turning(t: float) -> np.ndarray:  # a 4 m/s turn of radius 8 m around (25, 33)
+        angle = -np.pi / 2 + 0.5 * t
+        return np.array([25.0 + 8.0 * np.cos(angle), 33.0 + 8.0 * np.sin(angle), 6.0])
+
+    def tracks(rig, t: float, track_id: int) -> None:
+        path = [turning(t + 0.25 * (i + 1)) for i in range(8)]
+        velocity = (turning(t + 0.01) - turning(t)) / 0.01
+        rig.jm.observe_tracks(s(t), np.array([track_id]), turning(t)[None], velocity[None], [np.array(path)], 0.25)
+
+    rig = Rig().airborne()
+    tracks(rig, 1.1, 7)
+    rig.tick(1.1, detections=[turning(1.1)])
+    tracks(rig, 1.2, 7)
+    decision = rig.tick(1.2, detections=[turning(1.2)])
+    assert rig.jm.state is State.GOING_TO_TARGET and decision.action == "intercept"
+    assert rig.jm.engagement.track_id == 7
+    assert np.allclose(decision.target, turning(1.2)) and decision.target_path_dt == 0.25
+    assert np.allclose(decision.target_path, [turning(1.2 + 0.25 * (i + 1)) for i in range(8)], atol=0.05)
+    tracks(rig, 1.3, 7)
+    assert rig.tick(1.3, detections=[turning(1.3)]) is None  # the sent prediction still holds: nothing new
+    tracks(rig, 1.4, 12)  # the tracker lost 7 and started 12 on the same drone
+    assert rig.tick(1.4, detections=[turning(1.4)]) is None and rig.jm.engagement.track_id == 12
+    straight = Rig().airborne()  # the same drone, but its tracks predict a straight line: re-planned on the turn
+    for t in (1.1, 1.2, 1.3, 1.4, 1.5, 1.6):
+        velocity = (turning(t + 0.01) - turning(t)) / 0.01
+        straight.jm.observe_tracks(s(t), np.array([7]), turning(t)[None], velocity[None])
+        straight.tick(t, detections=[turning(t)])
+    assert sum(d.action == "intercept" for d in straight.decisions) > 1
+
+
+def test_a_drone_in_our_area_that_only_a_partner_sees_is_engaged_from_the_fleet_picture():
+    """uav2 sees nothing itself; its tracker's fleet picture holds uav1's confirmed track of a drone
+    in uav2's half. uav2 locks it and intercepts along it; the same track marked as uav2's own
+    (not the fleet's) is not a detection, so without the fleet picture nothing happens."""
+    def drone(t: float) -> np.ndarray:
+        return np.array([80.0 + 3.0 * t, 40.0, 6.0])
+
+    def run(fleet: bool):
+        rig = Rig(uav="uav2")
+        rig.tick(0.0, position=[70.0, 20.0, 0.0])
+        rig.tick(1.0, position=[70.0, 20.0, 5.0])
+        assert rig.jm.state is State.IDLE
+        for t in (1.1, 1.2, 1.3):
+            rig.jm.observe_tracks(s(t), np.array([2_000_005]), drone(t)[None], np.array([[3.0, 0.0, 0.0]]),
+                                  fleet=np.array([fleet]), covariances=np.eye(3)[None] * 0.04)
+            rig.tick(t)  # its own scans are empty
+        return rig
+
+    rig = run(fleet=True)
+    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "intercept"
+    assert rig.jm.engagement.track_id == 2_000_005
+    assert np.allclose(rig.last.target, drone(1.2), atol=0.01)  # sent at the lock; the prediction still holds
+    assert run(fleet=False).jm.state is State.GOING_AROUND  # sweeping its area, nothing seen
+
+
 def test_a_far_target_is_not_lost_while_out_of_reliable_range():
     rig = Rig().engaged()  # locked at 1.2 from HOME, 14 m away
     far = BALLOON + [25.0, 0.0, 1.0]

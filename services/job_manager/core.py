@@ -19,8 +19,9 @@ see well; a 360° LiDAR does not, so CHECKING_TARGET only waits for the stop man
 approach (planner) handles height. The attack is "done" when the UAV has passed the target and
 slowed down at the end of its overshoot; the next decision then starts from IDLE, and a target
 that is still there is tried again (n_f tries make a forbidden zone). Moving targets (a
-confirmed track faster than `moving_speed`) are intercepted instead of approached; static
-targets are preferred when both are in view.
+confirmed track faster than `moving_speed`) are intercepted instead of approached, along the
+tracker's prediction of that track (its identity followed; the target filter's straight line
+only when no confirmed track is at it); static targets are preferred when both are in view.
 
 Every transition is decided in `_next_state`; every command in `_decision_for`; time is
 always passed in (int ns of mission time).
@@ -34,9 +35,10 @@ import numpy as np
 
 from services.job_manager.areas import split_area
 from services.job_manager.params import JobManagerParams
-from services.job_manager.sightings import Sightings
+from services.job_manager.sightings import ConfirmedTracks, Sightings
 from services.job_manager.targets import NS, ForbiddenZones, TargetFilter, usable_detections
 from services.job_manager.team import Team
+from services.tracker.view import PredictedPath
 
 
 class State(enum.Enum):
@@ -55,6 +57,7 @@ class State(enum.Enum):
 MISSION_STATES = (State.IDLE, State.GOING_AROUND, State.CHECKING_TARGET, State.GOING_TO_TARGET, State.DESTROYING)
 _WATCHED = (State.TAKING_OFF, *MISSION_STATES)  # the abort system and the mission timer act here
 _DESCENDING = (State.LANDING, State.EMERGENCY_LANDING)
+REPLAN_LOOKAHEAD = 1.0  # s over which a mover's new prediction is compared with the one sent
 _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "going_timeout",
           State.DESTROYING: "destroying_timeout"}
 
@@ -70,6 +73,8 @@ class MissionDecision:
     profile: str = "sweeping"  # or "attack"
     target: tuple[float, float, float] | None = None
     target_velocity: tuple[float, float, float] | None = None
+    target_path: tuple[tuple[float, float, float], ...] = ()  # a mover's predicted positions every target_path_dt
+    target_path_dt: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -87,6 +92,7 @@ class Engagement:
 
     filter: TargetFilter
     moving: bool = False
+    track_id: int | None = None  # the tracker's confirmed track of a mover, followed by its identity
     attacking: bool = False
     attack_direction: np.ndarray | None = None  # horizontal unit vector
     attack_target: np.ndarray | None = None
@@ -147,7 +153,7 @@ class JobManager:
         self._climbed = False
         self._yield: tuple[str, tuple[float, float, float]] | None = None
         self._sent_target: np.ndarray | None = None
-        self._sent_velocity: np.ndarray | None = None
+        self._sent_prediction: PredictedPath | None = None  # of a mover, with _sent_at
         self._sent_at = 0
         self._now = 0
         self.seen = Sightings(params)
@@ -203,10 +209,23 @@ class JobManager:
         if self.engagement is not None:
             self.engagement.filter.update(positions[above], stamp, _rows(covariances, above), tethered=True)
 
-    def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
-        """Confirmed tracks: ids (K,), positions and velocities (K, 3); they tell at the lock
-        whether a target moves (the target filter finds out by itself a little later)."""
-        self.seen.confirmed_tracks(stamp, ids, positions, velocities)
+    def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray,
+                       paths=(), path_dt: float = 0.0, fleet: np.ndarray | None = None,
+                       covariances: np.ndarray | None = None) -> None:
+        """Confirmed tracks: ids (K,), positions and velocities (K, 3) at `stamp`, and each one's
+        predicted path (M, 3) every path_dt s. They tell at the lock whether a target moves (the
+        target filter finds out by itself a little later), and a mover is intercepted along them.
+        `fleet` (K,) marks the tracks only partners see (their position covariances (K, 3, 3)):
+        those count as detections of the fleet (Sightings.fleet)."""
+        self.seen.confirmed_tracks(ConfirmedTracks.of(stamp, ids, positions, velocities, paths, path_dt))
+        if fleet is None or not np.any(fleet):
+            return
+        fleet = np.asarray(fleet, dtype=bool)
+        seen, covs = self.seen.fleet(stamp, np.asarray(positions, dtype=np.float64).reshape(-1, 3)[fleet],
+                                     None if covariances is None else np.asarray(covariances)[fleet])
+        above = seen[:, 2] >= self.ground_z + self.params.min_target_height
+        if self.engagement is not None:
+            self.engagement.filter.update(seen[above], stamp, _rows(covs, above))
 
     def partner_status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool = True,
                        position=(0.0, 0.0, 0.0), state: str = "", target=None) -> None:
@@ -369,9 +388,9 @@ class JobManager:
             filter=TargetFilter(candidates[pick], int(stamps[pick]), gate=p.detection_gate,
                                 measurement_sigma=p.filter_sigma, process_sigma=p.filter_process_sigma,
                                 max_gap_ns=int(p.streak_gap * NS), history_ns=int(p.velocity_window * NS),
-                                velocity=None if track is None else track[2], covariance=found.covariances[pick],
+                                velocity=None if track is None else track.velocity, covariance=found.covariances[pick],
                                 tethered=bool(found.tethered[pick])),
-            moving=track is not None)
+            moving=track is not None, track_id=None if track is None else track.track_id)
         self._sent_target = None
         return True
 
@@ -592,16 +611,7 @@ class JobManager:
     def _engage(self, now: int) -> MissionDecision:
         p, e = self.params, self.engagement
         if e.moving:
-            target, velocity = e.position(now), e.filter.velocity
-            predicted = None
-            if self._sent_target is not None:
-                predicted = self._sent_target + self._sent_velocity * ((now - self._sent_at) / NS)
-            if (predicted is None or np.linalg.norm(predicted - target) > p.intercept_replan_distance
-                    or np.linalg.norm(self._sent_velocity - velocity) > p.intercept_replan_distance):
-                self._sent_target, self._sent_velocity, self._sent_at = target, velocity.copy(), now
-            return MissionDecision("intercept", height=float(self._sent_target[2]), spacing=p.scan_spacing,
-                                   profile="attack",
-                                   target=_tuple(self._sent_target), target_velocity=_tuple(self._sent_velocity))
+            return self._intercept(now)
         action, profile = ("attack", "attack") if e.attacking else ("approach", "sweeping")
         target = e.attack_target if e.attacking else e.filter.estimate
         if (self._sent_target is None or self._decision is None or self._decision.action != action
@@ -609,6 +619,34 @@ class JobManager:
             self._sent_target = target.copy()
         return MissionDecision(action, height=float(self._sent_target[2]), spacing=p.scan_spacing, profile=profile,
                                target=_tuple(np.round(self._sent_target, 3)))
+
+    def _intercept(self, now: int) -> MissionDecision:
+        """Intercept the locked mover along its tracker's prediction (the confirmed track it was
+        locked with, or the moving track now at it); without one, along the target filter's
+        straight line. A new command goes out only when the prediction now differs from the one
+        sent by more than intercept_replan_distance (position, or velocity in m/s)."""
+        p, e = self.params, self.engagement
+        followed = self.seen.followed_track(e.track_id, e.position(now), now)
+        if followed is not None:
+            e.track_id, prediction = followed
+        else:
+            prediction = PredictedPath(e.position(now), e.filter.velocity.copy())
+        sent = self._sent_prediction if self._sent_target is not None else None
+        if sent is None or self._prediction_moved(sent, prediction, now):
+            self._sent_prediction, self._sent_at, self._sent_target = prediction, now, prediction.position.copy()
+        s = self._sent_prediction
+        return MissionDecision("intercept", height=float(s.position[2]), spacing=p.scan_spacing, profile="attack",
+                               target=_tuple(s.position), target_velocity=_tuple(s.velocity),
+                               target_path=tuple(_tuple(q) for q in s.path), target_path_dt=s.dt)
+
+    def _prediction_moved(self, sent: PredictedPath, prediction: PredictedPath, now: int) -> bool:
+        """Whether the sent prediction and the new one part by more than intercept_replan_distance
+        anywhere over the next REPLAN_LOOKAHEAD s (compared at a few times: a velocity that differs
+        by d m/s shows as d m after a second; a curved path is compared as curved)."""
+        ahead = np.linspace(0.0, REPLAN_LOOKAHEAD, 3)
+        expected, _ = sent.state(ahead + (now - self._sent_at) / NS)
+        predicted, _ = prediction.state(ahead)
+        return bool(np.linalg.norm(expected - predicted, axis=1).max() > self.params.intercept_replan_distance)
 
     @staticmethod
     def _fmt(v) -> str:

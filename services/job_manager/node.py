@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from schemas import keys
-from schemas.arrays import to_numpy
+from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import (
     ConstraintProfile,
     Decision,
@@ -29,6 +29,8 @@ from services.job_manager.core import NS, JobManager, MissionDecision
 from services.job_manager.params import JobManagerParams
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
+from services.tracker.view import (track_path, track_position, track_position_covariance, track_positions,
+                                   track_velocities, track_velocity)
 from services.runtime.warmup import preload
 
 # Pre-flight check (seed 004 §3.6): every service this UAV's mission depends on is alive,
@@ -103,10 +105,13 @@ class JobManagerNode(Node):
         self.core.observe_camera(msg.header.stamp, *_positions_and_covariances(msg))
 
     def on_tracks(self, msg: Tracks, key: str) -> None:
-        confirmed = [t for t in msg.tracks if t.confirmed]
-        states = np.array([to_numpy(t.state)[:6] for t in confirmed]).reshape(-1, 6)
+        confirmed = [t for t in msg.tracks if t.confirmed and np.isfinite(track_position(t)).all()
+                     and np.isfinite(track_velocity(t)).all()]
         self.core.observe_tracks(msg.header.stamp, np.array([t.id for t in confirmed], dtype=np.int64),
-                                 states[:, :3], states[:, 3:6])
+                                 track_positions(confirmed), track_velocities(confirmed),
+                                 [track_path(t) for t in confirmed], _path_dt(confirmed),
+                                 fleet=np.array([t.source not in ("", self.uav) for t in confirmed], dtype=bool),
+                                 covariances=np.array([track_position_covariance(t) for t in confirmed]).reshape(-1, 3, 3))
 
     def on_partner_status(self, msg: UavStatus, key: str) -> None:
         if msg.uav != self.uav:
@@ -167,6 +172,9 @@ class JobManagerNode(Node):
             action=decision.action,
             target=decision.target,
             target_velocity=decision.target_velocity,
+            target_path=from_numpy(np.array(decision.target_path, dtype=np.float64).reshape(-1, 3))
+            if decision.target_path else None,
+            target_path_dt=decision.target_path_dt,
             area=list(decision.area),
             height=decision.height,
             spacing=decision.spacing,
@@ -212,3 +220,8 @@ def _positions_and_covariances(msg: Detections) -> tuple[np.ndarray, np.ndarray]
     """(N, 3) positions and the covariances as sent (the core drops a covariance array of the wrong size)."""
     positions = to_numpy(msg.positions)
     return (positions.reshape(-1, 3) if positions.size else np.zeros((0, 3))), to_numpy(msg.covariances)
+
+
+def _path_dt(tracks: list) -> float:
+    """One step for every track's predicted path (one tracker made them all)."""
+    return float(tracks[0].trajectory_dt) if tracks else 0.0

@@ -11,11 +11,50 @@ import numpy as np
 
 from services.job_manager.params import JobManagerParams
 from services.job_manager.targets import NS, TargetFilter
+from services.tracker.view import PredictedPath
 
 STILL_RADIUS = 0.5  # m
 STILL_TIME = 1.0  # s
 
-Motion = tuple  # (track id or None, position (3,), velocity (3,), stamp)
+
+@dataclass(frozen=True)
+class Motion:
+    """A detection found to move: the confirmed track it belongs to (None: the last mover's
+    filter says so, the tracker has not confirmed it), where it is and how fast, at `stamp`."""
+
+    track_id: int | None
+    position: np.ndarray  # (3,)
+    velocity: np.ndarray  # (3,)
+    stamp: int  # ns
+
+
+@dataclass(frozen=True)
+class ConfirmedTracks:
+    """The tracker's confirmed tracks of one Tracks message, predicted to `stamp`, each with its
+    filter's predicted path (positions at stamp + (i + 1)·path_dt)."""
+
+    stamp: int  # ns
+    ids: np.ndarray  # (K,) int
+    positions: np.ndarray  # (K, 3)
+    velocities: np.ndarray  # (K, 3)
+    paths: tuple[np.ndarray, ...] = ()  # K arrays (M, 3); empty: no predicted paths
+    path_dt: float = 0.0  # s
+
+    @staticmethod
+    def of(stamp: int, ids, positions, velocities, paths=(), path_dt: float = 0.0) -> ConfirmedTracks:
+        return ConfirmedTracks(stamp, np.asarray(ids, dtype=np.int64).reshape(-1),
+                               np.asarray(positions, dtype=np.float64).reshape(-1, 3),
+                               np.asarray(velocities, dtype=np.float64).reshape(-1, 3),
+                               tuple(np.asarray(q, dtype=np.float64).reshape(-1, 3) for q in paths), float(path_dt))
+
+    def prediction(self, track_id: int) -> PredictedPath | None:
+        """Where the track says its target will be, time 0 at `stamp` (None: no such track)."""
+        found = np.flatnonzero(self.ids == track_id)
+        if not len(found):
+            return None
+        k = int(found[0])
+        path = self.paths[k] if k < len(self.paths) else np.zeros((0, 3))
+        return PredictedPath(self.positions[k], self.velocities[k], path, self.path_dt)
 
 
 @dataclass(frozen=True)
@@ -36,8 +75,10 @@ class Sightings:
         self.latest_stamp = 0
         self.camera_latest = np.zeros((0, 3))  # the latest camera frame's detections (balloons by colour)
         self.camera_stamp: int | None = None
+        self.fleet_latest = np.zeros((0, 3))  # the latest confirmed tracks only partners see
+        self.fleet_stamp: int | None = None
         self.recent: deque[Seen] = deque()  # the last t_m of scans' and frames' detections
-        self.tracks: tuple[int, np.ndarray, np.ndarray, np.ndarray] | None = None  # stamp, ids, pos, vel
+        self.tracks: ConfirmedTracks | None = None  # the latest
         self.last_mover: TargetFilter | None = None  # the filter of the last target found to move
 
     def scan(self, stamp: int, positions: np.ndarray,
@@ -68,50 +109,80 @@ class Sightings:
         while self.recent and stamp - self.recent[0].stamp > int(self.params.target_time * NS):
             self.recent.popleft()
 
-    def confirmed_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray) -> None:
-        self.tracks = (stamp, np.asarray(ids, dtype=np.int64).reshape(-1), np.asarray(positions, float).reshape(-1, 3),
-                       np.asarray(velocities, float).reshape(-1, 3))
+    def confirmed_tracks(self, tracks: ConfirmedTracks) -> None:
+        self.tracks = tracks
+
+    def fleet(self, stamp: int, positions: np.ndarray,
+              covariances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """The confirmed tracks only partners see (the tracker's fleet picture), as detections: they
+        join the scans' in view and in the recent scans, so a target in our working area that
+        only a partner sees can be locked, and a locked one stays seen while a partner sees it."""
+        positions, covariances = _finite(positions, covariances)
+        self.fleet_latest, self.fleet_stamp = positions, stamp
+        self._remember(stamp, positions, covariances)
+        return positions, covariances
 
     def in_view(self, now: int) -> np.ndarray | None:
-        """The latest scan's and camera frame's detections, those not older than detection_max_age;
-        None when neither is."""
+        """The latest scan's, camera frame's and partners' (fleet) detections, those not older than
+        detection_max_age; None when none is."""
         fresh = int(self.params.detection_max_age * NS)
         parts = []
         if self.scan_stamp is not None and now - self.latest_stamp <= fresh:
             parts.append(self.latest)
         if self.camera_stamp is not None and now - self.camera_stamp <= fresh:
             parts.append(self.camera_latest)
+        if self.fleet_stamp is not None and now - self.fleet_stamp <= fresh:
+            parts.append(self.fleet_latest)
         return np.concatenate(parts) if parts else None
 
     @property
     def view_stamp(self) -> int:
         """The stamp of the newest detections in view."""
-        return max(self.latest_stamp, self.camera_stamp or 0)
+        return max(self.latest_stamp, self.camera_stamp or 0, self.fleet_stamp or 0)
 
     def moving_track(self, detection: np.ndarray, now: int, seen: int | None = None) -> Motion | None:
-        """(id, position, velocity, stamp) of a fast confirmed track at this detection (made at
-        `seen`, default: now; the tracks are carried back to then), else None."""
-        if self.tracks is None:
+        """The fast confirmed track at this detection (made at `seen`, default: now; the tracks are
+        carried back to then), else None."""
+        tracks = self.fresh_tracks(now)
+        if tracks is None or not len(tracks.ids):
             return None
-        stamp, ids, positions, velocities = self.tracks
-        if not len(ids) or now - stamp > int(self.params.detection_max_age * NS):
-            return None
-        back = (stamp - (now if seen is None else seen)) / NS
-        gaps = np.linalg.norm(positions - back * velocities - detection, axis=1)
+        back = (tracks.stamp - (now if seen is None else seen)) / NS
+        gaps = np.linalg.norm(tracks.positions - back * tracks.velocities - detection, axis=1)
         k = int(np.argmin(gaps))
-        if gaps[k] <= self.params.track_gate and np.linalg.norm(velocities[k]) >= self.params.moving_speed:
-            return int(ids[k]), positions[k].copy(), velocities[k].copy(), stamp
+        if gaps[k] <= self.params.track_gate and np.linalg.norm(tracks.velocities[k]) >= self.params.moving_speed:
+            return Motion(int(tracks.ids[k]), tracks.positions[k].copy(), tracks.velocities[k].copy(), tracks.stamp)
         return None
 
+    def fresh_tracks(self, now: int) -> ConfirmedTracks | None:
+        """The latest confirmed tracks unless older than detection_max_age."""
+        if self.tracks is None or now - self.tracks.stamp > int(self.params.detection_max_age * NS):
+            return None
+        return self.tracks
+
+    def followed_track(self, track_id: int | None, near: np.ndarray, now: int) -> tuple[int, PredictedPath] | None:
+        """The fresh confirmed track an interception follows: `track_id` while the tracker keeps it,
+        else the moving track nearest `near` within track_gate (a new identity for the same target),
+        with its prediction re-based to `now`."""
+        tracks = self.fresh_tracks(now)
+        if tracks is None or not len(tracks.ids):
+            return None
+        if track_id is None or track_id not in tracks.ids:
+            motion = self.moving_track(near, now)
+            if motion is None:
+                return None
+            track_id = motion.track_id
+        prediction = tracks.prediction(track_id)
+        return track_id, prediction.rebased((now - tracks.stamp) / NS, len(prediction.path), prediction.dt)
+
     def known_mover(self, detection: np.ndarray, seen: int) -> Motion | None:
-        """(None, position, velocity, stamp) when the detection is where the last target found to
-        move would be by now (the tracker may not have confirmed it), else None."""
+        """A Motion without a track when the detection is where the last target found to move would
+        be by now (the tracker may not have confirmed it), else None."""
         mover = self.last_mover
         if mover is None or seen - mover.last_seen > int(self.params.target_time * NS):
             return None
         if np.linalg.norm(mover.predict(seen) - detection) > self.params.detection_gate:
             return None
-        return None, detection.copy(), mover.velocity.copy(), seen
+        return Motion(None, detection.copy(), mover.velocity.copy(), seen)
 
     def motion(self, detection: np.ndarray, now: int, seen: int) -> Motion | None:
         return self.moving_track(detection, now, seen) or self.known_mover(detection, seen)

@@ -18,49 +18,15 @@ from __future__ import annotations
 
 import math
 
-import msgspec
 import numpy as np
 
-from schemas.arrays import from_numpy, to_numpy
+from schemas.arrays import from_numpy
 from schemas.messages import Header, MissionCommand, Odometry, TrajectoryReference, UavStatus
 from services.planner import core
+from services.planner.commands import PlannerParams, VehicleState, plan_command, start_state
 from services.planner.watchdog import JobManagerWatchdog
 from services.runtime.clock import NS
 from services.runtime.node import Node
-
-
-class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
-    """Seed 004 Table 3.1 symbols in brackets."""
-
-    dt: float = core.DT  # s between trajectory samples
-    scan_offset: float = 2.0  # m kept inside the working area's inner rectangle
-    corner_factor: float = 2.0  # [c_f] the scan's cross legs and corners fly at max_speed / c_f
-    wait_distance: float = 4.0  # [d_b] m from the target where an approach ends
-    descend_distance: float = 11.0  # [D_p] m from the target inside which the approach descends to it
-    deadband: float = 0.5  # [D_f] m: line-of-sight changes smaller than this are ignored
-    overshoot: float = 5.0  # [d_o] m beyond the target where an attack ends
-    hit_offset: float = 0.3  # [o_h] m above the target centre the attack passes through
-    end_offset: float = 0.15  # [o_o] m above the target height where the attack ends
-    merge_acceleration: float = 1.5  # m/s² along a moving target's path when merging onto it
-    follow_time: float = 4.0  # s flown alongside a moving target after the merge
-    pursuit_horizon: float = 12.0  # s a pursuit flies the predicted track before braking (re-planned sooner)
-    rejoin_distance: float = 1.5  # m: a re-plan starts on the current trajectory while this close to it
-    republish_period: float = 2.0  # s of mission time
-    repeat_scan: bool = True  # sweep again once a scan trajectory has ended
-    job_manager_timeout: float = 1.0  # s without a status of our job manager: brake to a hover (watchdog.py)
-
-
-def unplannable(command: MissionCommand) -> str | None:
-    """Why the numbers of a command cannot be planned from (None: they can)."""
-    profile = command.profile
-    limits = (profile.max_speed, profile.max_acceleration, profile.max_heading_rate, profile.max_vertical_speed)
-    if not all(0.0 < v < math.inf for v in limits):
-        return f"profile {profile.name!r} needs positive finite limits, not {limits}"
-    numbers = (command.height, command.spacing, *(command.target or ()), *(command.target_velocity or ()),
-               *(c for point in command.area for c in point))
-    if not all(math.isfinite(v) for v in numbers):
-        return "a target, area, height or spacing that is not finite"
-    return None
 
 
 def yaw_of(quaternion: tuple[float, float, float, float]) -> float:
@@ -128,8 +94,14 @@ class PlannerNode(Node):
             self.publish(now_ns)
 
     def plan(self, now_ns: int, command: MissionCommand) -> None:
+        position, velocity = start_state(self.trajectory, now_ns, self.position, self.velocity,
+                                         self.params.rejoin_distance)
+        ground = self.first_z if self.first_z is not None else float(self.position[2])
         try:
-            positions, headings = self.plan_path(command, *self.start_state(now_ns))
+            plan = plan_command(command, VehicleState(position, velocity, self.heading, ground, now_ns), self.params)
+            positions, headings = plan.path
+            if plan.note:
+                self.log.warning("command %d: %s", command.command_id, plan.note)
         except ValueError as err:  # refused by the core: a trajectory too long, an area with no scan in it, ...
             self.log.warning("command %d: %s; hovering", command.command_id, err)
             positions, headings = core.hover(self.position, self.heading)
@@ -164,71 +136,6 @@ class PlannerNode(Node):
         positions, headings = core.stop(self.position, self.velocity, profile, self.params.dt, self.heading)
         self.set_trajectory(now_ns, -1, positions, headings, profile)
         self.planned_id = None
-
-    def start_state(self, now_ns: int) -> tuple[np.ndarray, np.ndarray]:
-        """Where a new plan starts: on the current trajectory at `now` while the vehicle follows it
-        (within `rejoin_distance`), else the odometry. Starting a re-plan from the measured state
-        would hand the controller a reference with no error to act on: re-planned every tick, a
-        braking manoeuvre would never brake."""
-        ref = self.trajectory
-        if ref is not None and self.params.rejoin_distance > 0:
-            positions = to_numpy(ref.positions).reshape(-1, 3)
-            u = (now_ns - ref.start) / NS / ref.dt
-            if 0.0 <= u < len(positions) - 1:
-                i = int(u)
-                here = positions[i] + (u - i) * (positions[i + 1] - positions[i])
-                if np.linalg.norm(here - self.position) <= self.params.rejoin_distance:
-                    return here, (positions[i + 1] - positions[i]) / ref.dt
-        return self.position, self.velocity
-
-    def plan_path(self, command: MissionCommand, p: np.ndarray | None = None, v: np.ndarray | None = None) -> core.Path:
-        p = self.position if p is None else p
-        v = self.velocity if v is None else v
-        if (problem := unplannable(command)) is not None:
-            self.log.warning("command %d: %s; hovering", command.command_id, problem)
-            return core.hover(p, self.heading)
-        dt, profile, prm = self.params.dt, command.profile, self.params
-        action, target = command.action, command.target
-        moving = dict(start_velocity=v, start_heading=self.heading)
-        if action == "takeoff":
-            return core.takeoff(p, command.height, profile, dt, self.heading)
-        if action in ("land", "emergency_land"):
-            ground = target[2] if target is not None else self.first_z
-            return core.land(p, ground, profile, dt, self.heading)
-        if action == "stop":
-            return core.stop(p, v, profile, dt, self.heading)
-        if action == "scan" and len(command.area) >= 3:
-            return core.lawnmower(np.asarray(command.area), command.height, command.spacing, offset=prm.scan_offset,
-                                  corner_factor=prm.corner_factor, profile=profile, start=p, dt=dt, **moving)
-        if target is not None:
-            target = np.asarray(target, dtype=np.float64)
-            if action == "approach":
-                return core.approach(p, target, wait_distance=prm.wait_distance, descend_distance=prm.descend_distance,
-                                     deadband_band=prm.deadband, profile=profile, dt=dt, **moving)
-            if action == "attack":
-                return core.attack(p, target, overshoot=prm.overshoot, hit_offset=prm.hit_offset,
-                                   end_offset=prm.end_offset, profile=profile, dt=dt, **moving)
-            if action == "intercept":
-                # pursuit re-plans smoothly from the current state on every new prediction; the
-                # merge (wait on the predicted path) is the fallback when no blend fits the profile
-                velocity = np.asarray(command.target_velocity or (0.0, 0.0, 0.0), dtype=np.float64)
-                path = core.pursuit(p, target, velocity, profile=profile, dt=dt, horizon=prm.pursuit_horizon, **moving)
-                if path is None:
-                    path = core.intercept(p, target, velocity, profile=profile, dt=dt,
-                                          merge_acceleration=prm.merge_acceleration, follow_time=prm.follow_time,
-                                          **moving)
-                if path is not None:
-                    return path
-                self.log.info("command %d: no merge onto the target is feasible; chasing its position",
-                              command.command_id)
-                return core.approach(p, target, wait_distance=0.0, descend_distance=prm.descend_distance,
-                                     deadband_band=0.0, profile=profile, dt=dt, **moving)
-            if action in ("goto", "hover"):
-                return core.goto(p, target, profile, dt, self.heading)
-        if action not in ("idle", "hover"):
-            self.log.warning("command %d: cannot plan %s with what it carries; hovering",
-                             command.command_id, action)
-        return core.hover(p, self.heading)
 
     def publish(self, now_ns: int) -> None:
         self.trajectory.header = Header(stamp=now_ns)

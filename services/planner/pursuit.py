@@ -3,9 +3,10 @@ then along it. Made for re-planning on every update of the prediction — each p
 from the current position and velocity, so a target whose straight-line prediction keeps
 changing is followed smoothly (the merge of intercept.py instead waits on the predicted path).
 
-The reference is a virtual vehicle flown forward in time under the constant-velocity
-prediction p_T(t) = p + v·t: it demands the target's velocity plus a closing velocity towards
-the predicted target of at most √(2·b·gap) (b = BRAKING·a_max, so it can always brake onto the
+The reference is a virtual vehicle flown forward in time under the target's predicted path
+p_T(t): the tracker's own prediction (its filter's trajectory, curved for a turning target) when
+the command carries one, else the constant-velocity line p + v·t. It demands the target's
+predicted velocity plus a closing velocity towards the predicted target of at most √(2·b·gap) (b = BRAKING·a_max, so it can always brake onto the
 track without overshooting), and reaches that demand at up to a_max; speed stays within the
 profile's total and vertical limits. So every sample is within the profile by construction, the
 gap closes as fast as the limits allow, and the reference then lies on the predicted track.
@@ -17,6 +18,7 @@ import numpy as np
 
 from schemas.messages import ConstraintProfile
 from services.planner.timing import DT, Path, check_duration, steer
+from services.tracker.view import PredictedPath
 
 BRAKING = 0.5  # share of max_acceleration the closing speed plans to brake with
 GAIN = 4.0  # 1/s: how fast the velocity demand is taken up (then capped by max_acceleration)
@@ -35,9 +37,12 @@ def _limit_velocity(velocity: np.ndarray, profile: ConstraintProfile) -> np.ndar
 
 
 def pursuit(position, target_position, target_velocity, *, profile: ConstraintProfile, dt: float = DT,
-            start_velocity=None, start_heading: float | None = None, horizon: float = 12.0) -> Path | None:
+            start_velocity=None, start_heading: float | None = None, horizon: float = 12.0,
+            predicted: PredictedPath | None = None) -> Path | None:
     """Close on the predicted track and fly along it for `horizon` s, then brake to rest; heading
-    along the target's velocity. None when the target is faster than the profile allows."""
+    along the target's velocity. `predicted` (time 0 = now): the target's predicted path, else the
+    line from target_position along target_velocity. None when the target is now faster than the
+    profile allows (where only its prediction is, the closing demand is capped by the profile)."""
     accel = _MARGIN * profile.max_acceleration
     pt, vt = np.asarray(target_position, float).reshape(3), np.asarray(target_velocity, float).reshape(3)
     if np.linalg.norm(vt) >= _MARGIN * profile.max_speed or abs(vt[2]) >= _MARGIN * profile.max_vertical_speed:
@@ -47,11 +52,13 @@ def pursuit(position, target_position, target_velocity, *, profile: ConstraintPr
     steps = int(np.ceil(horizon / dt))
     positions = [p.copy()]
     braking = BRAKING * accel
+    prediction = predicted if predicted is not None else PredictedPath(pt, vt)
+    targets, target_velocities = prediction.state(np.arange(steps) * dt)
     for k in range(steps):  # inherently sequential: a vehicle flown forward in time
-        gap = pt + vt * (k * dt) - p
+        gap = targets[k] - p
         distance = float(np.linalg.norm(gap))
         closing = np.sqrt(2.0 * braking * distance) * gap / distance if distance > 1e-9 else np.zeros(3)
-        demand = _limit_velocity(vt + closing, profile)
+        demand = _limit_velocity(target_velocities[k] + closing, profile)
         dv = _clip(GAIN * (demand - v) * dt, accel * dt)
         v_next = _limit_velocity(v + dv, profile)
         p = p + 0.5 * (v + v_next) * dt
