@@ -6,9 +6,9 @@ import importlib.metadata
 import logging
 import sys
 
-from services.launcher import (analyze_cmd, campaign_cmd, certs_cmd, colors_cmd, completion_cmd, export_cmd,
-                               health_cmd, params_cmd, record_cmd, replay_cmd, router_cmd, run_cmd, sim_cmd,
-                               units_cmd, view_cmd)
+from services.launcher import (analyze_cmd, campaign_cmd, certs_cmd, colors_cmd, completion_cmd, evaluate_cmd,
+                               export_cmd, health_cmd, params_cmd, record_cmd, replay_cmd, router_cmd, run_cmd,
+                               sim_cmd, units_cmd, view_cmd)
 from services.launcher.common import EXIT_CODES, Parser
 from services.runtime.errors import INTERRUPTED, RuntimeFailure, UsageError
 from services.runtime.zenoh_config import OpenCancelled
@@ -76,6 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     export_cmd.add_parser(commands)
     view_cmd.add_parser(commands)
     analyze_cmd.add_parser(commands)
+    evaluate_cmd.add_parser(commands)
     colors_cmd.add_parser(commands)
     campaign_cmd.add_parser(commands)
     router_cmd.add_parser(commands)

@@ -1,0 +1,351 @@
+"""How well each UAV's tracker followed the targets, against ground truth (`falconry evaluate tracking`).
+
+Evaluation only, pure numpy: services/recorder/tracking_input.py reads the recording. Per UAV,
+one step per Tracks message: its confirmed tracks against the truth at its stamp.
+
+- The truth at a stamp (`TruthTimeline.at`): the ground truth of that stamp, which a simulated
+  run has (the simulator and the tracker both stamp with the tick); between two truths, the
+  earlier one with every target and UAV moved linearly toward the later one.
+- Which truths count (`tracking_step`): targets that stand (not destroyed), of the kinds the
+  tracker is meant to follow (TRACKED_KINDS: drones; the LiDAR perception takes a balloon on its
+  pole for background, and the camera's balloon detections never reach the tracker), within the
+  UAV's LiDAR range (its model's datasheet max_range) of the UAV's true position. Range, not
+  "in sight" (evaluation.in_sight): a sparse LiDAR puts fewer than MIN_HITS rays on a drone in
+  many scans it is detected in, and a tracker rightly carries a track through such gaps.
+  Occlusion is not judged: a drone in range behind a building counts, and is missed if untracked.
+- A standing target that does not count (a balloon, a drone out of range) is "don't care": a
+  track closer to it than c, and closer to it than to any counted target, is left out of the step
+  (neither matched nor false): the oracle detector reports balloons, and a track coasts on for a
+  moment after its drone left range.
+- GOSPA (Rahmathullah, García-Fernández, Svensson, "Generalized optimal sub-pattern assignment
+  metric", FUSION 2017, arXiv:1601.05585), alpha = 2: over the assignments γ of tracks to truths,
+      d = min_γ ( Σ_(i,j)∈γ d(x_i, y_j)^p + c^p / 2 · (|X| + |Y| − 2 |γ|) )^(1/p)
+  where only pairs closer than c may be assigned. Its parts, as Stone Soup reports them, are in
+  m^p and add up to d^p: localisation Σ d^p over the assigned pairs, missed c^p/2 per truth left
+  unassigned, false c^p/2 per track left unassigned. The assignment is scipy's
+  linear_sum_assignment over min(d, c)^p (a pair at c or beyond costs what leaving both costs).
+- CUTOFF c = 2.5 m: the tracker's smallest association gate (r_min, seed 000 eq. 26): a track
+  farther than that from a target can no longer take its detections, so it does not follow it;
+  well above the errors of a track that does (seed 000 Table III: 0.17 m per detection).
+  ORDER p = 2: the localisation part is then a sum of squared errors, like the RMSE beside it;
+  a missed or false target costs c²/2 = 3.1 m².
+- Matched: a (track, truth) pair the GOSPA assignment makes (so closer than c); its position
+  error counts in the RMSE per axis and in 3D.
+- Per target: an identity switch is a step at which it is matched to another track than at the
+  previous step it was matched; a fragmentation is a step at which it is matched again after at
+  least one step in which it counted and was not matched (steps in which it did not count, out of
+  range, neither break nor continue its tracking); its track ids are the distinct tracks ever
+  matched to it.
+- A false track: a confirmed track id never matched in any step that did not leave it out.
+
+Steps are Tracks messages, as the tracker sends them: one per tick while it holds any track, one
+a second otherwise; so the means over steps weigh a time without any track less than a time with
+one.
+"""
+from __future__ import annotations
+
+import bisect
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field, fields, replace
+
+import numpy as np
+
+CUTOFF = 2.5  # m, GOSPA's c
+ORDER = 2.0  # GOSPA's p
+TRACKED_KINDS = ("drone",)
+MAX_TRUTH_AGE_NS = 1_000_000_000  # a Tracks message this long after the latest truth has none
+AXES = ("x", "y", "z")
+NS = 1_000_000_000
+
+
+def _points(points) -> np.ndarray:
+    return np.asarray(points, dtype=np.float64).reshape(-1, 3)
+
+
+# --------------------------------------------------------------------------------- GOSPA
+@dataclass(frozen=True)
+class Gospa:
+    """GOSPA (alpha = 2) of one set of tracks against one set of truths."""
+
+    distance: float  # the metric, m: (localisation + missed + false) ** (1 / p)
+    localisation: float  # Σ d^p over the assigned pairs, m^p
+    missed: float  # c^p / 2 per truth left unassigned, m^p
+    false: float  # c^p / 2 per track left unassigned, m^p
+    missed_count: int  # truths left unassigned
+    false_count: int  # tracks left unassigned
+    pairs: np.ndarray  # (K, 2) int: (track index, truth index) of the assigned pairs, all closer than c
+
+
+def gospa(tracks: np.ndarray, truths: np.ndarray, c: float = CUTOFF, p: float = ORDER) -> Gospa:
+    """GOSPA of the (N, 3) track positions against the (M, 3) true positions."""
+    if not (np.isfinite(c) and c > 0 and np.isfinite(p) and p >= 1):
+        raise ValueError(f"GOSPA needs c > 0 and 1 <= p < inf, not c={c}, p={p}")
+    # imported when first needed: `falconry --help` reads this module's defaults, and scipy.optimize
+    # alone takes longer to import than the whole command line
+    from scipy.optimize import linear_sum_assignment
+
+    x, y = _points(tracks), _points(truths)
+    gaps = np.linalg.norm(x[:, None] - y[None], axis=2)  # (N, M)
+    rows, cols = linear_sum_assignment(np.minimum(gaps, c) ** p)
+    close = gaps[rows, cols] < c
+    rows, cols = rows[close], cols[close]
+    unassigned_cost = c ** p / 2
+    localisation = float((gaps[rows, cols] ** p).sum())
+    missed_count, false_count = len(y) - len(rows), len(x) - len(rows)
+    missed, false = missed_count * unassigned_cost, false_count * unassigned_cost
+    return Gospa(distance=(localisation + missed + false) ** (1 / p), localisation=localisation, missed=missed,
+                 false=false, missed_count=missed_count, false_count=false_count,
+                 pairs=np.stack([rows, cols], axis=1).astype(np.int64).reshape(-1, 2))
+
+
+# --------------------------------------------------------------------------------- truth
+@dataclass(frozen=True)
+class TruthSnapshot:
+    """The ground truth of one instant: the targets and where each UAV was."""
+
+    stamp: int  # mission time, ns
+    target_ids: tuple[str, ...]
+    kinds: tuple[str, ...]  # per target: "drone", "balloon"
+    positions: np.ndarray  # (M, 3)
+    standing: np.ndarray  # (M,) bool: not destroyed
+    uavs: dict[str, np.ndarray] = field(default_factory=dict)  # UAV -> (3,) true position
+
+
+def interpolated(before: TruthSnapshot, after: TruthSnapshot, stamp: int) -> TruthSnapshot:
+    """`before` with each target and UAV also in `after` moved linearly toward it, to `stamp`."""
+    w = (stamp - before.stamp) / (after.stamp - before.stamp)
+    later = dict(zip(after.target_ids, _points(after.positions)))
+    positions = [p + w * (later[tid] - p) if tid in later else p
+                 for tid, p in zip(before.target_ids, _points(before.positions))]
+    uavs = {name: p + w * (after.uavs[name] - p) if name in after.uavs else p for name, p in before.uavs.items()}
+    return replace(before, stamp=stamp, positions=_points(positions), uavs=uavs)
+
+
+class TruthTimeline:
+    """A run's ground truths by stamp."""
+
+    def __init__(self, snapshots: Iterable[TruthSnapshot]) -> None:
+        self.snapshots = sorted(snapshots, key=lambda s: s.stamp)
+        self._stamps = [s.stamp for s in self.snapshots]
+
+    def __len__(self) -> int:
+        return len(self.snapshots)
+
+    def at(self, stamp: int) -> TruthSnapshot | None:
+        """The truth at `stamp` (see the module's text); None before the first truth or more than
+        MAX_TRUTH_AGE_NS after the last."""
+        i = bisect.bisect_right(self._stamps, stamp) - 1
+        if i < 0:
+            return None
+        before = self.snapshots[i]
+        if before.stamp == stamp:
+            return before
+        if i + 1 < len(self.snapshots):
+            return interpolated(before, self.snapshots[i + 1], stamp)
+        return before if stamp - before.stamp <= MAX_TRUTH_AGE_NS else None
+
+
+# --------------------------------------------------------------------------------- steps
+@dataclass(frozen=True)
+class ConfirmedTracks:
+    """The confirmed tracks of one Tracks message."""
+
+    stamp: int  # mission time, ns
+    ids: np.ndarray  # (N,) int
+    positions: np.ndarray  # (N, 3)
+
+
+@dataclass(frozen=True)
+class TrackingStep:
+    """One Tracks message of one UAV against the truth at its stamp."""
+
+    t: float  # mission time, s
+    track_ids: np.ndarray  # (N,) int: the confirmed tracks
+    tracks: np.ndarray  # (N, 3) their positions
+    truth_ids: tuple[str, ...]  # the M targets that count
+    truths: np.ndarray  # (M, 3) their true positions
+    ignored: np.ndarray  # (K, 3) standing targets that do not count: tracks following them are left out
+
+
+def tracking_step(t: float, track_ids: Sequence[int], tracks: np.ndarray, truth: TruthSnapshot, uav: str,
+                  sensor_range: float = float("inf"), kinds: Sequence[str] = TRACKED_KINDS) -> TrackingStep:
+    """The step of a UAV's confirmed tracks against `truth`: which targets count (see the module's text)."""
+    positions = _points(truth.positions)
+    standing = np.asarray(truth.standing, dtype=bool).reshape(-1)
+    wanted_kind = np.array([kind in kinds for kind in truth.kinds], dtype=bool).reshape(-1)
+    here = truth.uavs.get(uav)
+    in_range = (np.ones(len(positions), dtype=bool) if here is None
+                else np.linalg.norm(positions - np.asarray(here, dtype=np.float64), axis=1) <= sensor_range)
+    counts = standing & wanted_kind & in_range
+    return TrackingStep(t=t, track_ids=np.asarray(track_ids, dtype=np.int64).reshape(-1), tracks=_points(tracks),
+                        truth_ids=tuple(tid for tid, ok in zip(truth.target_ids, counts.tolist()) if ok),
+                        truths=positions[counts], ignored=positions[standing & ~counts])
+
+
+def _nearest_gap(points: np.ndarray, others: np.ndarray) -> np.ndarray:
+    """(N,) distance from each point to the nearest of `others` (inf when there are none)."""
+    if not len(others):
+        return np.full(len(points), np.inf)
+    return np.linalg.norm(points[:, None] - others[None], axis=2).min(axis=1)
+
+
+def left_out(tracks: np.ndarray, truths: np.ndarray, ignored: np.ndarray, c: float) -> np.ndarray:
+    """(N,) bool: tracks following a target that does not count: closer than c to one of `ignored`,
+    and closer to it than to any counted truth."""
+    x = _points(tracks)
+    to_ignored = _nearest_gap(x, _points(ignored))
+    return (to_ignored < c) & (to_ignored < _nearest_gap(x, _points(truths)))
+
+
+# --------------------------------------------------------------------------------- scores
+@dataclass
+class TruthRecord:
+    """One target as one UAV's tracker followed it."""
+
+    counted: int = 0  # steps in which it counted
+    tracked: int = 0  # ... in which a track was matched to it
+    track_ids: set[int] = field(default_factory=set)  # every track ever matched to it
+    switches: int = 0
+    fragmentations: int = 0
+    last_track: int | None = None  # the track matched at the latest step it was matched
+    lost: bool = False  # counted and unmatched since it was last matched
+
+    def add(self, track_id: int | None) -> None:
+        """One step in which it counted: matched to `track_id`, or to none."""
+        self.counted += 1
+        if track_id is None:
+            self.lost = self.last_track is not None
+            return
+        self.tracked += 1
+        self.switches += self.last_track is not None and track_id != self.last_track
+        self.fragmentations += self.lost
+        self.track_ids.add(track_id)
+        self.last_track, self.lost = track_id, False
+
+    def summary(self) -> dict:
+        return {"counted_steps": self.counted, "tracked_steps": self.tracked, "track_ids": sorted(self.track_ids),
+                "identity_switches": self.switches, "fragmentations": self.fragmentations}
+
+
+@dataclass
+class GospaSums:
+    """Sums of the steps' GOSPA figures (their means: divide by `steps`)."""
+
+    steps: int = 0
+    distance: float = 0.0  # m
+    localisation: float = 0.0  # m^p
+    missed: float = 0.0
+    false: float = 0.0
+    missed_count: int = 0
+    false_count: int = 0
+
+    def add(self, score: Gospa) -> None:
+        self.steps += 1
+        for name in ("distance", "localisation", "missed", "false", "missed_count", "false_count"):
+            setattr(self, name, getattr(self, name) + getattr(score, name))
+
+    def __add__(self, other: GospaSums) -> GospaSums:
+        return GospaSums(*(getattr(self, f.name) + getattr(other, f.name) for f in fields(self)))
+
+    def means(self) -> dict[str, float]:
+        n = max(self.steps, 1)
+        return {"gospa_m": round(self.distance / n, 4), "localisation": round(self.localisation / n, 4),
+                "missed": round(self.missed / n, 4), "false": round(self.false / n, 4),
+                "missed_targets_per_step": round(self.missed_count / n, 4),
+                "false_tracks_per_step": round(self.false_count / n, 4)}
+
+
+@dataclass
+class TrackingScore:
+    """One UAV's tracking over a run (`add` each step), or the fleet's (`fleet`)."""
+
+    c: float = CUTOFF
+    p: float = ORDER
+    sums: GospaSums = field(default_factory=GospaSums)  # of the steps' GOSPA
+    first_t: float | None = None  # mission time of the first and last step, s
+    last_t: float = 0.0
+    squared_error: np.ndarray = field(default_factory=lambda: np.zeros(3))  # Σ over matched pairs, per axis, m²
+    pairs: int = 0  # matched (track, truth) pairs over the steps
+    left_out: int = 0  # (track, step) left out as following a target that does not count
+    without_truth: int = 0  # Tracks messages with no truth at their stamp: not steps
+    truths: dict[str, TruthRecord] = field(default_factory=dict)
+    tracks: dict[str, bool] = field(default_factory=dict)  # confirmed track id -> ever matched
+
+    def add(self, step: TrackingStep) -> Gospa:
+        keep = ~left_out(step.tracks, step.truths, step.ignored, self.c)
+        ids, tracks, truths = step.track_ids[keep], _points(step.tracks)[keep], _points(step.truths)
+        score = gospa(tracks, truths, self.c, self.p)
+        self.sums.add(score)
+        self.first_t = step.t if self.first_t is None else min(self.first_t, step.t)
+        self.last_t = max(self.last_t, step.t)
+        self.left_out += int((~keep).sum())
+        track_of = {int(j): int(ids[i]) for i, j in score.pairs}
+        for j, truth_id in enumerate(step.truth_ids):
+            self.truths.setdefault(truth_id, TruthRecord()).add(track_of.get(j))
+        matched = set(score.pairs[:, 0].tolist())
+        for i, track_id in enumerate(ids.tolist()):
+            self.tracks[str(track_id)] = self.tracks.get(str(track_id), False) or i in matched
+        errors = tracks[score.pairs[:, 0]] - truths[score.pairs[:, 1]]
+        self.squared_error = self.squared_error + (errors ** 2).sum(axis=0)
+        self.pairs += len(errors)
+        return score
+
+    def rmse(self) -> dict[str, float] | None:
+        """Root mean square position error of the matched pairs per axis and in 3D, m (None: no pair)."""
+        if not self.pairs:
+            return None
+        per_axis = np.sqrt(self.squared_error / self.pairs)
+        return {**dict(zip(AXES, per_axis.tolist())), "3d": float(np.sqrt(self.squared_error.sum() / self.pairs))}
+
+    def false_tracks(self) -> int:
+        return sum(not ever for ever in self.tracks.values())
+
+    def summary(self) -> dict:
+        rmse = self.rmse()
+        return {
+            "steps": self.sums.steps,
+            "t_s": None if self.first_t is None else [round(self.first_t, 3), round(self.last_t, 3)],
+            "matched_pairs": self.pairs,
+            "rmse_m": None if rmse is None else {axis: round(value, 4) for axis, value in rmse.items()},
+            **self.sums.means(),
+            "identity_switches": sum(r.switches for r in self.truths.values()),
+            "fragmentations": sum(r.fragmentations for r in self.truths.values()),
+            "confirmed_tracks": len(self.tracks),
+            "false_tracks": self.false_tracks(),
+            "left_out_track_steps": self.left_out,
+            "tracks_messages_without_truth": self.without_truth,
+            "targets": {tid: record.summary() for tid, record in sorted(self.truths.items())},
+        }
+
+
+def score_tracks(messages: Iterable[ConfirmedTracks], truth: TruthTimeline, uav: str,
+                 sensor_range: float = float("inf"), kinds: Sequence[str] = TRACKED_KINDS,
+                 c: float = CUTOFF, p: float = ORDER) -> TrackingScore:
+    """One UAV's tracking over its Tracks messages (in stamp order)."""
+    score = TrackingScore(c=c, p=p)
+    for message in messages:
+        at = truth.at(message.stamp)
+        if at is None:
+            score.without_truth += 1
+            continue
+        score.add(tracking_step(message.stamp / NS, message.ids, message.positions, at, uav, sensor_range, kinds))
+    return score
+
+
+def fleet(scores: dict[str, TrackingScore]) -> TrackingScore:
+    """Every UAV's steps, pairs, targets and tracks together; targets and tracks are per UAV
+    ("uav1/crosser", "uav1/7"): a target two UAVs follow counts once for each."""
+    parts = list(scores.values())
+    total = TrackingScore(c=parts[0].c, p=parts[0].p) if parts else TrackingScore()
+    for uav, s in scores.items():
+        total.sums = total.sums + s.sums
+        if s.first_t is not None:
+            total.first_t = s.first_t if total.first_t is None else min(total.first_t, s.first_t)
+        total.last_t = max(total.last_t, s.last_t)
+        total.squared_error = total.squared_error + s.squared_error
+        total.pairs += s.pairs
+        total.left_out += s.left_out
+        total.without_truth += s.without_truth
+        total.truths.update({f"{uav}/{tid}": record for tid, record in s.truths.items()})
+        total.tracks.update({f"{uav}/{track_id}": ever for track_id, ever in s.tracks.items()})
+    return total

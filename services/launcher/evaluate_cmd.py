@@ -1,0 +1,187 @@
+"""`falconry evaluate`: a recorded simulated run scored against its ground truth.
+
+`falconry evaluate tracking RUN.mcap`: each UAV's confirmed tracks against the true targets
+(services/evaluation_tracking.py, which defines every figure). An evaluation is a subcommand
+of the group: `add_parser` lists them.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import typing
+from pathlib import Path
+
+import msgspec
+
+from schemas import keys
+from schemas.messages import TargetTruth
+from services.evaluation_tracking import CUTOFF, ORDER, TRACKED_KINDS, TrackingScore, fleet, score_tracks
+from services.launcher.common import CliError
+from services.recorder.mcap_io import is_mcap
+from services.recorder.tracking_input import TRACKS, TrackingInput, read_tracking_input
+
+TARGET_KINDS = next(typing.get_args(f.type) for f in msgspec.structs.fields(TargetTruth) if f.name == "kind")
+
+TRACKING_DESCRIPTION = """\
+Score each UAV's tracker in a recording of a simulated run (`falconry sim ... --record RUN.mcap`)
+against the ground truth it holds. One step per Tracks message (falconry/<uav>/tracks), its confirmed
+tracks against the truth at its stamp.
+
+Which targets count in a step: standing (not destroyed), of the --kinds the tracker follows (default
+drones: the LiDAR perception takes a balloon on its pole for background), within the UAV's LiDAR range
+(its model's datasheet range) of the UAV's true position; occlusion is not judged. A track following a
+standing target that does not count (closer than C to it, and than to any target that counts) is left
+out: neither matched nor false.
+
+GOSPA (alpha = 2, Rahmathullah, Garcia-Fernandez, Svensson 2017), per step, over the best assignment
+of tracks to targets, only pairs closer than C assigned:
+  GOSPA^P = localisation + missed + false, in m^P:
+  localisation = sum of d^P over the assigned pairs; missed = C^P/2 per target left unassigned;
+  false = C^P/2 per track left unassigned. Means over the steps are printed.
+Matched: a pair the GOSPA assignment makes; its error counts in the RMSE per axis and in 3D.
+Identity switch: a target matched to another track than at the last step it was matched.
+Fragmentation: a target matched again after a step in which it counted and was unmatched.
+Track ids per target: distinct tracks ever matched to it. False track: a confirmed track never matched.
+The fleet line pools every UAV's steps (a target two UAVs follow counts for each).
+
+Steps are the tracker's messages: one per tick while it holds a track, one a second otherwise; the
+means weigh a time without tracks less than a time with them."""
+
+
+def add_parser(commands) -> None:
+    p = commands.add_parser("evaluate", help="score a recorded simulated run against its ground truth: tracking",
+                            description="Evaluations of a recording against the ground truth it holds. "
+                                        "`falconry evaluate tracking --help`.")
+    evaluations = p.add_subparsers(dest="evaluation", metavar="EVALUATION", required=True)
+    add_tracking_parser(evaluations)
+
+
+def add_tracking_parser(evaluations) -> None:
+    t = evaluations.add_parser(
+        "tracking", help="each UAV's tracks against the true targets: GOSPA, RMSE, identity switches, "
+                         "fragmentations, false tracks", description=TRACKING_DESCRIPTION)
+    t.add_argument("recording", metavar="RECORDING.mcap",
+                   help="an MCAP recording of a simulated run, which holds the ground truth")
+    t.add_argument("--cutoff", type=float, default=CUTOFF, metavar="C",
+                   help=f"GOSPA cut-off, m: pairs at C or farther are not assigned (default {CUTOFF:g}, the "
+                        "tracker's smallest association gate)")
+    t.add_argument("--order", type=float, default=ORDER, metavar="P",
+                   help=f"GOSPA order p >= 1 (default {ORDER:g}: localisation as squared errors, like the RMSE)")
+    t.add_argument("--uav", metavar="UAV", help="only this UAV (default: every UAV with tracks)")
+    t.add_argument("--kinds", default=",".join(TRACKED_KINDS), metavar="KIND,...",
+                   help=f"the target kinds that count: {', '.join(TARGET_KINDS)} (default "
+                        f"{','.join(TRACKED_KINDS)})")
+    t.add_argument("--json", action="store_true", help="print the figures as JSON instead of tables")
+    t.set_defaults(handler=run_tracking)
+
+
+def parse_kinds(text: str) -> tuple[str, ...]:
+    kinds = tuple(dict.fromkeys(k.strip() for k in text.split(",") if k.strip()))
+    unknown = [k for k in kinds if k not in TARGET_KINDS]
+    if not kinds or unknown:
+        raise CliError(f"--kinds takes {' or '.join(TARGET_KINDS)}, comma-separated, not {text!r}")
+    return kinds
+
+
+def check_recording(path: Path) -> None:
+    if not path.is_file():
+        raise CliError(f"no such recording: {path}")
+    if not is_mcap(path):
+        raise CliError(f"{path} is not an MCAP file")
+
+
+def check_options(args: argparse.Namespace) -> tuple[str, ...]:
+    """The kinds that count, once the recording and every number are checked."""
+    check_recording(Path(args.recording))
+    if not (math.isfinite(args.cutoff) and args.cutoff > 0):
+        raise CliError(f"--cutoff must be a positive distance in m, not {args.cutoff:g}")
+    if not (math.isfinite(args.order) and args.order >= 1):
+        raise CliError(f"--order must be 1 or more, not {args.order:g}")
+    return parse_kinds(args.kinds)
+
+
+def uavs_to_score(path: Path, run: TrackingInput, uav: str | None) -> list[str]:
+    if not len(run.truth):
+        raise CliError(f"{path} holds no ground truth ({keys.TRUTH}): record a simulated run, "
+                       "e.g. `falconry sim SCENARIO --record FILE.mcap`")
+    if not run.tracks:
+        raise CliError(f"{path} holds no tracks ({TRACKS}): was the tracker running?")
+    if uav is not None and uav not in run.tracks:
+        raise CliError(f"{path} holds no tracks of {uav} (it has those of {', '.join(sorted(run.tracks))})")
+    return [uav] if uav is not None else sorted(run.tracks)
+
+
+def run_tracking(args: argparse.Namespace) -> int:
+    kinds, path = check_options(args), Path(args.recording)
+    run = read_tracking_input(str(path))
+    ranges = {uav: run.sensor_range(uav) for uav in uavs_to_score(path, run, args.uav)}
+    scores = {uav: score_tracks(run.tracks[uav], run.truth, uav, math.inf if reach is None else reach, kinds,
+                                args.cutoff, args.order) for uav, reach in ranges.items()}
+    fleet_score = fleet(scores)
+    if args.json:
+        print(json.dumps({
+            "recording": str(path), "complete": run.report.complete, "cutoff_m": args.cutoff, "order": args.order,
+            "kinds": list(kinds), "sensor_range_m": ranges, "undecodable": run.undecodable,
+            "uavs": {uav: score.summary() for uav, score in scores.items()},
+            "fleet": fleet_score.summary()}, indent=2))
+    else:
+        print("\n".join(report_lines(path, run, kinds, ranges, args.cutoff, args.order, scores, fleet_score)))
+    return 0
+
+
+# ----------------------------------------------------------------------------- the tables
+def report_lines(path: Path, run: TrackingInput, kinds: tuple[str, ...], ranges: dict[str, float | None], c: float,
+                 p: float, scores: dict[str, TrackingScore], fleet_score: TrackingScore) -> list[str]:
+    lines = [f"tracking against ground truth: {path}",
+             f"GOSPA c = {c:g} m, p = {p:g} (parts in m^{p:g}, a missed target or false track costs "
+             f"c^p/2 = {c ** p / 2:.3g}); counted: standing {' and '.join(k + 's' for k in kinds)} within "
+             f"each UAV's LiDAR range"]
+    if not run.report.complete:
+        lines.append(f"warning: {run.report.describe(str(path))}")
+    lines += [f"warning: {count} undecodable payloads on {key} skipped" for key, count in sorted(run.undecodable.items())]
+    for uav, reach in ranges.items():
+        if reach is None:
+            lines.append(f"note: the recording names no LiDAR model of {uav}: every standing target counts")
+        if scores[uav].without_truth:
+            lines.append(f"note: {scores[uav].without_truth} Tracks messages of {uav} have no truth at their "
+                         "stamp and are left out")
+    lines += ["", *uav_table(scores, fleet_score if len(scores) > 1 else None), "", *target_table(scores)]
+    return lines
+
+
+UAV_COLUMNS = (("UAV", "{:<6}"), ("steps", "{:>6}"), ("pairs", "{:>6}"), ("RMSE x", "{:>7}"), ("y", "{:>6}"),
+               ("z", "{:>6}"), ("3D m", "{:>6}"), ("GOSPA m", "{:>8}"), ("loc", "{:>7}"), ("missed", "{:>7}"),
+               ("false", "{:>7}"), ("switches", "{:>9}"), ("fragments", "{:>10}"), ("false tracks", "{:>13}"))
+
+
+def uav_table(scores: dict[str, TrackingScore], fleet_score: TrackingScore | None) -> list[str]:
+    rows = [[uav, *uav_row(score)] for uav, score in scores.items()]
+    if fleet_score is not None:
+        rows.append(["fleet", *uav_row(fleet_score)])
+    return [_row([name for name, _ in UAV_COLUMNS])] + [_row(row) for row in rows]
+
+
+def uav_row(score: TrackingScore) -> list:
+    s = score.summary()
+    rmse = s["rmse_m"]
+    errors = ["-"] * 4 if rmse is None else [f"{rmse[axis]:.3f}" for axis in ("x", "y", "z", "3d")]
+    return [s["steps"], s["matched_pairs"], *errors, f"{s['gospa_m']:.3f}", f"{s['localisation']:.3f}",
+            f"{s['missed']:.3f}", f"{s['false']:.3f}", s["identity_switches"], s["fragmentations"],
+            f"{s['false_tracks']} of {s['confirmed_tracks']}"]
+
+
+def _row(cells: list) -> str:
+    return " ".join(fmt.format(str(cell)) for cell, (_, fmt) in zip(cells, UAV_COLUMNS)).rstrip()
+
+
+def target_table(scores: dict[str, TrackingScore]) -> list[str]:
+    lines = [f"{'UAV':<6} {'target':<12} {'counted':>8} {'tracked':>8} {'track ids':>10} {'switches':>9} "
+             f"{'fragments':>10}"]
+    for uav, score in scores.items():
+        for tid, t in score.summary()["targets"].items():
+            lines.append(f"{uav:<6} {tid:<12} {t['counted_steps']:>8} {t['tracked_steps']:>8} "
+                         f"{len(t['track_ids']):>10} {t['identity_switches']:>9} {t['fragmentations']:>10}")
+    if len(lines) == 1:
+        lines.append("(no target counted in any step)")
+    return lines

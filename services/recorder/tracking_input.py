@@ -1,0 +1,77 @@
+"""What `falconry evaluate tracking` reads from a recording: the ground truth (falconry/sim/truth),
+each UAV's LiDAR model (falconry/sim/world) and each UAV's confirmed tracks (falconry/<uav>/tracks),
+as the numpy records of services/evaluation_tracking.py. One pass over the file; a file cut short
+by a crash is read up to its last complete chunk (`ReadReport`)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import msgspec
+import numpy as np
+
+from schemas import keys
+from schemas.messages import GroundTruth, Tracks, WorldModel
+from services.evaluation_tracking import ConfirmedTracks, TruthSnapshot, TruthTimeline
+from services.lidar.models import lidar_model
+from services.recorder.mcap_io import ReadReport, read_recording
+from services.recorder.selection import KeyFilter
+from services.tracker.view import track_positions
+
+TRACKS = keys.uav("*", "tracks")
+
+
+@dataclass
+class TrackingInput:
+    """Everything the tracking evaluation takes from one recording."""
+
+    truth: TruthTimeline
+    tracks: dict[str, list[ConfirmedTracks]]  # UAV -> its Tracks messages, in stamp order
+    sensors: dict[str, str]  # UAV -> its LiDAR model (WorldModel.sensors)
+    report: ReadReport
+    undecodable: dict[str, int] = field(default_factory=dict)  # key -> payloads skipped
+
+    def sensor_range(self, uav: str) -> float | None:
+        """The datasheet range of the UAV's LiDAR, m (None: the recording does not say which)."""
+        try:
+            return lidar_model(self.sensors[uav]).max_range
+        except (KeyError, ValueError):
+            return None
+
+
+def confirmed_tracks(message: Tracks) -> ConfirmedTracks:
+    confirmed = [track for track in message.tracks if track.confirmed]
+    return ConfirmedTracks(stamp=message.header.stamp, ids=np.array([t.id for t in confirmed], dtype=np.int64),
+                           positions=track_positions(confirmed))
+
+
+def truth_snapshot(truth: GroundTruth) -> TruthSnapshot:
+    targets = truth.targets
+    return TruthSnapshot(
+        stamp=truth.header.stamp, target_ids=tuple(t.id for t in targets), kinds=tuple(t.kind for t in targets),
+        positions=np.array([t.position for t in targets], dtype=np.float64).reshape(-1, 3),
+        standing=np.array([not t.destroyed for t in targets], dtype=bool),
+        uavs={v.name: np.array(v.position, dtype=np.float64) for v in truth.uavs})
+
+
+def read_tracking_input(path: str) -> TrackingInput:
+    """Raises UsageError when the file is not an MCAP file."""
+    decoders = {keys.TRUTH: msgspec.msgpack.Decoder(GroundTruth), keys.WORLD: msgspec.msgpack.Decoder(WorldModel)}
+    tracks_decoder = msgspec.msgpack.Decoder(Tracks)
+    snapshots: list[TruthSnapshot] = []
+    tracks: dict[str, list[ConfirmedTracks]] = {}
+    sensors: dict[str, str] = {}
+    report, undecodable = ReadReport(), {}
+    for message in read_recording(path, KeyFilter((keys.TRUTH, keys.WORLD, TRACKS)), report):
+        try:
+            if message.key == keys.TRUTH:
+                snapshots.append(truth_snapshot(decoders[keys.TRUTH].decode(message.payload)))
+            elif message.key == keys.WORLD:
+                sensors.update(decoders[keys.WORLD].decode(message.payload).sensors)
+            else:
+                uav = message.key.split("/")[1]
+                tracks.setdefault(uav, []).append(confirmed_tracks(tracks_decoder.decode(message.payload)))
+        except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
+            undecodable[message.key] = undecodable.get(message.key, 0) + 1
+    for messages in tracks.values():
+        messages.sort(key=lambda m: m.stamp)  # file order is receive order
+    return TrackingInput(TruthTimeline(snapshots), tracks, sensors, report, undecodable)
