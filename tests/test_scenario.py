@@ -69,7 +69,7 @@ def test_clockwise_arena_is_reoriented(tmp_path):
 
 
 def test_unknown_name_lists_builtins():
-    with pytest.raises(ScenarioError, match=r"unknown scenario 'foo' \(built-in: intruder, mbzirc, sparse, takeoff;"):
+    with pytest.raises(ScenarioError, match=r"unknown scenario 'foo' \(built-in: agile, intruder, mbzirc, sparse, takeoff;"):
         load_scenario("foo")
     with pytest.raises(ScenarioError, match="not found"):
         load_scenario("/nonexistent/x.toml")
@@ -139,7 +139,7 @@ def test_points_in_non_convex_polygon():
 def test_every_builtin_loads_and_runs_a_few_steps():
     from services.simulator.core import Simulation
 
-    assert builtin_scenarios() == ["intruder", "mbzirc", "sparse", "takeoff"]
+    assert builtin_scenarios() == ["agile", "intruder", "mbzirc", "sparse", "takeoff"]
     for name in builtin_scenarios():
         s = load_scenario(name)
         sim = Simulation(s, [f"uav{i + 1}" for i in range(s.uavs)], s.seed)
@@ -151,6 +151,9 @@ def test_every_builtin_loads_and_runs_a_few_steps():
     assert any(d.path == "waypoints" and d.speed == 4.0 for d in intruder.drones)
     assert any(d.path == "random" for d in intruder.drones)
     assert sum(o.kind == "box" for o in intruder.obstacles) >= 2
+    agile = load_scenario("agile")
+    assert {(d.path, d.speed) for d in agile.drones} == {("figure8", 6.0), ("random", 5.0)}
+    assert agile.obstacles == intruder.obstacles and agile.arena == intruder.arena
 
 
 def test_sparse_target_stays_10_to_35_m_from_the_observer():
