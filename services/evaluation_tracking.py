@@ -1,7 +1,9 @@
 """How well each UAV's tracker followed the targets, against ground truth (`falconry evaluate tracking`).
 
 Evaluation only, pure numpy: services/recorder/tracking_input.py reads the recording. Per UAV,
-one step per Tracks message: its confirmed tracks against the truth at its stamp.
+one step per truth tick: its confirmed tracks then against the truth (steps, below); beside them,
+the detection baseline: one step per Detections message, its detections against the truth at its
+stamp.
 
 - The truth at a stamp (`TruthTimeline.at`): the ground truth of that stamp, which a simulated
   run has (the simulator and the tracker both stamp with the tick); between two truths, the
@@ -37,15 +39,33 @@ one step per Tracks message: its confirmed tracks against the truth at its stamp
   range, neither break nor continue its tracking); its track ids are the distinct tracks ever
   matched to it.
 - A false track: a confirmed track id never matched in any step that did not leave it out.
+- Mean error, RMSE, recall (tracks and detections alike): the mean and the root mean square of the
+  3-D error of the matched pairs; recall, the share of (counted target, step) pairs in which the
+  target was matched.
 
-Steps are Tracks messages, as the tracker sends them: one per tick while it holds any track, one
-a second otherwise; so the means over steps weigh a time without any track less than a time with
-one.
+Steps of the tracks are the truth ticks (the simulator sends a truth every tick), not the Tracks
+messages: the tracker sends one every tick while it holds any track (tentative ones included) but
+only one a second otherwise, so steps per message would weigh a time without tracks less than a
+time with them. At a truth tick, the UAV's tracks are its Tracks message of that stamp; with none,
+it held no track, as long as its latest message is at most TRACKER_SILENCE_NS old; after a longer
+silence (not started yet, stopped, crashed) the tracker cannot be judged and the tick is no step
+("tracker silent"). This takes the tracker to tick with the simulator, which a lockstep run
+guarantees: a tick a lagging tracker skipped reads as a tick without tracks. A Tracks message at
+a stamp without a truth is no step.
+
+The detection baseline (what the tracker is given, scored like what it makes): per Detections
+message (one per LiDAR scan, empty or not), its detections against the truths that count at its
+stamp, tracks' rules throughout: detections following a target that does not count are left out,
+the rest go through the same GOSPA assignment (one-to-one, only pairs closer than c; not "the
+nearest within c", which would let the two halves of a split cluster both match a drone, and one
+detection match two drones flying close). Each stream's figures are over its own steps: detections
+over scans (10 Hz), tracks over ticks (20 Hz); a recall is a share of time either way, so the two
+compare.
 """
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
@@ -53,7 +73,10 @@ import numpy as np
 CUTOFF = 2.5  # m, GOSPA's c
 ORDER = 2.0  # GOSPA's p
 TRACKED_KINDS = ("drone",)
-MAX_TRUTH_AGE_NS = 1_000_000_000  # a Tracks message this long after the latest truth has none
+MAX_TRUTH_AGE_NS = 1_000_000_000  # a Detections message this long after the latest truth has none
+# a tracker whose latest Tracks message is older than this is silent, not without tracks: its empty
+# message comes once per alive_period (1 s, services/tracker/core.py), and half as much again is slack
+TRACKER_SILENCE_NS = 1_500_000_000
 AXES = ("x", "y", "z")
 NS = 1_000_000_000
 
@@ -131,6 +154,10 @@ class TruthTimeline:
     def __len__(self) -> int:
         return len(self.snapshots)
 
+    def ticks(self) -> list[int]:
+        """The stamps of the truths, in order, each once."""
+        return list(dict.fromkeys(self._stamps))
+
     def at(self, stamp: int) -> TruthSnapshot | None:
         """The truth at `stamp` (see the module's text); None before the first truth or more than
         MAX_TRUTH_AGE_NS after the last."""
@@ -156,11 +183,38 @@ class ConfirmedTracks:
 
 
 @dataclass(frozen=True)
+class ScanDetections:
+    """The detections of one Detections message (one LiDAR scan)."""
+
+    stamp: int  # mission time, ns
+    detector: str  # the message's: "classifier", "oracle"
+    positions: np.ndarray  # (N, 3)
+
+
+def tracks_at_ticks(messages: Sequence[ConfirmedTracks], ticks: Iterable[int],
+                    silence_ns: int = TRACKER_SILENCE_NS) -> Iterator[tuple[int, ConfirmedTracks | None]]:
+    """Per tick, in order: the UAV's confirmed tracks then, from its `messages` (in stamp order): the
+    message of that stamp; none (an empty set) when there is no such message and the latest before
+    is at most `silence_ns` old; None when the tracker was silent (see the module's text)."""
+    latest, i = None, 0
+    for tick in ticks:
+        while i < len(messages) and messages[i].stamp <= tick:
+            latest, i = messages[i], i + 1
+        if latest is None or tick - latest.stamp > silence_ns:
+            yield tick, None
+        elif latest.stamp == tick:
+            yield tick, latest
+        else:  # the tracker was alive and sent nothing: it held no track, not even a tentative one
+            yield tick, ConfirmedTracks(tick, np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+
+
+@dataclass(frozen=True)
 class TrackingStep:
-    """One Tracks message of one UAV against the truth at its stamp."""
+    """One UAV's estimates at one step against the truth then: its confirmed tracks at a truth tick,
+    or the detections of one scan (their ids: their rows in the message)."""
 
     t: float  # mission time, s
-    track_ids: np.ndarray  # (N,) int: the confirmed tracks
+    track_ids: np.ndarray  # (N,) int: the confirmed tracks (or detections)
     tracks: np.ndarray  # (N, 3) their positions
     truth_ids: tuple[str, ...]  # the M targets that count
     truths: np.ndarray  # (M, 3) their true positions
@@ -197,7 +251,62 @@ def left_out(tracks: np.ndarray, truths: np.ndarray, ignored: np.ndarray, c: flo
     return (to_ignored < c) & (to_ignored < _nearest_gap(x, _points(truths)))
 
 
+def assign(step: TrackingStep, c: float, p: float) -> tuple[np.ndarray, Gospa]:
+    """(N,) bool, the step's estimates kept (not left out), and the GOSPA of the kept ones against
+    the truths that count: the one matching rule of tracks and detections."""
+    keep = ~left_out(step.tracks, step.truths, step.ignored, c)
+    return keep, gospa(_points(step.tracks)[keep], step.truths, c, p)
+
+
 # --------------------------------------------------------------------------------- scores
+def _rounded(value: float | None) -> float | None:
+    return None if value is None else round(value, 4)
+
+
+@dataclass
+class MatchErrors:
+    """A stream's matched pairs (confirmed tracks, or detections, on truths) over its steps."""
+
+    counted: int = 0  # (truth, step) pairs in which the truth counted
+    matched: int = 0  # ... and had an estimate matched to it: the matched pairs
+    error_sum: float = 0.0  # Σ 3-D error of the matched pairs, m
+    squared_error: np.ndarray = field(default_factory=lambda: np.zeros(3))  # Σ per axis, m²
+
+    def add(self, estimates: np.ndarray, truths: np.ndarray, pairs: np.ndarray) -> None:
+        """One step: the (N, 3) estimates, the (M, 3) truths that counted, the GOSPA's (K, 2) pairs."""
+        errors = _points(estimates)[pairs[:, 0]] - _points(truths)[pairs[:, 1]]
+        self.counted += len(_points(truths))
+        self.matched += len(errors)
+        self.error_sum += float(np.linalg.norm(errors, axis=1).sum())
+        self.squared_error = self.squared_error + (errors ** 2).sum(axis=0)
+
+    def __add__(self, other: MatchErrors) -> MatchErrors:
+        return MatchErrors(self.counted + other.counted, self.matched + other.matched,
+                           self.error_sum + other.error_sum, self.squared_error + other.squared_error)
+
+    def mean_error(self) -> float | None:
+        """Mean 3-D error of the matched pairs, m (None: no pair)."""
+        return self.error_sum / self.matched if self.matched else None
+
+    def rmse(self) -> dict[str, float] | None:
+        """Root mean square error of the matched pairs per axis and in 3D, m (None: no pair)."""
+        if not self.matched:
+            return None
+        per_axis = np.sqrt(self.squared_error / self.matched)
+        return {**dict(zip(AXES, per_axis.tolist())), "3d": float(np.sqrt(self.squared_error.sum() / self.matched))}
+
+    def recall(self) -> float | None:
+        """Share of the (truth, step) pairs that counted with a match (None: none counted)."""
+        return self.matched / self.counted if self.counted else None
+
+    def summary(self) -> dict:
+        rmse = self.rmse()
+        return {"matched_pairs": self.matched, "counted_truth_steps": self.counted,
+                "mean_error_m": _rounded(self.mean_error()),
+                "rmse_m": None if rmse is None else {axis: round(value, 4) for axis, value in rmse.items()},
+                "recall": _rounded(self.recall())}
+
+
 @dataclass
 class TruthRecord:
     """One target as one UAV's tracker followed it."""
@@ -264,17 +373,21 @@ class TrackingScore:
     sums: GospaSums = field(default_factory=GospaSums)  # of the steps' GOSPA
     first_t: float | None = None  # mission time of the first and last step, s
     last_t: float = 0.0
-    squared_error: np.ndarray = field(default_factory=lambda: np.zeros(3))  # Σ over matched pairs, per axis, m²
-    pairs: int = 0  # matched (track, truth) pairs over the steps
+    errors: MatchErrors = field(default_factory=MatchErrors)  # of the matched (track, truth) pairs
     left_out: int = 0  # (track, step) left out as following a target that does not count
     without_truth: int = 0  # Tracks messages with no truth at their stamp: not steps
+    silent: int = 0  # truth ticks at which the tracker was silent: not steps
     truths: dict[str, TruthRecord] = field(default_factory=dict)
     tracks: dict[str, bool] = field(default_factory=dict)  # confirmed track id -> ever matched
 
+    @property
+    def pairs(self) -> int:
+        """Matched (track, truth) pairs over the steps."""
+        return self.errors.matched
+
     def add(self, step: TrackingStep) -> Gospa:
-        keep = ~left_out(step.tracks, step.truths, step.ignored, self.c)
+        keep, score = assign(step, self.c, self.p)
         ids, tracks, truths = step.track_ids[keep], _points(step.tracks)[keep], _points(step.truths)
-        score = gospa(tracks, truths, self.c, self.p)
         self.sums.add(score)
         self.first_t = step.t if self.first_t is None else min(self.first_t, step.t)
         self.last_t = max(self.last_t, step.t)
@@ -285,28 +398,21 @@ class TrackingScore:
         matched = set(score.pairs[:, 0].tolist())
         for i, track_id in enumerate(ids.tolist()):
             self.tracks[str(track_id)] = self.tracks.get(str(track_id), False) or i in matched
-        errors = tracks[score.pairs[:, 0]] - truths[score.pairs[:, 1]]
-        self.squared_error = self.squared_error + (errors ** 2).sum(axis=0)
-        self.pairs += len(errors)
+        self.errors.add(tracks, truths, score.pairs)
         return score
 
     def rmse(self) -> dict[str, float] | None:
         """Root mean square position error of the matched pairs per axis and in 3D, m (None: no pair)."""
-        if not self.pairs:
-            return None
-        per_axis = np.sqrt(self.squared_error / self.pairs)
-        return {**dict(zip(AXES, per_axis.tolist())), "3d": float(np.sqrt(self.squared_error.sum() / self.pairs))}
+        return self.errors.rmse()
 
     def false_tracks(self) -> int:
         return sum(not ever for ever in self.tracks.values())
 
     def summary(self) -> dict:
-        rmse = self.rmse()
         return {
             "steps": self.sums.steps,
             "t_s": None if self.first_t is None else [round(self.first_t, 3), round(self.last_t, 3)],
-            "matched_pairs": self.pairs,
-            "rmse_m": None if rmse is None else {axis: round(value, 4) for axis, value in rmse.items()},
+            **self.errors.summary(),
             **self.sums.means(),
             "identity_switches": sum(r.switches for r in self.truths.values()),
             "fragmentations": sum(r.fragmentations for r in self.truths.values()),
@@ -314,6 +420,7 @@ class TrackingScore:
             "false_tracks": self.false_tracks(),
             "left_out_track_steps": self.left_out,
             "tracks_messages_without_truth": self.without_truth,
+            "tracker_silent_ticks": self.silent,
             "targets": {tid: record.summary() for tid, record in sorted(self.truths.items())},
         }
 
@@ -321,14 +428,16 @@ class TrackingScore:
 def score_tracks(messages: Iterable[ConfirmedTracks], truth: TruthTimeline, uav: str,
                  sensor_range: float = float("inf"), kinds: Sequence[str] = TRACKED_KINDS,
                  c: float = CUTOFF, p: float = ORDER) -> TrackingScore:
-    """One UAV's tracking over its Tracks messages (in stamp order)."""
+    """One UAV's tracking at the truth ticks, from its Tracks messages (steps: see the module's text)."""
     score = TrackingScore(c=c, p=p)
-    for message in messages:
-        at = truth.at(message.stamp)
-        if at is None:
-            score.without_truth += 1
+    messages, ticks = sorted(messages, key=lambda m: m.stamp), truth.ticks()
+    on_a_tick = set(ticks)
+    score.without_truth = sum(m.stamp not in on_a_tick for m in messages)
+    for tick, tracks in tracks_at_ticks(messages, ticks):
+        if tracks is None:
+            score.silent += 1
             continue
-        score.add(tracking_step(message.stamp / NS, message.ids, message.positions, at, uav, sensor_range, kinds))
+        score.add(tracking_step(tick / NS, tracks.ids, tracks.positions, truth.at(tick), uav, sensor_range, kinds))
     return score
 
 
@@ -342,10 +451,70 @@ def fleet(scores: dict[str, TrackingScore]) -> TrackingScore:
         if s.first_t is not None:
             total.first_t = s.first_t if total.first_t is None else min(total.first_t, s.first_t)
         total.last_t = max(total.last_t, s.last_t)
-        total.squared_error = total.squared_error + s.squared_error
-        total.pairs += s.pairs
+        total.errors = total.errors + s.errors
         total.left_out += s.left_out
         total.without_truth += s.without_truth
+        total.silent += s.silent
         total.truths.update({f"{uav}/{tid}": record for tid, record in s.truths.items()})
         total.tracks.update({f"{uav}/{track_id}": ever for track_id, ever in s.tracks.items()})
+    return total
+
+
+# --------------------------------------------------------------------------------- detection baseline
+@dataclass
+class DetectionScore:
+    """One UAV's detections over a run (`add` each scan's step), the baseline beside its tracks; or
+    the fleet's (`fleet_detections`)."""
+
+    c: float = CUTOFF
+    p: float = ORDER
+    steps: int = 0  # scans scored
+    detections: int = 0  # in those scans, left-out ones included
+    errors: MatchErrors = field(default_factory=MatchErrors)  # of the matched (detection, truth) pairs
+    left_out: int = 0  # (detection, scan) left out as following a target that does not count
+    without_truth: int = 0  # Detections messages with no truth at their stamp: not steps
+    detectors: set[str] = field(default_factory=set)  # the messages' detector names
+
+    def add(self, step: TrackingStep) -> Gospa:
+        keep, score = assign(step, self.c, self.p)
+        self.steps += 1
+        self.detections += len(keep)
+        self.left_out += int((~keep).sum())
+        self.errors.add(_points(step.tracks)[keep], step.truths, score.pairs)
+        return score
+
+    def summary(self) -> dict:
+        return {"detectors": sorted(self.detectors), "steps": self.steps, "detections": self.detections,
+                **self.errors.summary(), "left_out_detection_steps": self.left_out,
+                "detections_messages_without_truth": self.without_truth}
+
+
+def score_detections(messages: Iterable[ScanDetections], truth: TruthTimeline, uav: str,
+                     sensor_range: float = float("inf"), kinds: Sequence[str] = TRACKED_KINDS,
+                     c: float = CUTOFF, p: float = ORDER) -> DetectionScore:
+    """One UAV's detections, one step per Detections message, against the truth at its stamp."""
+    score = DetectionScore(c=c, p=p)
+    for message in messages:
+        score.detectors.add(message.detector)
+        at = truth.at(message.stamp)
+        if at is None:
+            score.without_truth += 1
+            continue
+        positions = _points(message.positions)
+        score.add(tracking_step(message.stamp / NS, np.arange(len(positions)), positions, at, uav, sensor_range,
+                                kinds))
+    return score
+
+
+def fleet_detections(scores: dict[str, DetectionScore]) -> DetectionScore:
+    """Every UAV's scans and pairs together (a target two UAVs detect counts once for each)."""
+    parts = list(scores.values())
+    total = DetectionScore(c=parts[0].c, p=parts[0].p) if parts else DetectionScore()
+    for s in parts:
+        total.steps += s.steps
+        total.detections += s.detections
+        total.errors = total.errors + s.errors
+        total.left_out += s.left_out
+        total.without_truth += s.without_truth
+        total.detectors |= s.detectors
     return total

@@ -1,8 +1,9 @@
 """`falconry evaluate tracking`: each UAV's tracks against the true targets of a recording.
 
 GOSPA is checked against Stone Soup's (the test oracle) on random cases; the per-target figures
-(RMSE, identity switches, fragmentations, false tracks) on hand-built sequences; the command on
-synthetic recordings whose figures are known, on a short real run, and on bad input.
+(RMSE, identity switches, fragmentations, false tracks), the sampling at truth ticks and the
+detection baseline on hand-built sequences; the command on synthetic recordings whose figures are
+known, on a short real run, and on bad input.
 """
 from __future__ import annotations
 
@@ -19,9 +20,10 @@ from hypothesis import strategies as st
 
 from schemas import keys
 from schemas.arrays import from_numpy
-from schemas.messages import GroundTruth, Header, TargetTruth, Track, Tracks, VehicleTruth, WorldModel
-from services.evaluation_tracking import (ConfirmedTracks, TrackingScore, TrackingStep, TruthSnapshot, TruthTimeline,
-                                          fleet, gospa, left_out, score_tracks, tracking_step)
+from schemas.messages import Detections, GroundTruth, Header, TargetTruth, Track, Tracks, VehicleTruth, WorldModel
+from services.evaluation_tracking import (ConfirmedTracks, ScanDetections, TrackingScore, TrackingStep, TruthSnapshot,
+                                          TruthTimeline, fleet, fleet_detections, gospa, left_out, score_detections,
+                                          score_tracks, tracking_step)
 from services.launcher.cli import main
 from services.recorder.mcap_io import McapRecordWriter
 from services.runtime import shm
@@ -202,11 +204,72 @@ def test_the_fleet_pools_every_uavs_steps_and_keeps_targets_per_uav():
     assert total["gospa_m"] == pytest.approx((0.3 + 0.0 + np.sqrt(2 * 3.125)) / 3, abs=1e-4)
 
 
-def test_tracks_messages_before_the_first_truth_are_not_steps():
+def test_tracks_messages_at_no_truth_tick_are_not_steps():
     timeline = TruthTimeline([snapshot(NS, {"a": (10.0, 0.0, 5.0)})])
     messages = [ConfirmedTracks(stamp, np.array([1]), np.array([[10.0, 0.0, 5.0]])) for stamp in (0, NS, NS + TICK)]
     score = score_tracks(messages, timeline, "uav1", sensor_range=50.0)
-    assert (score.sums.steps, score.without_truth, score.pairs) == (2, 1, 2)
+    # the steps are the truth ticks: the one at NS; the messages before the first truth and after the last are not
+    assert (score.sums.steps, score.without_truth, score.pairs) == (1, 2, 1)
+
+
+def test_a_tick_without_a_tracks_message_has_no_tracks_and_a_silent_tracker_is_skipped():
+    """Truth every tick 0-59; the tracker sends track 1 on the target at ticks 2-5, an empty message
+    at tick 25 (its once-a-second one), then nothing."""
+    timeline = TruthTimeline([snapshot(k * TICK, {"a": (10.0, 0.0, 5.0)}) for k in range(60)])
+    on_target = [ConfirmedTracks(k * TICK, np.array([1]), np.array([[10.2, 0.0, 5.0]])) for k in range(2, 6)]
+    quiet = ConfirmedTracks(25 * TICK, np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+    score = score_tracks([quiet, *on_target], timeline, "uav1", sensor_range=50.0)  # any order
+    # ticks 0-1 before the first message and 56-59 (more than 1.5 s after tick 25) are silent; tick 55 is
+    # 1.5 s after it, still a step; every other tick is a step, tracked at 2-5 only
+    assert (score.silent, score.sums.steps) == (2 + 4, 4 + 19 + 1 + 30)
+    assert score.truths["a"].summary()["counted_steps"] == 54 and score.pairs == 4
+    assert score.errors.recall() == pytest.approx(4 / 54)
+    assert score.summary()["missed_targets_per_step"] == pytest.approx(50 / 54, abs=1e-4)
+    assert score.summary()["t_s"] == [0.1, 2.75]
+
+
+# --------------------------------------------------------------------------- the detection baseline
+def test_detections_are_matched_like_tracks_and_give_mean_error_rmse_and_recall():
+    """Two drones in range count; a balloon and a drone beyond the LiDAR's 50 m do not."""
+    targets = {"a": (10.0, 0.0, 5.0), "b": (0.0, 20.0, 5.0), "balloon": (0.0, 10.0, 3.0), "far": (80.0, 0.0, 5.0)}
+    timeline = TruthTimeline([snapshot(k * 2 * TICK, targets, kinds={"balloon": "balloon"}) for k in range(3)])
+    scans = [
+        # before the first truth: no step
+        ScanDetections(-2 * TICK, "classifier", np.array([[10.0, 0.0, 5.0]])),
+        # a 0.3 m off, b 0.4 m off, one on the balloon (left out), one on nothing (unmatched)
+        ScanDetections(0, "classifier", np.array([[10.3, 0.0, 5.0], [0.0, 20.4, 5.0], [0.0, 10.2, 3.0],
+                                                  [30.0, 0.0, 5.0]])),
+        # a split in two: one-to-one, only the nearer (0.1 m) matches; b missed
+        ScanDetections(2 * TICK, "classifier", np.array([[9.8, 0.0, 5.0], [10.1, 0.0, 5.0]])),
+        ScanDetections(4 * TICK, "classifier", np.zeros((0, 3))),  # an empty scan: both missed
+    ]
+    score = score_detections(scans, timeline, "uav1", sensor_range=50.0)
+    summary = score.summary()
+    assert (summary["steps"], summary["detections"], summary["left_out_detection_steps"]) == (3, 6, 1)
+    assert (summary["detections_messages_without_truth"], summary["detectors"]) == (1, ["classifier"])
+    assert (summary["matched_pairs"], summary["counted_truth_steps"], summary["recall"]) == (3, 6, 0.5)
+    assert score.errors.mean_error() == pytest.approx((0.3 + 0.4 + 0.1) / 3)
+    assert score.errors.rmse()["3d"] == pytest.approx(np.sqrt((0.09 + 0.16 + 0.01) / 3))
+    assert score.errors.rmse()["y"] == pytest.approx(np.sqrt(0.16 / 3))
+
+
+def test_tracks_report_mean_error_and_recall_computed_as_for_detections():
+    score = scored(step(0.0, {1: (0.3, 0.0, 0.0)}, {"a": (0.0, 0.0, 0.0), "b": (9.0, 0.0, 0.0)}),
+                   step(0.1, {1: (0.0, 0.0, 0.1)}, {"a": (0.0, 0.0, 0.0)}))
+    summary = score.summary()
+    assert (summary["counted_truth_steps"], summary["matched_pairs"]) == (3, 2)
+    assert summary["recall"] == pytest.approx(2 / 3, abs=1e-4)
+    assert summary["mean_error_m"] == pytest.approx(0.2, abs=1e-4)
+    assert summary["rmse_m"]["3d"] == pytest.approx(np.sqrt((0.09 + 0.01) / 2), abs=1e-4)
+
+
+def test_the_fleet_baseline_pools_every_uavs_scans():
+    timeline = TruthTimeline([snapshot(0, {"a": (10.0, 0.0, 5.0)})])
+    one = score_detections([ScanDetections(0, "classifier", np.array([[10.2, 0.0, 5.0]]))], timeline, "uav1")
+    two = score_detections([ScanDetections(0, "oracle", np.zeros((0, 3)))], timeline, "uav1")
+    total = fleet_detections({"uav1": one, "uav2": two}).summary()
+    assert (total["steps"], total["matched_pairs"], total["recall"]) == (2, 1, 0.5)
+    assert total["mean_error_m"] == pytest.approx(0.2) and total["detectors"] == ["classifier", "oracle"]
 
 
 # --------------------------------------------------------------------------- the command on synthetic recordings
@@ -243,11 +306,21 @@ def write(path: Path, messages: list[tuple[str, object]]) -> Path:
     return path
 
 
+def detections_message(stamp: int, positions: list[tuple], detector: str = "classifier") -> Detections:
+    n = len(positions)
+    return Detections(header=Header(stamp=stamp), detector=detector,
+                      positions=from_numpy(np.array(positions, dtype=np.float64).reshape(n, 3)),
+                      covariances=from_numpy(np.tile(np.eye(3) * 0.01, (n, 1, 1))),
+                      point_counts=from_numpy(np.full(n, 5, dtype=np.int32)),
+                      extents=from_numpy(np.full(n, 0.5, dtype=np.float32)))
+
+
 def synthetic_run(path: Path) -> Path:
     """uav1 tracks drone1 with track 1 (0.3 m off in x, read from its state), loses it for a tick,
     takes it up again with track 2 (0.4 m off in y, read from its position field); a tentative
     track and a confirmed one on the balloon (which does not count) never weigh; uav2's LiDAR is
-    unknown (the world names none), its one track is false."""
+    unknown (the world names none), its one track is false. uav1 scans every other tick: drone1
+    detected 0.1 m off in z, then not at all; uav2 has no detections."""
     world = WorldModel(header=Header(stamp=0), scenario="test", arena=[], min_height=1.0, max_height=10.0,
                        uavs=["uav1", "uav2"], sensors={"uav1": "os0-128"})
     messages: list[tuple[str, object]] = [(keys.WORLD, world)]
@@ -259,6 +332,9 @@ def synthetic_run(path: Path) -> Path:
                          tracks_message(stamp, {**tracks, 9: (0.0, 10.2, 3.0)}, tentative={5: (30.0, 0.0, 5.0)},
                                         own_position=(2,))))
         messages.append(("falconry/uav2/tracks", tracks_message(stamp, {7: (-20.0, 0.0, 5.0)})))
+        if k % 2 == 0:  # a scan every other tick
+            seen = [(10.0, 0.0, 5.1)] if k == 0 else []
+            messages.append(("falconry/uav1/detections", detections_message(stamp, seen)))
     return write(path, messages)
 
 
@@ -291,6 +367,18 @@ def test_the_command_scores_a_synthetic_recording(tmp_path, capsys):
     assert uav1["left_out_track_steps"] == 4  # track 9 on the balloon
     assert result["uavs"]["uav2"]["false_tracks"] == 1
     assert result["fleet"]["steps"] == 8 and result["fleet"]["identity_switches"] == 1
+    assert (uav1["counted_truth_steps"], uav1["recall"], uav1["tracker_silent_ticks"]) == (4, 0.75, 0)
+    assert uav1["mean_error_m"] == pytest.approx((0.3 + 0.3 + 0.4) / 3, abs=1e-4)
+    baseline = result["detections"]["uavs"]
+    assert (baseline["uav1"]["steps"], baseline["uav1"]["recall"], baseline["uav1"]["detectors"]) == \
+        (2, 0.5, ["classifier"])
+    assert baseline["uav1"]["mean_error_m"] == pytest.approx(0.1, abs=1e-4)
+    assert baseline["uav2"]["steps"] == 0 and baseline["uav2"]["recall"] is None
+    assert result["comparison"]["uav1"] == {
+        "detections": {"steps": 2, "mean_error_m": 0.1, "rmse_3d_m": 0.1, "recall": 0.5},
+        "tracks": {"steps": 4, "mean_error_m": uav1["mean_error_m"], "rmse_3d_m": uav1["rmse_m"]["3d"],
+                   "recall": 0.75}}
+    assert result["comparison"]["fleet"]["detections"]["recall"] == 0.5  # uav2 has no scans to pool
 
 
 def test_the_table_names_every_figure(tmp_path, capsys):
@@ -304,7 +392,46 @@ def test_the_table_names_every_figure(tmp_path, capsys):
     assert set(rows) == {"uav1", "uav2", "fleet"}
     assert rows["uav1"][1:3] == ["4", "3"] and rows["fleet"][1] == "8"
     assert "note: the recording names no LiDAR model of uav2" in out
+    assert "note: the recording holds no detections of uav2 (falconry/uav2/detections)" in out
     assert any(line.split()[:2] == ["uav1", "drone1"] for line in out.splitlines())
+
+
+def comparison_rows(out: str) -> dict[str, list[str]]:
+    """The comparison table's rows by their first cell (it is the last table)."""
+    lines = out.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("UAV") and "recall" in line)
+    assert lines[start].split() == ["UAV", "scans", "mean", "err", "RMSE", "recall", "|", "ticks", "mean", "err",
+                                    "RMSE", "recall"]
+    assert "detections, per scan" in lines[start - 1] and "tracks, per truth tick" in lines[start - 1]
+    return {line.split()[0]: line.split() for line in lines[start + 1:] if line.strip()}
+
+
+def test_the_comparison_table_sets_detections_against_tracks(tmp_path, capsys):
+    assert main(["evaluate", "tracking", str(synthetic_run(tmp_path / "run.mcap"))]) == 0
+    out = capsys.readouterr().out
+    assert "detections (classifier) against confirmed tracks" in out
+    rows = comparison_rows(out)
+    assert rows["uav1"] == ["uav1", "2", "0.100", "0.100", "0.500", "|", "4", "0.333", f"{np.sqrt(0.34 / 3):.3f}",
+                            "0.750"]
+    assert rows["uav2"][1:6] == ["0", "-", "-", "-", "|"] and rows["uav2"][6:] == ["4", "-", "-", "0.000"]
+    assert rows["fleet"][1] == "2" and rows["fleet"][6] == "8"
+
+
+def test_the_command_samples_tracks_at_every_truth_tick(tmp_path, capsys):
+    """Truth at ticks 1-40; uav1's tracker sends one message, at tick 1, with drone1 tracked, then
+    nothing: ticks 2-31 (up to 1.5 s after it) have no tracks, 32-40 are silent."""
+    messages: list[tuple[str, object]] = []
+    for k in range(1, 41):
+        messages.append((keys.TRUTH, truth_message(k * TICK)))
+        if k == 1:
+            messages.append(("falconry/uav1/tracks", tracks_message(TICK, {1: (10.0, 0.0, 5.0)})))
+    path = str(write(tmp_path / "quiet.mcap", messages))
+    uav1 = run_json(capsys, path)["uavs"]["uav1"]
+    assert (uav1["steps"], uav1["tracker_silent_ticks"], uav1["matched_pairs"]) == (31, 9, 1)
+    assert uav1["recall"] == pytest.approx(1 / 31, abs=1e-4)
+    assert main(["evaluate", "tracking", path]) == 0
+    assert "note: the tracker of uav1 was silent (no Tracks message for over 1.5 s) at 9 truth ticks" in \
+        capsys.readouterr().out
 
 
 def test_uav_cutoff_order_and_kinds_change_what_is_scored(tmp_path, capsys):
@@ -322,7 +449,9 @@ def test_help_explains_the_metrics_and_every_option():
                             text=True, timeout=60)
     assert result.returncode == 0
     for term in ("GOSPA", "localisation", "missed", "false", "RMSE", "Identity switch", "Fragmentation",
-                 "False track", "--cutoff", "--order", "--uav", "--kinds", "--json"):
+                 "False track", "truth tick", "tracker silent", "Detection baseline", "mean err", "recall",
+                 "own steps", "per scan (10 Hz)", "per truth tick (20 Hz)", "--cutoff", "--order", "--uav", "--kinds",
+                 "--json"):
         assert term in result.stdout, term
     lines = result.stdout.splitlines()
     for i, line in enumerate(lines):  # every option line carries an explanation (on it or on the next line)
@@ -401,3 +530,7 @@ def test_a_short_real_run_is_scored(tmp_path):
         assert score["rmse_m"]["3d"] < 1.0 and score["gospa_m"] < 1.0, score
         assert score["targets"]["target"]["tracked_steps"] > 0, score
         assert float(rows[uav][6]) == pytest.approx(score["rmse_m"]["3d"], abs=1e-3)  # the table's 3D RMSE
+        baseline = figures["detections"]["uavs"][uav]
+        assert baseline["detectors"] == ["oracle"] and baseline["steps"] > 25 and baseline["matched_pairs"] > 0
+        assert score["tracker_silent_ticks"] < 20, score  # the tracker runs from the start
+    assert set(comparison_rows(table.stdout)) == {"uav1", "uav2", "fleet"}

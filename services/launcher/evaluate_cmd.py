@@ -1,8 +1,8 @@
 """`falconry evaluate`: a recorded simulated run scored against its ground truth.
 
-`falconry evaluate tracking RUN.mcap`: each UAV's confirmed tracks against the true targets
-(services/evaluation_tracking.py, which defines every figure). An evaluation is a subcommand
-of the group: `add_parser` lists them.
+`falconry evaluate tracking RUN.mcap`: each UAV's confirmed tracks against the true targets, beside
+its raw detections (services/evaluation_tracking.py, which defines every figure). An evaluation is
+a subcommand of the group: `add_parser` lists them.
 """
 from __future__ import annotations
 
@@ -16,17 +16,19 @@ import msgspec
 
 from schemas import keys
 from schemas.messages import TargetTruth
-from services.evaluation_tracking import CUTOFF, ORDER, TRACKED_KINDS, TrackingScore, fleet, score_tracks
+from services.evaluation_tracking import (CUTOFF, NS, ORDER, TRACKED_KINDS, TRACKER_SILENCE_NS, DetectionScore,
+                                          MatchErrors, TrackingScore, fleet, fleet_detections, score_detections,
+                                          score_tracks)
 from services.launcher.common import CliError
 from services.recorder.mcap_io import is_mcap
 from services.recorder.tracking_input import TRACKS, TrackingInput, read_tracking_input
 
 TARGET_KINDS = next(typing.get_args(f.type) for f in msgspec.structs.fields(TargetTruth) if f.name == "kind")
 
-TRACKING_DESCRIPTION = """\
+TRACKING_DESCRIPTION = f"""\
 Score each UAV's tracker in a recording of a simulated run (`falconry sim ... --record RUN.mcap`)
-against the ground truth it holds. One step per Tracks message (falconry/<uav>/tracks), its confirmed
-tracks against the truth at its stamp.
+against the ground truth it holds, beside the detections it was given. One step per truth tick
+(falconry/sim/truth): the UAV's confirmed tracks then (falconry/<uav>/tracks) against the truth.
 
 Which targets count in a step: standing (not destroyed), of the --kinds the tracker follows (default
 drones: the LiDAR perception takes a balloon on its pole for background), within the UAV's LiDAR range
@@ -45,8 +47,21 @@ Fragmentation: a target matched again after a step in which it counted and was u
 Track ids per target: distinct tracks ever matched to it. False track: a confirmed track never matched.
 The fleet line pools every UAV's steps (a target two UAVs follow counts for each).
 
-Steps are the tracker's messages: one per tick while it holds a track, one a second otherwise; the
-means weigh a time without tracks less than a time with them."""
+Steps: the tracker sends a Tracks message every tick while it holds any track (tentative included),
+one a second otherwise; so at a truth tick without a message of that stamp the UAV held no track,
+unless its latest message is more than {TRACKER_SILENCE_NS / NS:g} s old: then the tracker was
+silent (not started, stopped, crashed) and the tick is skipped ("tracker silent"). This takes the
+tracker to tick with the simulator, as in a lockstep run: a tick a lagging tracker skipped reads as
+no tracks. A Tracks message at a stamp without a truth is no step.
+
+Detection baseline: each Detections message (falconry/<uav>/detections, one per LiDAR scan, 10 Hz)
+against the same targets that count at its stamp, by the same rules: detections following a target
+that does not count are left out, the rest matched by the same GOSPA assignment (one-to-one, pairs
+closer than C). For detections and tracks alike: mean err and RMSE = mean and root mean square 3-D
+error of the matched; recall = share of (counted target, step) pairs with a match. Each stream's
+figures are over its own steps: detections per scan (10 Hz), tracks per truth tick (20 Hz); a recall
+is then a share of time for both, so "tracks' mean err below the detections'" and "tracks' recall at
+least the detections'" read straight off the comparison table."""
 
 
 def add_parser(commands) -> None:
@@ -60,7 +75,7 @@ def add_parser(commands) -> None:
 def add_tracking_parser(evaluations) -> None:
     t = evaluations.add_parser(
         "tracking", help="each UAV's tracks against the true targets: GOSPA, RMSE, identity switches, "
-                         "fragmentations, false tracks", description=TRACKING_DESCRIPTION)
+                         "fragmentations, false tracks; its detections beside them", description=TRACKING_DESCRIPTION)
     t.add_argument("recording", metavar="RECORDING.mcap",
                    help="an MCAP recording of a simulated run, which holds the ground truth")
     t.add_argument("--cutoff", type=float, default=CUTOFF, metavar="C",
@@ -116,18 +131,40 @@ def run_tracking(args: argparse.Namespace) -> int:
     kinds, path = check_options(args), Path(args.recording)
     run = read_tracking_input(str(path))
     ranges = {uav: run.sensor_range(uav) for uav in uavs_to_score(path, run, args.uav)}
-    scores = {uav: score_tracks(run.tracks[uav], run.truth, uav, math.inf if reach is None else reach, kinds,
-                                args.cutoff, args.order) for uav, reach in ranges.items()}
-    fleet_score = fleet(scores)
+    reach = {uav: math.inf if r is None else r for uav, r in ranges.items()}
+    scores = {uav: score_tracks(run.tracks[uav], run.truth, uav, reach[uav], kinds, args.cutoff, args.order)
+              for uav in ranges}
+    baseline = {uav: score_detections(run.detections.get(uav, []), run.truth, uav, reach[uav], kinds, args.cutoff,
+                                      args.order) for uav in ranges}
+    fleet_score, fleet_baseline = fleet(scores), fleet_detections(baseline)
     if args.json:
         print(json.dumps({
             "recording": str(path), "complete": run.report.complete, "cutoff_m": args.cutoff, "order": args.order,
-            "kinds": list(kinds), "sensor_range_m": ranges, "undecodable": run.undecodable,
+            "kinds": list(kinds), "sensor_range_m": ranges, "tracker_silence_s": TRACKER_SILENCE_NS / NS,
+            "undecodable": run.undecodable,
             "uavs": {uav: score.summary() for uav, score in scores.items()},
-            "fleet": fleet_score.summary()}, indent=2))
+            "fleet": fleet_score.summary(),
+            "detections": {"uavs": {uav: score.summary() for uav, score in baseline.items()},
+                           "fleet": fleet_baseline.summary()},
+            "comparison": comparison(scores, baseline, fleet_score, fleet_baseline)}, indent=2))
     else:
-        print("\n".join(report_lines(path, run, kinds, ranges, args.cutoff, args.order, scores, fleet_score)))
+        print("\n".join(report_lines(path, run, kinds, ranges, args.cutoff, args.order, scores, fleet_score)
+                        + ["", *comparison_lines(scores, baseline, fleet_score, fleet_baseline)]))
     return 0
+
+
+def comparison(scores: dict[str, TrackingScore], baseline: dict[str, DetectionScore], fleet_score: TrackingScore,
+               fleet_baseline: DetectionScore) -> dict:
+    """Per UAV and for the fleet, the comparison table's figures: detections' against tracks'."""
+    sides = {**{uav: (baseline[uav], scores[uav]) for uav in scores}, "fleet": (fleet_baseline, fleet_score)}
+    return {name: {"detections": compared(d.steps, d.errors), "tracks": compared(t.sums.steps, t.errors)}
+            for name, (d, t) in sides.items()}
+
+
+def compared(steps: int, errors: MatchErrors) -> dict:
+    s = errors.summary()
+    return {"steps": steps, "mean_error_m": s["mean_error_m"],
+            "rmse_3d_m": None if s["rmse_m"] is None else s["rmse_m"]["3d"], "recall": s["recall"]}
 
 
 # ----------------------------------------------------------------------------- the tables
@@ -146,6 +183,12 @@ def report_lines(path: Path, run: TrackingInput, kinds: tuple[str, ...], ranges:
         if scores[uav].without_truth:
             lines.append(f"note: {scores[uav].without_truth} Tracks messages of {uav} have no truth at their "
                          "stamp and are left out")
+        if scores[uav].silent:
+            lines.append(f"note: the tracker of {uav} was silent (no Tracks message for over "
+                         f"{TRACKER_SILENCE_NS / NS:g} s) at {scores[uav].silent} truth ticks: not steps")
+        if not run.detections.get(uav):
+            lines.append(f"note: the recording holds no detections of {uav} ({keys.uav(uav, 'detections')}): "
+                         "no baseline")
     lines += ["", *uav_table(scores, fleet_score if len(scores) > 1 else None), "", *target_table(scores)]
     return lines
 
@@ -185,3 +228,37 @@ def target_table(scores: dict[str, TrackingScore]) -> list[str]:
     if len(lines) == 1:
         lines.append("(no target counted in any step)")
     return lines
+
+
+COMPARISON_COLUMNS = (("UAV", "{:<6}"), ("scans", "{:>6}"), ("mean err", "{:>9}"), ("RMSE", "{:>7}"),
+                      ("recall", "{:>7}"), ("|", "{}"), ("ticks", "{:>6}"), ("mean err", "{:>9}"), ("RMSE", "{:>7}"),
+                      ("recall", "{:>7}"))
+
+
+def comparison_lines(scores: dict[str, TrackingScore], baseline: dict[str, DetectionScore],
+                     fleet_score: TrackingScore, fleet_baseline: DetectionScore) -> list[str]:
+    """Detections against tracks, per UAV (and the fleet), each over its own steps: mean and RMSE 3-D
+    error of the matched, m, and recall."""
+    detectors = ", ".join(sorted(fleet_baseline.detectors)) or "none recorded"
+    rows = [[uav, *comparison_row(baseline[uav], scores[uav])] for uav in scores]
+    if len(scores) > 1:
+        rows.append(["fleet", *comparison_row(fleet_baseline, fleet_score)])
+    header = _comparison_row([name for name, _ in COMPARISON_COLUMNS])
+    bar = header.index("|")
+    return [f"detections ({detectors}) against confirmed tracks, matched alike; each over its own steps",
+            f"{'':<7}{'detections, per scan':<{bar - 7}}| tracks, per truth tick", header,
+            *(_comparison_row(row) for row in rows)]
+
+
+def comparison_row(detections: DetectionScore, tracks: TrackingScore) -> list:
+    return [detections.steps, *_figures(detections.errors), "|", tracks.sums.steps, *_figures(tracks.errors)]
+
+
+def _figures(errors: MatchErrors) -> list[str]:
+    mean, rmse, recall = errors.mean_error(), errors.rmse(), errors.recall()
+    return ["-" if mean is None else f"{mean:.3f}", "-" if rmse is None else f"{rmse['3d']:.3f}",
+            "-" if recall is None else f"{recall:.3f}"]
+
+
+def _comparison_row(cells: list) -> str:
+    return " ".join(fmt.format(str(cell)) for cell, (_, fmt) in zip(cells, COMPARISON_COLUMNS)).rstrip()

@@ -1,7 +1,8 @@
 """What `falconry evaluate tracking` reads from a recording: the ground truth (falconry/sim/truth),
-each UAV's LiDAR model (falconry/sim/world) and each UAV's confirmed tracks (falconry/<uav>/tracks),
-as the numpy records of services/evaluation_tracking.py. One pass over the file; a file cut short
-by a crash is read up to its last complete chunk (`ReadReport`)."""
+each UAV's LiDAR model (falconry/sim/world), each UAV's confirmed tracks (falconry/<uav>/tracks) and
+detections (falconry/<uav>/detections, the baseline), as the numpy records of
+services/evaluation_tracking.py. One pass over the file; a file cut short by a crash is read up to
+its last complete chunk (`ReadReport`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -10,14 +11,16 @@ import msgspec
 import numpy as np
 
 from schemas import keys
-from schemas.messages import GroundTruth, Tracks, WorldModel
-from services.evaluation_tracking import ConfirmedTracks, TruthSnapshot, TruthTimeline
+from schemas.arrays import to_numpy
+from schemas.messages import Detections, GroundTruth, Tracks, WorldModel
+from services.evaluation_tracking import ConfirmedTracks, ScanDetections, TruthSnapshot, TruthTimeline
 from services.lidar.models import lidar_model
 from services.recorder.mcap_io import ReadReport, read_recording
 from services.recorder.selection import KeyFilter
 from services.tracker.view import track_positions
 
 TRACKS = keys.uav("*", "tracks")
+DETECTIONS = keys.uav("*", "detections")
 
 
 @dataclass
@@ -26,6 +29,7 @@ class TrackingInput:
 
     truth: TruthTimeline
     tracks: dict[str, list[ConfirmedTracks]]  # UAV -> its Tracks messages, in stamp order
+    detections: dict[str, list[ScanDetections]]  # UAV -> its Detections messages, in stamp order
     sensors: dict[str, str]  # UAV -> its LiDAR model (WorldModel.sensors)
     report: ReadReport
     undecodable: dict[str, int] = field(default_factory=dict)  # key -> payloads skipped
@@ -44,6 +48,13 @@ def confirmed_tracks(message: Tracks) -> ConfirmedTracks:
                            positions=track_positions(confirmed))
 
 
+def scan_detections(message: Detections) -> ScanDetections:
+    positions = np.asarray(to_numpy(message.positions), dtype=np.float64).reshape(-1, 3)
+    # a non-finite detection never reaches a track (the tracker drops it), and has no distance
+    return ScanDetections(stamp=message.header.stamp, detector=message.detector,
+                          positions=positions[np.isfinite(positions).all(axis=1)])
+
+
 def truth_snapshot(truth: GroundTruth) -> TruthSnapshot:
     targets = truth.targets
     return TruthSnapshot(
@@ -56,22 +67,26 @@ def truth_snapshot(truth: GroundTruth) -> TruthSnapshot:
 def read_tracking_input(path: str) -> TrackingInput:
     """Raises UsageError when the file is not an MCAP file."""
     decoders = {keys.TRUTH: msgspec.msgpack.Decoder(GroundTruth), keys.WORLD: msgspec.msgpack.Decoder(WorldModel)}
-    tracks_decoder = msgspec.msgpack.Decoder(Tracks)
+    tracks_decoder, detections_decoder = msgspec.msgpack.Decoder(Tracks), msgspec.msgpack.Decoder(Detections)
     snapshots: list[TruthSnapshot] = []
     tracks: dict[str, list[ConfirmedTracks]] = {}
+    detections: dict[str, list[ScanDetections]] = {}
     sensors: dict[str, str] = {}
     report, undecodable = ReadReport(), {}
-    for message in read_recording(path, KeyFilter((keys.TRUTH, keys.WORLD, TRACKS)), report):
+    for message in read_recording(path, KeyFilter((keys.TRUTH, keys.WORLD, TRACKS, DETECTIONS)), report):
         try:
             if message.key == keys.TRUTH:
                 snapshots.append(truth_snapshot(decoders[keys.TRUTH].decode(message.payload)))
             elif message.key == keys.WORLD:
                 sensors.update(decoders[keys.WORLD].decode(message.payload).sensors)
+            elif message.key.endswith("/tracks"):
+                tracks.setdefault(keys.uav_of(message.key), []).append(
+                    confirmed_tracks(tracks_decoder.decode(message.payload)))
             else:
-                uav = message.key.split("/")[1]
-                tracks.setdefault(uav, []).append(confirmed_tracks(tracks_decoder.decode(message.payload)))
+                detections.setdefault(keys.uav_of(message.key), []).append(
+                    scan_detections(detections_decoder.decode(message.payload)))
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
             undecodable[message.key] = undecodable.get(message.key, 0) + 1
-    for messages in tracks.values():
+    for messages in [*tracks.values(), *detections.values()]:
         messages.sort(key=lambda m: m.stamp)  # file order is receive order
-    return TrackingInput(TruthTimeline(snapshots), tracks, sensors, report, undecodable)
+    return TrackingInput(TruthTimeline(snapshots), tracks, detections, sensors, report, undecodable)
