@@ -62,7 +62,10 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     # A cluster whose centroid is this close to an occupied voxel's centre is background (line 39).
     # Smaller than the classifier's d_close: the track already knows the target is not background.
     occupied_distance: float = 0.8
-    cloud_noise: float = 0.02  # m², the variance of a cluster centroid as a measurement (eq. 29's Z²)
+    # m², the variance of a cluster centroid as a measurement (eq. 29's Z²): σ = 0.1 m, about the
+    # classifier's detection error (benchmarks/detection_quality.py); replaying intruder runs, larger values
+    # lag behind a manoeuvring drone more than they smooth
+    cloud_noise: float = 0.01
     surface_bias: float = 0.667  # the classifier's: × the cluster's half-width, away from the sensor
     confirm_detections: int = 3  # n_det at which a track is confirmed (sporadic false positives stay below)
     # Bounded work per scan whatever the input: a LiDAR returning garbage must not make the
