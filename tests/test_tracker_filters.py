@@ -377,3 +377,16 @@ def test_filter_parameters_are_checked():
     for bad in ({"alpha": 1.0}, {"particles": 1}, {"gate_probability": 1.0}, {"q_velocity": 0.0}, {"unknown": 1}):
         with pytest.raises(msgspec.ValidationError):
             msgspec.convert(bad, FilterParams)
+
+
+def test_the_manoeuvre_path_fades_the_acceleration_and_is_eq_27_without_fading():
+    from services.tracker.filters.models import manoeuvre_path, transition
+
+    state = np.array([1.0, 2.0, 3.0, 2.0, 0.0, -1.0, 0.0, 3.0, 0.0])
+    constant = manoeuvre_path(state, 0.5, 4, np.inf)
+    assert np.allclose(constant, [(transition(0.5 * (i + 1)) @ state)[:3] for i in range(4)])
+    faded = manoeuvre_path(state, 1.0, 20, 0.5)
+    late_velocity = faded[-1] - faded[-2]
+    assert np.allclose(late_velocity, state[3:6] + 0.5 * state[6:9], atol=1e-6)  # straight on at v + a·τ
+    first = manoeuvre_path(state, 0.01, 1, 0.5)[0]
+    assert np.allclose(first, (transition(0.01) @ state)[:3], atol=1e-6)  # at first the acceleration acts in full

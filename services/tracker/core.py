@@ -46,7 +46,7 @@ from services.classifier.core import surface_offset
 from services.geometry import is_covariance, with_variance_floor
 from services.tracker.filters import FILTERS, FilterParams, make_filter
 from services.tracker.filters.base import NS, Estimate, InnovationStatistics
-from services.tracker.filters.models import uncertainty_radius
+from services.tracker.filters.models import manoeuvre_path, uncertainty_radius
 from services.tracker.kernels import points_near
 from services.voxels.kernels import clusters_near_occupied, euclidean_clusters
 
@@ -73,6 +73,9 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     max_tracks: int = 64
     trajectory_horizon: float = 2.0  # s of predicted positions published with each track
     trajectory_step: float = 0.25  # s between them
+    # s an estimated acceleration is expected to last in the published trajectory (Singer's model,
+    # filters/models.py: manoeuvre_path); inf extrapolates the constant acceleration of eq. 27
+    manoeuvre_time: float = 1.0
     alive_period: float = 1.0  # s; the node sends an empty Tracks at least this often
     fleet: bool = True  # join the partners' tracks into the published picture (fleet.py)
     partner_timeout: float = 1.0  # s without a partner's tracks before they are left out
@@ -81,7 +84,7 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
         if self.filter not in FILTERS:
             raise msgspec.ValidationError(f"filter must be one of {', '.join(FILTERS)}, not {self.filter!r}")
         for name in ("radius_min", "radius_confidence", "radius_max", "cluster_distance", "cloud_noise",
-                     "trajectory_step"):
+                     "trajectory_step", "manoeuvre_time"):
             if not getattr(self, name) > 0:
                 raise msgspec.ValidationError(f"{name} must be positive")
         if not 0.0 <= self.surface_bias <= 1.0:
@@ -439,8 +442,5 @@ class TrackerCore:
 
     def _trajectory(self, estimate: Estimate) -> np.ndarray:
         p = self.params
-        steps = int(p.trajectory_horizon / p.trajectory_step)
-        step_ns = int(round(p.trajectory_step * NS))
-        predict = self.filter.predictor.predict
-        return np.array([predict(estimate, estimate.stamp + (i + 1) * step_ns).position for i in range(steps)],
-                        dtype=np.float64).reshape(-1, 3)
+        return manoeuvre_path(estimate.mean, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step),
+                              p.manoeuvre_time)

@@ -151,11 +151,6 @@ class FleetPicture:
                        confirmed=True, fused_with=mine.fused_with + (partner,))
 
 
-def ca_trajectory(mean: np.ndarray, step: float, count: int) -> np.ndarray:
-    """(count, 3) positions every `step` s ahead of a constant-acceleration state (eq. 27)."""
-    return np.array([(transition(step * (i + 1)) @ mean)[:3] for i in range(count)], dtype=np.float64).reshape(-1, 3)
-
-
 def sound_partner_track(mean: np.ndarray, covariance: np.ndarray) -> bool:
     """A partner's state and covariance we can fuse: the CA layout, finite, symmetric positive definite."""
     if mean.shape != (9,) or covariance.shape != (9, 9):

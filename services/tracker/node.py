@@ -24,8 +24,8 @@ from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams
-from services.tracker.fleet import (FleetPicture, FleetTrack, FusionParams, PartnerTrack, ca_trajectory,
-                                    sound_partner_track)
+from services.tracker.filters.models import manoeuvre_path
+from services.tracker.fleet import FleetPicture, FleetTrack, FusionParams, PartnerTrack, sound_partner_track
 from services.voxels.replica import MapReplica
 
 
@@ -119,10 +119,10 @@ class TrackerNode(Node):
                                    tracks=[self._track(f, estimates.get(f.id)) for f in fleet]))
 
     def _track(self, track: FleetTrack, own: TrackEstimate | None) -> Track:
-        """A fleet track as sent; an own track unfused keeps its filter's trajectory and statistics."""
+        """A fleet track as sent; an own track unfused keeps its trajectory (from its own state) and statistics."""
         p = self.params
         trajectory = own.trajectory if own is not None and not track.fused_with else \
-            ca_trajectory(track.mean, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step))
+            manoeuvre_path(track.mean, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step), p.manoeuvre_time)
         return Track(
             id=track.id,
             state=from_numpy(track.mean),
