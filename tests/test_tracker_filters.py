@@ -390,3 +390,18 @@ def test_the_manoeuvre_path_fades_the_acceleration_and_is_eq_27_without_fading()
     assert np.allclose(late_velocity, state[3:6] + 0.5 * state[6:9], atol=1e-6)  # straight on at v + a·τ
     first = manoeuvre_path(state, 0.01, 1, 0.5)[0]
     assert np.allclose(first, (transition(0.01) @ state)[:3], atol=1e-6)  # at first the acceleration acts in full
+
+
+def test_a_measurement_at_the_edge_of_the_particle_cloud_does_not_collapse_it():
+    """After a dropout the cloud is wide; a measurement at its edge leaves the weight on a few
+    particles. Resampled copies are spread again (regularised), so the cloud keeps a spread of the
+    posterior's order instead of becoming N copies of one state."""
+    f = make_filter("particle", FilterParams())
+    start = f.initiator.initiate(np.zeros(3), None, 0)
+    wide = f.predictor.predict(start, 3 * NS)  # three seconds unseen
+    spread = np.sqrt(np.diag(wide.covariance)[:3])
+    edge = 2.5 * spread  # far out in the cloud's tail, still inside a 99 % gate
+    update = f.updater.update(wide, edge, 0.01 * np.eye(3))
+    particles = update.estimate.memory.particles
+    assert len(np.unique(particles[:, 0])) == len(particles)  # no identical copies
+    assert np.sqrt(np.diag(update.estimate.covariance)[:3]).min() > 0.02
