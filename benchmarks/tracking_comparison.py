@@ -28,6 +28,8 @@ or a (re)initialisation) and the median time of one loop step with an update (pr
 update; the front end, the same for every filter, is timed apart). Then seed 002's goal ratios of
 the pooled 3-D RMSE: adaptive / particle at most 0.5, adaptive / kf at most 0.25. Last, the same
 scans with recovery for every filter: what the recovery alone does, apart from the adaptation.
+Then seed 000's multi-target tracker's time per update with ten live tracks on OS0-128 scans
+(benchmarks/tracker_timing.py; `--skip-timing` leaves it out).
 
     .venv/bin/python benchmarks/tracking_comparison.py                 # seeds 1-5, 120 s: about 1.5 min
     .venv/bin/python benchmarks/tracking_comparison.py --quick         # seeds 1-2, 40 s: about 15 s
@@ -44,6 +46,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a plain checkout works too
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # tracker_timing.py beside it
 
 import msgspec  # noqa: E402
 import numpy as np  # noqa: E402
@@ -57,6 +60,8 @@ from services.simulator.scenario import load_scenario  # noqa: E402
 from services.tracker.filters import FilterParams, make_filter  # noqa: E402
 from services.tracker.frontend import Candidates, FrontEndParams, front_end  # noqa: E402
 from services.tracker.single import Outcome, SingleTargetParams, single_target_tracker  # noqa: E402
+
+import tracker_timing  # noqa: E402  (beside this file: the multi-target tracker's time per update)
 
 SCENARIO = "sparse"
 OBSERVER = "uav1"
@@ -219,6 +224,8 @@ def main() -> int:
                         help=f"the observer's height (default {OBSERVER_HEIGHT:g} m; below ~5 m the ground is in view)")
     parser.add_argument("--single-returns", action="store_true",
                         help="one return makes a candidate (DBSCAN min_samples 1, no lower eigenvalue bound)")
+    parser.add_argument("--skip-timing", action="store_true",
+                        help="leave out the multi-target tracker's time per update (benchmarks/tracker_timing.py)")
     args = parser.parse_args()
     seeds = args.seeds[:2] if args.quick else args.seeds
     duration = args.duration or (40.0 if args.quick else 120.0)
@@ -257,6 +264,8 @@ def main() -> int:
         per_seed = " ".join(f"{x.rmse()[3]:.2f}" for x in (recovered.get(name) or runs[name]))
         print(f"  {name:<10}{r.rmse()[3]:6.2f} m   max {np.linalg.norm(r.errors, axis=1).max():6.2f} m   "
               f"seeds: {per_seed}")
+    if not args.skip_timing:
+        tracker_timing.print_table(tracker_timing.run(6.0 if args.quick else 12.0))
     return 0
 
 
