@@ -10,7 +10,7 @@ LOCK := deploy/requirements.lock
 SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1
 CAMPAIGN_ARGS ?= --runs 20 --seed 1
 
-.PHONY: .venv sim test acceptance bench campaign schemas lock clean
+.PHONY: .venv sim test acceptance bench bench-tracking bench-interception campaign schemas lock clean
 
 .venv: $(STAMP)
 
@@ -34,6 +34,14 @@ acceptance: .venv
 
 bench: .venv
 	$(PY) benchmarks/transport.py
+
+# seed 002's filter comparison on sparse and the tracker's time per update (about 3 min)
+bench-tracking: .venv
+	$(PY) benchmarks/tracking_comparison.py
+
+# capture time after first detection on agile and intruder, 5 seeds each (about 25 min)
+bench-interception: .venv
+	$(PY) benchmarks/interception.py
 
 # 20 seeded runs with a random fault each (about 15 min; `make test` flies a 2-run one)
 campaign: .venv
