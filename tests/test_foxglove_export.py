@@ -33,9 +33,8 @@ from services.launcher.cli import main
 from services.recorder.foxglove_export import ScanInfo, foxglove_quaternion
 from services.recorder.json_view import json_bytes, struct_view
 from services.recorder.mcap_io import McapRecordWriter
-from services.runtime import shm
-from services.runtime.zenoh_config import free_port
 from tests.conftest import REPO, falconry_argv
+from tests.tools.run import record_short_run
 from tests.tools.samples import sample
 
 WALL_START = 1_750_000_000_000_000_000  # a receive time in June 2025, ns
@@ -405,16 +404,7 @@ def test_an_unknown_format_is_a_one_line_error(exported, tmp_path, capsys):
 # --------------------------------------------------------------------------- a real run
 def test_a_short_real_run_exports_and_validates(tmp_path):
     recording, target = tmp_path / "run.mcap", tmp_path / "run.foxglove.mcap"
-    segments_before = shm.segments()
-    try:
-        run = subprocess.run(
-            falconry_argv("sim", "takeoff", "--uavs", "2", "--lockstep", "--duration", "2", "--quiet",
-                          "--progress", "0", "--port", str(free_port()), "--wall-timeout", "60",
-                          "--record", str(recording)),
-            cwd=REPO, capture_output=True, text=True, timeout=90)
-    finally:
-        shm.remove_orphans(shm.segments() - segments_before)
-    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    record_short_run(recording, "takeoff", "--uavs", "2", "--duration", "2")
     result = subprocess.run(falconry_argv("export", "--format", "foxglove", str(recording), str(target)),
                             cwd=REPO, capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr

@@ -26,9 +26,8 @@ from services.evaluation_tracking import (ConfirmedTracks, ScanDetections, Track
                                           score_tracks, tracking_step)
 from services.launcher.cli import main
 from services.recorder.mcap_io import McapRecordWriter
-from services.runtime import shm
-from services.runtime.zenoh_config import free_port
 from tests.conftest import REPO, falconry_argv
+from tests.tools.run import record_short_run
 
 NS = 1_000_000_000
 TICK = NS // 20  # the simulator's 50 ms tick
@@ -506,16 +505,7 @@ def test_a_short_real_run_is_scored(tmp_path):
     """The oracle detector (true LiDAR hits, noisy) makes the sparse scenario's drone a confirmed
     track within a second, on a cheap LiDAR: a short, small recording with something to score."""
     recording = tmp_path / "run.mcap"
-    segments_before = shm.segments()
-    try:
-        run = subprocess.run(
-            falconry_argv("sim", "sparse", "--lockstep", "--duration", "6", "--detector", "oracle", "--quiet",
-                          "--progress", "0", "--port", str(free_port()), "--wall-timeout", "60",
-                          "--record", str(recording)),
-            cwd=REPO, capture_output=True, text=True, timeout=90)
-    finally:
-        shm.remove_orphans(shm.segments() - segments_before)
-    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    record_short_run(recording, "sparse", "--duration", "6", "--detector", "oracle")
     table = subprocess.run(falconry_argv("evaluate", "tracking", str(recording)), cwd=REPO, capture_output=True,
                            text=True, timeout=60)
     assert table.returncode == 0, table.stderr

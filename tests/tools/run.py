@@ -53,3 +53,21 @@ def end_partner(partner: subprocess.Popen) -> None:
         partner.kill()
         partner.wait()
     partner.stdout.close()
+
+
+def record_short_run(recording: Path, *sim_args: str) -> None:
+    """`falconry sim SIM_ARGS --lockstep --record RECORDING` on a free port, quiet; fails the test
+    with the run's output if it fails, and removes the shared-memory segments it left."""
+    from services.runtime import shm
+    from services.runtime.zenoh_config import free_port
+    from tests.conftest import REPO, falconry_argv
+
+    segments_before = shm.segments()
+    try:
+        run = subprocess.run(
+            falconry_argv("sim", *sim_args, "--lockstep", "--quiet", "--progress", "0", "--port", str(free_port()),
+                          "--wall-timeout", "60", "--record", str(recording)),
+            cwd=REPO, capture_output=True, text=True, timeout=90)
+    finally:
+        shm.remove_orphans(shm.segments() - segments_before)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
