@@ -85,3 +85,11 @@ def test_a_command_planned_late_is_planned_from_where_its_target_is_by_then():
 
     seen = predicted_path(late, np.array([0.0, 0.0, 5.0]), np.array([1.0, 0.0, 0.0]), now_ns=NS // 2)
     assert np.allclose(seen.position, [0.5, 0.0, 5.0]) and np.allclose(seen.path[0], [1.5, 0.0, 5.0])
+
+
+def test_a_target_path_that_is_not_positions_is_a_hover_with_the_reason():
+    for path, dt in ((np.full((4, 3), np.nan), 0.25), (np.zeros((4, 3)), np.inf), (np.zeros(5), 0.25)):
+        bad = command("intercept", target=(10.0, 0.0, 5.0), target_velocity=(1.0, 0.0, 0.0),
+                      target_path=from_numpy(path), target_path_dt=dt)
+        plan = plan_command(bad, vehicle(), PARAMS)
+        assert "target path" in plan.note and np.isfinite(plan.path[0]).all()

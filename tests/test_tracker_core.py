@@ -261,3 +261,15 @@ def test_params_name_a_known_filter():
         msgspec.convert({"filter": "ukf"}, TrackerParams)
     params = msgspec.convert({"filter": "adaptive", "noise": {"q_velocity": 2.0}}, TrackerParams)
     assert params.noise.q_velocity == 2.0
+
+
+@pytest.mark.parametrize("name", ["kf", "adaptive", "particle"])
+def test_a_singular_detection_covariance_is_raised_in_every_direction_not_refused_or_raised_on(name):
+    """PSD but singular (a thin cluster's spread): raising only its variances leaves it singular,
+    which the particle filter's likelihood cannot factor; the floor raises every direction."""
+    tracker = TrackerCore(TrackerParams(filter=name))
+    singular = np.array([[[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]])
+    for k in range(4):
+        assert tracker.new_detections(stamp(k), moving(k)[None], singular) == [1]
+    [estimate] = tracker.estimates(stamp(3))
+    assert estimate.detections == 4 and np.isfinite(estimate.state).all()

@@ -524,3 +524,18 @@ def test_a_short_real_run_is_scored(tmp_path):
         assert baseline["detectors"] == ["oracle"] and baseline["steps"] > 25 and baseline["matched_pairs"] > 0
         assert score["tracker_silent_ticks"] < 20, score  # the tracker runs from the start
     assert set(comparison_rows(table.stdout)) == {"uav1", "uav2", "fleet"}
+
+
+def test_a_uavs_score_takes_the_tracks_it_keeps_not_the_fleet_tracks_it_passes_on():
+    from schemas.arrays import from_numpy
+    from schemas.messages import Header, Track, Tracks
+    from services.recorder.tracking_input import confirmed_tracks
+
+    def track(track_id: int, source: str, confirmed: bool = True) -> Track:
+        return Track(id=track_id, state=from_numpy(np.full(9, float(track_id))), covariance=from_numpy(np.eye(9)),
+                     detections=3, confirmed=confirmed, uncertainty_radius=2.5, last_detection=0, source=source)
+
+    message = Tracks(header=Header(stamp=5), tracks=[track(1, "uav1"), track(2_000_004, "uav2"), track(3, ""),
+                                                     track(4, "uav1", confirmed=False)])
+    kept = confirmed_tracks(message, "uav1")
+    assert kept.ids.tolist() == [1, 3] and kept.stamp == 5  # "": a recording from before the fleet picture

@@ -186,7 +186,10 @@ class JobManagerNode(Node):
         self.log.info("command %d: %s%s", self.command_id, decision.action, where)
 
     def resend_command(self, now_ns: int) -> None:
-        self.command.header = Header(stamp=now_ns)
+        # an intercept's target and predicted path hold at the stamp it was decided at: a planner that
+        # (re)starts on the repeat re-bases them from there, so that stamp stays
+        stamp = self.command.header.stamp if self.command.action == "intercept" else now_ns
+        self.command.header = Header(stamp=stamp)
         self.command_sent_at = now_ns
         self.command_pub.put(self.command)
 
@@ -224,4 +227,5 @@ def _positions_and_covariances(msg: Detections) -> tuple[np.ndarray, np.ndarray]
 
 def _path_dt(tracks: list) -> float:
     """One step for every track's predicted path (one tracker made them all)."""
-    return float(tracks[0].trajectory_dt) if tracks else 0.0
+    dt = float(tracks[0].trajectory_dt) if tracks else 0.0
+    return dt if 0.0 < dt < 1e6 else 0.0  # as track_path: a step no prediction can mean is no path

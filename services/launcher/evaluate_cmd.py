@@ -28,7 +28,9 @@ TARGET_KINDS = next(typing.get_args(f.type) for f in msgspec.structs.fields(Targ
 TRACKING_DESCRIPTION = f"""\
 Score each UAV's tracker in a recording of a simulated run (`falconry sim ... --record RUN.mcap`)
 against the ground truth it holds, beside the detections it was given. One step per truth tick
-(falconry/sim/truth): the UAV's confirmed tracks then (falconry/<uav>/tracks) against the truth.
+(falconry/sim/truth): the UAV's confirmed tracks then (falconry/<uav>/tracks) against the truth, the
+ones its own tracker keeps (fused with a partner's where both see a target): the fleet tracks it only
+passes on from partners are scored under the partner that keeps them.
 
 Which targets count in a step: standing (not destroyed), of the --kinds the tracker follows (default
 drones: the LiDAR perception takes a balloon on its pole for background), within the UAV's LiDAR range

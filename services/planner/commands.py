@@ -63,6 +63,10 @@ def unplannable(command: MissionCommand) -> str | None:
                *(c for point in command.area for c in point))
     if not all(math.isfinite(v) for v in numbers):
         return "a target, area, height or spacing that is not finite"
+    if command.target_path is not None:
+        path = np.asarray(to_numpy(command.target_path), dtype=np.float64)
+        if path.size % 3 or not np.isfinite(path).all() or not 0.0 < command.target_path_dt < math.inf:
+            return "a target path that is not finite positions (K, 3) every finite positive target_path_dt"
     return None
 
 

@@ -42,8 +42,11 @@ class TrackingInput:
             return None
 
 
-def confirmed_tracks(message: Tracks) -> ConfirmedTracks:
-    confirmed = [track for track in message.tracks if track.confirmed]
+def confirmed_tracks(message: Tracks, uav: str) -> ConfirmedTracks:
+    """The confirmed tracks `uav`'s tracker keeps itself (fused with a partner's where both see a
+    target); the fleet tracks it passes on from partners are scored under the partner that keeps
+    them ("" in recordings made before the fleet picture)."""
+    confirmed = [track for track in message.tracks if track.confirmed and track.source in ("", uav)]
     return ConfirmedTracks(stamp=message.header.stamp, ids=np.array([t.id for t in confirmed], dtype=np.int64),
                            positions=track_positions(confirmed))
 
@@ -80,8 +83,8 @@ def read_tracking_input(path: str) -> TrackingInput:
             elif message.key == keys.WORLD:
                 sensors.update(decoders[keys.WORLD].decode(message.payload).sensors)
             elif message.key.endswith("/tracks"):
-                tracks.setdefault(keys.uav_of(message.key), []).append(
-                    confirmed_tracks(tracks_decoder.decode(message.payload)))
+                uav = keys.uav_of(message.key)
+                tracks.setdefault(uav, []).append(confirmed_tracks(tracks_decoder.decode(message.payload), uav))
             else:
                 detections.setdefault(keys.uav_of(message.key), []).append(
                     scan_detections(detections_decoder.decode(message.payload)))

@@ -43,10 +43,10 @@ import msgspec
 import numpy as np
 
 from services.classifier.core import surface_offset
-from services.geometry import is_covariance, with_variance_floor
+from services.geometry import is_covariance
 from services.tracker.filters import FILTERS, FilterParams, make_filter
-from services.tracker.filters.base import NS, Estimate, InnovationStatistics
-from services.tracker.filters.models import manoeuvre_path, uncertainty_radius
+from services.tracker.filters.base import Estimate, InnovationStatistics
+from services.tracker.filters.models import covariance_at_least, manoeuvre_path, uncertainty_radius
 from services.tracker.kernels import points_near
 from services.voxels.kernels import clusters_near_occupied, euclidean_clusters
 
@@ -312,8 +312,12 @@ class TrackerCore:
         covs = None if covariances is None else np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
         assigned = [-1] * len(positions)
         rows = np.flatnonzero(usable)
-        noises = [with_variance_floor(None if covs is None else covs[k], self.params.noise.measurement_variance)
-                  for k in rows]
+        if not len(rows):
+            return assigned  # the common case: an empty set, one per scan
+        floor = self.params.noise.measurement_variance * np.eye(3)
+        # raised in every direction (Loewner order), not only on the diagonal: a singular covariance
+        # stays invertible, which every filter's update needs
+        noises = [floor if covs is None else covariance_at_least(covs[k], floor) for k in rows]
         initiate = self.filter.initiator.initiate
         replayed = self._replay([initiate(positions[k], noise, stamp) for k, noise in zip(rows, noises)], stamp)
         view = self._similarity_view(max([r.estimate.stamp for r in replayed] +

@@ -25,8 +25,12 @@ from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams
 from services.tracker.filters.models import manoeuvre_path
-from services.tracker.fleet import FleetPicture, FleetTrack, FusionParams, PartnerTrack, sound_partner_track
+from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
+                                    partner_number, sound_partner_track)
 from services.voxels.replica import MapReplica
+
+
+FUTURE_TOLERANCE_NS = 1_000_000_000  # a stamp may lead the node's clock by this much (clock skew, a late tick)
 
 
 class TrackerNode(Node):
@@ -46,7 +50,7 @@ class TrackerNode(Node):
         self.fleet = FleetPicture(FusionParams(p.radius_min, p.radius_confidence,
                                                (p.noise.q_position, p.noise.q_velocity, p.noise.q_acceleration),
                                                p.partner_timeout))
-        self._refused_partner_tracks = 0
+        self._refused: dict[str, int] = {}  # what was refused → how many
         self._alive_period_ns = to_ns(self.params.alive_period)
         self._last_published_ns: int | None = None
         self._refused_maps = 0
@@ -69,28 +73,48 @@ class TrackerNode(Node):
                                               np.asarray(r.shape, dtype=np.int64)))
 
     def on_points(self, msg: PointCloud, key: str) -> None:
-        for track_id in self.core.new_point_cloud(msg.header.stamp, to_numpy(msg.points), msg.sensor_pose.position):
+        points = to_numpy(msg.points)
+        if points.size % 3 or self._from_the_future(msg.header.stamp):
+            self._refuse("scans refused (not (N, 3) points, or stamped ahead of the clock)")
+            return
+        sensor = np.asarray(msg.sensor_pose.position, dtype=np.float64)
+        for track_id in self.core.new_point_cloud(msg.header.stamp, points,
+                                                  sensor if np.isfinite(sensor).all() else None):
             self.log.debug("track %d lost", track_id)
         self._report()
 
     def on_detections(self, msg: Detections, key: str) -> None:
-        positions = to_numpy(msg.positions)
-        covariances = to_numpy(msg.covariances) if len(positions) else None
+        positions, covariances = to_numpy(msg.positions), to_numpy(msg.covariances)
+        if positions.size % 3 or self._from_the_future(msg.header.stamp):
+            self._refuse("detection sets refused (not (N, 3) positions, or stamped ahead of the clock)")
+            return
+        positions = positions.reshape(-1, 3)
+        # a covariance per detection or none (each one is still checked by the core)
+        covariances = covariances.reshape(-1, 3, 3) if covariances.size == 9 * len(positions) else None
         self.core.new_detections(msg.header.stamp, positions, covariances)
+        self._report()
+
+    def _from_the_future(self, stamp: int) -> bool:
+        """A stamp beyond the clock by more than FUTURE_TOLERANCE_NS: a track predicted to it would
+        never take a correction again (it never predicts backwards)."""
+        return stamp > self.clock.now_ns() + FUTURE_TOLERANCE_NS
+
+    def _refuse(self, what: str) -> None:
+        self._refused[what] = self._refused.get(what, 0) + 1
         self._report()
 
     def on_partner_tracks(self, msg: Tracks, key: str) -> None:
         partner = keys.uav_of(key)
-        if partner == self.uav or not self.params.fleet:
-            return
+        if partner == self.uav or not self.params.fleet or partner_number(partner) <= 0:
+            return  # ourselves, or no UAV (a fleet id needs the partner's number)
         tracks = []
         for track in msg.tracks:
             if not track.confirmed or track.source != partner:
                 continue  # a partner's fleet tracks come from their own keepers, heard directly
             mean, covariance = to_numpy(track.state).reshape(-1), to_numpy(track.covariance)
             covariance = covariance.reshape(9, 9) if covariance.size == 81 else covariance
-            if not sound_partner_track(mean, covariance):
-                self._refused_partner_tracks += 1
+            if not (sound_partner_track(mean, covariance) and 0 <= track.id < FLEET_ID_BASE):
+                self._refuse("partner tracks refused (not a finite positive-definite CA state, or an id out of range)")
                 continue
             tracks.append(PartnerTrack(track.id, msg.header.stamp, mean, covariance, track.detections))
         self.fleet.partner_tracks(partner, msg.header.stamp, tracks)
@@ -102,8 +126,7 @@ class TrackerNode(Node):
                                 c.rejected_detections,
                                 "tracks dropped whose filter diverged to inf or NaN": c.diverged_tracks,
                                 "map messages refused (impossible geometry or contents)": self._refused_maps,
-                                "partner tracks refused (not a finite positive-definite CA state)":
-                                self._refused_partner_tracks})
+                                **self._refused})
 
     def on_tick(self, now_ns: int) -> None:
         for track_id in self.core.prune(now_ns):

@@ -64,8 +64,8 @@ class SingleTargetParams(msgspec.Struct, forbid_unknown_fields=True):
     # against 0.44 m at 5). 5 rather than 4: the flat optimum, and fewer resets of the velocity.
     recovery: bool = True
     max_missed: int = 5
-    # m², the measurement noise R given with every candidate (the filters raise it to their own
-    # floor; the adaptive one adapts above it). Not the cluster's covariance (eq. 5): that is the
+    # m², the measurement noise R given with every candidate (the fixed KF and the particle filter take it as
+    # given; the adaptive one adapts above it). Not the cluster's covariance (eq. 5): that is the
     # spread of 1-4 returns over the drone's surface, rank 1 for two returns, not the error of
     # their centroid. The centroids are about 0.25 m from the drone's centre in the sparse
     # scenario (the LiDAR sees its near side): σ ≈ 0.15 m per axis, 0.02 m². Kept at 0.1 m², the

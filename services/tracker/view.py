@@ -97,8 +97,8 @@ class PredictedPath:
 
 def track_path(track: Track) -> np.ndarray:
     """(K, 3) the track's predicted positions every trajectory_dt s after its stamp (empty: none)."""
-    if track.trajectory is None or not track.trajectory_dt > 0:
-        return np.zeros((0, 3))
+    if track.trajectory is None or not 0.0 < track.trajectory_dt < 1e6:
+        return np.zeros((0, 3))  # no path, or steps no prediction can mean
     path = np.asarray(to_numpy(track.trajectory), dtype=np.float64).reshape(-1)
     if path.size % 3 or not np.isfinite(path).all():
         return np.zeros((0, 3))  # not positions: ignored like a missing path
