@@ -273,3 +273,27 @@ def test_a_singular_detection_covariance_is_raised_in_every_direction_not_refuse
         assert tracker.new_detections(stamp(k), moving(k)[None], singular) == [1]
     [estimate] = tracker.estimates(stamp(3))
     assert estimate.detections == 4 and np.isfinite(estimate.state).all()
+
+
+def test_a_target_back_in_sight_soon_near_its_prediction_takes_its_identity_back():
+    """Out of sight long enough for its track to be dropped, then seen again where it would be:
+    the same identity (and its detections); far from there, or too late, a new one."""
+    def run(back_after: float, offset: float) -> list:
+        tracker = TrackerCore()
+        rng = np.random.default_rng(6)
+        for k in range(20):  # 2 s seen, 3 m/s along x
+            tracker.new_point_cloud(stamp(k), cloud(blob(moving(k), rng)))
+            tracker.new_detections(stamp(k), moving(k)[None])
+        k = 20
+        while len(tracker):  # unseen until the track is dropped
+            tracker.new_point_cloud(stamp(k), cloud())
+            k += 1
+        back = k + int(back_after * 10)
+        tracker.new_point_cloud(stamp(back), cloud(blob(moving(back) + [0, offset, 0], rng)))
+        tracker.new_detections(stamp(back), (moving(back) + [0, offset, 0])[None])
+        return tracker.estimates(stamp(back))
+
+    [again] = run(back_after=0.5, offset=0.0)
+    assert again.id == 1 and again.detections == 21 and again.confirmed
+    assert run(back_after=0.5, offset=8.0)[0].id == 2  # another target's place
+    assert run(back_after=4.0, offset=0.0)[0].id == 2  # gone too long

@@ -25,6 +25,10 @@ Where Falconry departs from the seed, and why:
   what in-order processing would have given. Without it a target whose returns the cloud update
   rejects (a balloon beside its pole, a target the map has not yet cleared) would only ever be
   predicted, and dropped at r_max while its detections keep coming.
+- A confirmed track dropped as too uncertain is remembered for `reidentify_time`: a new track
+  starting within r_max of where it would be by then takes its identity back. Alg. 2 gives a
+  target that left the sensor's reach for a moment a new identity, and the job manager follows an
+  interception by identity.
 - Two tracks that end up on the same cluster are merged, keeping the older identity: the cloud
   update lets both take the nearest centroid, and two copies of one target would otherwise
   coexist until one drifts off.
@@ -45,7 +49,7 @@ import numpy as np
 from services.classifier.core import surface_offset
 from services.geometry import is_covariance
 from services.tracker.filters import FILTERS, FilterParams, make_filter
-from services.tracker.filters.base import Estimate, InnovationStatistics
+from services.tracker.filters.base import NS, Estimate, InnovationStatistics
 from services.tracker.filters.models import covariance_at_least, manoeuvre_path, uncertainty_radius
 from services.tracker.kernels import points_near
 from services.voxels.kernels import clusters_near_occupied, euclidean_clusters
@@ -68,6 +72,10 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     cloud_noise: float = 0.01
     surface_bias: float = 0.667  # the classifier's: × the cluster's half-width, away from the sensor
     confirm_detections: int = 3  # n_det at which a track is confirmed (sporadic false positives stay below)
+    # s a confirmed track dropped as too uncertain is remembered: a new track starting within
+    # radius_max of where it would be by then takes its identity and its detections back
+    # (the target went out of sight and came back; Alg. 2 alone would give it a new identity)
+    reidentify_time: float = 3.0
     # Bounded work per scan whatever the input: a LiDAR returning garbage must not make the
     # tracker spend the whole tick on thousands of spurious tracks.
     max_tracks: int = 64
@@ -121,6 +129,16 @@ class _Track:
 
 
 @dataclass(frozen=True)
+class LostTrack:
+    """A confirmed track dropped as too uncertain, remembered for re-identification."""
+
+    id: int
+    corrected: Estimate  # its last corrected state
+    detections: int
+    dropped: int  # ns
+
+
+@dataclass(frozen=True)
 class Replayed:
     """A tentative track carried through the buffered clouds newer than its detection."""
 
@@ -169,6 +187,7 @@ class TrackerCounters:
     diverged_tracks: int = 0  # filters driven to inf or NaN (by extreme input): dropped
     merged_tracks: int = 0  # duplicates of one target
     late_clouds: int = 0  # clouds older than the buffer's oldest: no detection can need them
+    reidentified: int = 0  # new tracks that took back a lost track's identity
 
 
 class TrackerCore:
@@ -179,6 +198,7 @@ class TrackerCore:
         self.occupied: OccupiedVoxels | None = None
         self.counters = TrackerCounters()
         self._tracks: list[_Track] = []
+        self._lost: list[LostTrack] = []  # confirmed tracks dropped within reidentify_time
         self._next_id = 1
 
     def __len__(self) -> int:
@@ -216,7 +236,7 @@ class TrackerCore:
                 track.statistics.add(measured)
         self._drop_diverged()
         dropped = [t.id for t in self._tracks if self.radius(t.estimate) > self.params.radius_max]
-        self._tracks = [t for t in self._tracks if t.id not in dropped]
+        self._remove(dropped, stamp)
         self._merge_duplicates()
         return dropped
 
@@ -348,7 +368,12 @@ class TrackerCore:
         if len(self._tracks) >= self.params.max_tracks:
             return -1
         track = _Track(self._next_id, tentative.estimate, tentative.corrected, 1, stamp, tentative.statistics)
-        self._next_id += 1
+        lost = self._lost_identity(tentative.estimate)
+        if lost is not None:  # the same target back in sight: its identity and its detections
+            track.id, track.detections = lost.id, lost.detections + 1
+            self.counters.reidentified += 1
+        else:
+            self._next_id += 1
         self._tracks.append(track)
         taken.add(track.id)
         return track.id
@@ -415,8 +440,35 @@ class TrackerCore:
         """Drop the tracks whose uncertainty radius predicted to now_ns exceeds r_max (and diverged ones)."""
         self._drop_diverged()
         dropped = [e.id for e in self.estimates(now_ns, trajectory=False) if e.uncertainty_radius > self.params.radius_max]
-        self._tracks = [t for t in self._tracks if t.id not in dropped]
+        self._remove(dropped, now_ns)
         return dropped
+
+    def _remove(self, ids: list[int], now: int) -> None:
+        """Drop tracks; the confirmed ones are remembered for re-identification."""
+        for track in self._tracks:
+            if track.id in ids and track.detections >= self.params.confirm_detections:
+                self._lost.append(LostTrack(track.id, track.corrected, track.detections, now))
+        self._tracks = [t for t in self._tracks if t.id not in ids]
+        limit = int(self.params.reidentify_time * NS)
+        self._lost = [lost for lost in self._lost if now - lost.dropped <= limit]
+
+    def _lost_identity(self, estimate: Estimate) -> LostTrack | None:
+        """The remembered track whose target would be nearest `estimate` by its stamp (within
+        radius_max; its last corrected state carried on by the published trajectory's manoeuvre
+        model), taken out of the memory; None when none is that close."""
+        p, limit = self.params, int(self.params.reidentify_time * NS)
+        best, best_gap = None, p.radius_max
+        for lost in self._lost:
+            elapsed = (estimate.stamp - lost.corrected.stamp) / NS
+            if elapsed <= 0.0 or estimate.stamp - lost.dropped > limit:
+                continue
+            (expected,) = manoeuvre_path(lost.corrected.mean, elapsed, 1, p.manoeuvre_time)
+            gap = float(np.linalg.norm(expected - estimate.position))
+            if gap <= best_gap:
+                best, best_gap = lost, gap
+        if best is not None:
+            self._lost.remove(best)
+        return best
 
     def estimates(self, now_ns: int, trajectory: bool = True) -> list[TrackEstimate]:
         """Every track predicted to now_ns (never backwards), without changing the filters; the
