@@ -190,6 +190,7 @@ class Track(msgspec.Struct, kw_only=True):
     last_innovation: float = 0.0  # m, the last correction's innovation length
     primary: bool = False  # the confirmed track with the most detections (seed 000 sec. III-F1)
     source: str = ""  # the UAV whose tracker keeps it ("" in older recordings)
+    last_correction: int = 0  # stamp, ns, of its last correction by a scan or a detection (0: none known)
 
 
 class Tracks(msgspec.Struct, kw_only=True):

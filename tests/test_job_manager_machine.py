@@ -390,6 +390,28 @@ def test_a_drone_in_our_area_that_only_a_partner_sees_is_engaged_from_the_fleet_
     assert run(fleet=False).jm.state is State.GOING_AROUND  # sweeping its area, nothing seen
 
 
+def test_a_mover_the_detector_loses_stays_in_sight_while_its_track_takes_scan_updates():
+    """Beside a tree the classifier calls the drone background; the tracker still corrects its
+    track from the scans. Fresh corrections of the followed track keep the target seen; a track
+    that only coasts does not, and the target is unseen after t_m."""
+    def drone(t: float) -> np.ndarray:
+        return np.array([25.0 + 3.0 * t, 25.0, 6.0])
+
+    def run(corrected_by_scans: bool):
+        rig = Rig().airborne()
+        for t in np.arange(1.1, 6.05, 0.1):
+            t = round(float(t), 2)
+            seen = [drone(t)] if t <= 1.3 else []  # the detector loses it at 1.4 s
+            correction = s(t) if corrected_by_scans or t <= 1.3 else s(1.3)
+            rig.jm.observe_tracks(s(t), np.array([7]), drone(t)[None], np.array([[3.0, 0.0, 0.0]]),
+                                  covariances=np.eye(3)[None] * 0.04, corrected=np.array([correction]))
+            rig.tick(t, detections=seen)
+        return rig.jm.state
+
+    assert run(corrected_by_scans=True) is State.GOING_TO_TARGET
+    assert run(corrected_by_scans=False) is State.CHECKING_TARGET  # unseen for 3 s: checked again
+
+
 def test_a_far_target_is_not_lost_while_out_of_reliable_range():
     rig = Rig().engaged()  # locked at 1.2 from HOME, 14 m away
     far = BALLOON + [25.0, 0.0, 1.0]

@@ -58,6 +58,7 @@ MISSION_STATES = (State.IDLE, State.GOING_AROUND, State.CHECKING_TARGET, State.G
 _WATCHED = (State.TAKING_OFF, *MISSION_STATES)  # the abort system and the mission timer act here
 _DESCENDING = (State.LANDING, State.EMERGENCY_LANDING)
 REPLAN_LOOKAHEAD = 1.0  # s over which a mover's new prediction is compared with the one sent
+TRACK_SEEN_WITHIN = 0.15  # s: a track corrected this recently (a scan period and a half) sees its target
 _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "going_timeout",
           State.DESTROYING: "destroying_timeout"}
 
@@ -93,6 +94,7 @@ class Engagement:
     filter: TargetFilter
     moving: bool = False
     track_id: int | None = None  # the tracker's confirmed track of a mover, followed by its identity
+    track_corrected: int = 0  # ns: that track's last correction already taken as a sighting
     attacking: bool = False
     attack_direction: np.ndarray | None = None  # horizontal unit vector
     attack_target: np.ndarray | None = None
@@ -211,13 +213,18 @@ class JobManager:
 
     def observe_tracks(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray,
                        paths=(), path_dt: float = 0.0, fleet: np.ndarray | None = None,
-                       covariances: np.ndarray | None = None) -> None:
+                       covariances: np.ndarray | None = None, corrected: np.ndarray | None = None) -> None:
         """Confirmed tracks: ids (K,), positions and velocities (K, 3) at `stamp`, and each one's
         predicted path (M, 3) every path_dt s. They tell at the lock whether a target moves (the
         target filter finds out by itself a little later), and a mover is intercepted along them.
         `fleet` (K,) marks the tracks only partners see (their position covariances (K, 3, 3)):
-        those count as detections of the fleet (Sightings.fleet)."""
+        those count as detections of the fleet (Sightings.fleet). `corrected` (K,): when a scan or a
+        detection last corrected each track; a fresh correction of the track a mover is followed by
+        counts as seeing it (`_track_sees_the_mover`)."""
         self.seen.confirmed_tracks(ConfirmedTracks.of(stamp, ids, positions, velocities, paths, path_dt))
+        if corrected is not None:
+            self._track_sees_the_mover(stamp, np.asarray(ids).reshape(-1), np.asarray(positions).reshape(-1, 3),
+                                       np.asarray(corrected).reshape(-1), covariances)
         if fleet is None or not np.any(fleet):
             return
         fleet = np.asarray(fleet, dtype=bool)
@@ -226,6 +233,23 @@ class JobManager:
         above = seen[:, 2] >= self.ground_z + self.params.min_target_height
         if self.engagement is not None:
             self.engagement.filter.update(seen[above], stamp, _rows(covs, above))
+
+    def _track_sees_the_mover(self, stamp: int, ids: np.ndarray, positions: np.ndarray, corrected: np.ndarray,
+                              covariances: np.ndarray | None) -> None:
+        """The tracker's scan updates keep a mover in sight when the detector loses it: near trees
+        and walls the classifier calls its cluster background (rule A, d_close 1.5 m), while the
+        tracker, which knows it is a target, still takes its returns (occupied_distance 0.8 m)."""
+        e = self.engagement
+        if e is None or not e.moving or e.track_id is None:
+            return
+        found = np.flatnonzero(ids == e.track_id)
+        if not len(found):
+            return
+        k = int(found[0])
+        if corrected[k] <= e.track_corrected or stamp - corrected[k] > int(TRACK_SEEN_WITHIN * NS):
+            return
+        e.track_corrected = int(corrected[k])
+        e.filter.update(positions[k][None], stamp, _rows(covariances, found[:1]))
 
     def partner_status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool = True,
                        position=(0.0, 0.0, 0.0), state: str = "", target=None) -> None:

@@ -111,7 +111,8 @@ class JobManagerNode(Node):
                                  track_positions(confirmed), track_velocities(confirmed),
                                  [track_path(t) for t in confirmed], _path_dt(confirmed),
                                  fleet=np.array([t.source not in ("", self.uav) for t in confirmed], dtype=bool),
-                                 covariances=np.array([track_position_covariance(t) for t in confirmed]).reshape(-1, 3, 3))
+                                 covariances=np.array([track_position_covariance(t) for t in confirmed]).reshape(-1, 3, 3),
+                                 corrected=np.array([t.last_correction for t in confirmed], dtype=np.int64))
 
     def on_partner_status(self, msg: UavStatus, key: str) -> None:
         if msg.uav != self.uav:

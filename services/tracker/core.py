@@ -170,6 +170,7 @@ class TrackEstimate:
     updates: int
     mean_nis: float
     last_innovation: float
+    last_correction: int = 0  # ns, when a scan or a detection last corrected it
     primary: bool = False
 
     @property
@@ -489,6 +490,7 @@ class TrackerCore:
                 updates=track.statistics.updates,
                 mean_nis=track.statistics.mean_nis,
                 last_innovation=track.statistics.last_residual,
+                last_correction=track.corrected.stamp,
             ))
         confirmed = [e for e in out if e.confirmed]
         if confirmed:

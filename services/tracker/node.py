@@ -164,6 +164,7 @@ class TrackerNode(Node):
             last_innovation=own.last_innovation if own is not None else 0.0,
             primary=own.primary if own is not None else False,
             source=track.source,
+            last_correction=own.last_correction if own is not None else 0,
         )
 
 
