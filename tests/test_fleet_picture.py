@@ -34,7 +34,8 @@ duration = 1000.0
 """
 
 
-@pytest.mark.timeout(300)
+@pytest.mark.heavy  # a 35 s mission beyond make test's 15-minute budget: make acceptance (the fleet logic's
+@pytest.mark.timeout(300)  # unit tests, tests/test_tracker_fleet.py and the job manager's, run in make test)
 def test_a_drone_only_uav1_sees_in_uav2s_area_is_captured_by_uav2(tmp_path, port):
     scenario = tmp_path / "fleet.toml"
     scenario.write_text(SCENARIO)

@@ -5,7 +5,7 @@ Each tracker publishes its tracks; each also listens to its partners' and publis
   uncertainty radii, seed 000's similarity rule of Alg. 2 line 26; nearest first, one to one)
   are fused by covariance intersection (Julier & Uhlmann 1997):
       P⁻¹ = ω P_a⁻¹ + (1 − ω) P_b⁻¹,   x = P (ω P_a⁻¹ x_a + (1 − ω) P_b⁻¹ x_b),
-  with ω ∈ [0, 1] minimising trace(P) (scipy's bounded scalar minimiser). CI is consistent
+  with ω ∈ [0, 1] minimising trace(P) (on a grid refined once: `_trace_minimising_omega`). CI is consistent
   whatever the correlation between the two estimates, which is unknown here: the two trackers
   saw the same target, often in the same scans' time, and each may already hold the other's
   information from an earlier exchange. A Kalman-style fusion would count it twice and grow
@@ -28,12 +28,12 @@ import re
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from services.tracker.filters.base import NS
 from services.tracker.filters.models import process_noise, transition, uncertainty_radius
 
 FLEET_ID_BASE = 1_000_000
+OMEGA_STEPS = 21
 
 
 @dataclass(frozen=True)
@@ -70,16 +70,26 @@ def covariance_intersection(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.nd
                             omega: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """Fused (mean, covariance, ω); ω = None picks the trace-minimising one in [0, 1]."""
     info_a, info_b = np.linalg.inv(cov_a), np.linalg.inv(cov_b)
-
-    def fused_covariance(w: float) -> np.ndarray:
-        return np.linalg.inv(w * info_a + (1.0 - w) * info_b)
-
     if omega is None:
-        omega = float(minimize_scalar(lambda w: np.trace(fused_covariance(w)), bounds=(0.0, 1.0),
-                                      method="bounded", options={"xatol": 1e-4}).x)
-    covariance = fused_covariance(omega)
+        omega = _trace_minimising_omega(info_a, info_b)
+    covariance = np.linalg.inv(omega * info_a + (1.0 - omega) * info_b)
     mean = covariance @ (omega * info_a @ mean_a + (1.0 - omega) * info_b @ mean_b)
     return mean, 0.5 * (covariance + covariance.T), omega
+
+
+def _trace_minimising_omega(info_a: np.ndarray, info_b: np.ndarray) -> float:
+    """ω of the smallest trace(P), on a grid of OMEGA_STEPS refined once around the best: one batched
+    inverse per pass (a scalar minimiser's ~25 separate 9x9 inverses cost ~0.5 ms per fused
+    pair and tick; the trace is convex in ω, so a grid finds its minimum to 1/(OMEGA_STEPS-1)²)."""
+    low, high = 0.0, 1.0
+    for _ in range(2):
+        omegas = np.linspace(low, high, OMEGA_STEPS)
+        traces = np.trace(np.linalg.inv(omegas[:, None, None] * info_a + (1.0 - omegas)[:, None, None] * info_b),
+                          axis1=1, axis2=2)
+        best = int(np.argmin(traces))
+        step = (high - low) / (OMEGA_STEPS - 1)
+        low, high = max(0.0, omegas[best] - step), min(1.0, omegas[best] + step)
+    return float(omegas[best])
 
 
 def partner_number(name: str) -> int:
