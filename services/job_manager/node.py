@@ -29,7 +29,7 @@ from services.job_manager.core import NS, JobManager, MissionDecision
 from services.job_manager.params import JobManagerParams
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
-from services.tracker.view import (track_path, track_position, track_position_covariance, track_positions,
+from services.tracker.view import (path_step, track_path, track_position, track_position_covariance, track_positions,
                                    track_velocities, track_velocity)
 from services.runtime.warmup import preload
 
@@ -109,7 +109,7 @@ class JobManagerNode(Node):
                      and np.isfinite(track_velocity(t)).all()]
         self.core.observe_tracks(msg.header.stamp, np.array([t.id for t in confirmed], dtype=np.int64),
                                  track_positions(confirmed), track_velocities(confirmed),
-                                 [track_path(t) for t in confirmed], _path_dt(confirmed),
+                                 [track_path(t) for t in confirmed], path_step(confirmed[0]) if confirmed else 0.0,
                                  fleet=np.array([t.source not in ("", self.uav) for t in confirmed], dtype=bool),
                                  covariances=np.array([track_position_covariance(t) for t in confirmed]).reshape(-1, 3, 3),
                                  corrected=np.array([t.last_correction for t in confirmed], dtype=np.int64))
@@ -224,9 +224,3 @@ def _positions_and_covariances(msg: Detections) -> tuple[np.ndarray, np.ndarray]
     """(N, 3) positions and the covariances as sent (the core drops a covariance array of the wrong size)."""
     positions = to_numpy(msg.positions)
     return (positions.reshape(-1, 3) if positions.size else np.zeros((0, 3))), to_numpy(msg.covariances)
-
-
-def _path_dt(tracks: list) -> float:
-    """One step for every track's predicted path (one tracker made them all)."""
-    dt = float(tracks[0].trajectory_dt) if tracks else 0.0
-    return dt if 0.0 < dt < 1e6 else 0.0  # as track_path: a step no prediction can mean is no path

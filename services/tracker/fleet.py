@@ -30,7 +30,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from services.tracker.filters.base import NS
-from services.tracker.filters.models import process_noise, transition, uncertainty_radius
+from services.tracker.filters.kalman import predicted_moments
+from services.tracker.filters.models import process_noise, uncertainty_radius
 
 FLEET_ID_BASE = 1_000_000
 OMEGA_STEPS = 21
@@ -128,9 +129,9 @@ class FleetPicture:
 
     def _carried(self, track: PartnerTrack, now: int) -> PartnerTrack:
         dt = max(0.0, (now - track.stamp) / NS)
-        f = transition(dt)
-        covariance = f @ track.covariance @ f.T + process_noise(self.params.process_rates, dt)
-        return replace(track, stamp=now, mean=f @ track.mean, covariance=covariance)
+        mean, covariance = predicted_moments(track.mean, track.covariance, dt,
+                                             process_noise(self.params.process_rates, dt))
+        return replace(track, stamp=now, mean=mean, covariance=covariance)
 
     def _radius(self, covariance: np.ndarray) -> float:
         return uncertainty_radius(covariance, self.params.radius_min, self.params.radius_confidence)

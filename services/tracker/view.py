@@ -12,7 +12,7 @@ import numpy as np
 
 from schemas.arrays import to_numpy
 from schemas.messages import Track
-from services.tracker.filters.models import transition
+from services.tracker.filters.models import manoeuvre_path
 
 
 def track_position(track: Track) -> np.ndarray:
@@ -54,7 +54,7 @@ def predicted_path(track: Track, horizon: float, step: float = 0.1) -> np.ndarra
     state = np.asarray(to_numpy(track.state), dtype=np.float64).reshape(-1)
     if len(state) < 9:
         return start
-    return np.array([(transition(float(t)) @ state[:9])[:3] for t in np.arange(0.0, horizon + 1e-9, step)])
+    return np.vstack([start, manoeuvre_path(state[:9], step, int(horizon / step + 1e-9), np.inf)])
 
 
 @dataclass(frozen=True)
@@ -95,10 +95,17 @@ class PredictedPath:
         return PredictedPath(position, velocity, path, dt)
 
 
+def path_step(track: Track) -> float:
+    """The track's trajectory_dt, s; 0 when it is no step a prediction can mean (none, not
+    finite, not positive, absurdly long)."""
+    dt = float(track.trajectory_dt)
+    return dt if 0.0 < dt < 1e6 else 0.0
+
+
 def track_path(track: Track) -> np.ndarray:
     """(K, 3) the track's predicted positions every trajectory_dt s after its stamp (empty: none)."""
-    if track.trajectory is None or not 0.0 < track.trajectory_dt < 1e6:
-        return np.zeros((0, 3))  # no path, or steps no prediction can mean
+    if track.trajectory is None or not path_step(track):
+        return np.zeros((0, 3))
     path = np.asarray(to_numpy(track.trajectory), dtype=np.float64).reshape(-1)
     if path.size % 3 or not np.isfinite(path).all():
         return np.zeros((0, 3))  # not positions: ignored like a missing path
