@@ -80,9 +80,12 @@ def test_the_camera_frames_a_balloon_object_detect_finds_it_and_takes_new_colour
     colors.undeclare()
 
     frames = {m.header.stamp: m for m in got["camera"] if m.header.stamp != BAD_FRAME_NS}
-    # 10 Hz half a period after the 10 Hz LiDAR scans: 0.05 s, 0.15 s, ... (in real time a loaded
-    # machine may shed a tick to a slow renderer: not every slot is required)
-    assert all(stamp % 100_000_000 == 50_000_000 for stamp in frames) and len(frames) >= 12
+    # 10 Hz half a period after the 10 Hz LiDAR scans: 0.05 s, 0.15 s, ... In real time a loaded
+    # machine may shed a tick to a slow renderer; the camera then renders at the next tick of that
+    # slot (0.10 s), never twice in one slot, and most frames still sit on the phase.
+    slots = [(stamp - 50_000_000) // 100_000_000 for stamp in frames]
+    on_phase = [stamp for stamp in frames if stamp % 100_000_000 == 50_000_000]
+    assert len(set(slots)) == len(slots) and len(on_phase) >= 12 and len(on_phase) >= 0.75 * len(frames), sorted(frames)
     first = frames[min(frames)]
     assert (first.width, first.height) == (640, 360) and to_numpy(first.color).shape == (360, 640, 3)
     assert to_numpy(first.depth).dtype == np.uint16

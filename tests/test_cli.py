@@ -144,3 +144,23 @@ def test_messages_missed_by_a_stopped_service_are_counted_apart_from_the_deliver
     assert stopped_services([], restarted={"uav1/planner"}) == {"uav1/planner"}
     whole_uav = stopped_services([FaultCommand(header=Header(), kind="freeze", uav="uav1")], set())
     assert health_totals(usage, whole_uav)["lost_own_uav"] == 0
+
+
+def test_the_launchers_light_service_entry_is_falconry_run():
+    """The launcher starts services with `python -m services.launcher.run_service`: the same `run`
+    command (its options, its one-line errors) without importing every other command."""
+    import subprocess
+    import sys
+
+    def entry(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "services.launcher.run_service", *args],
+                              capture_output=True, text=True, timeout=60)
+    full, light = falconry("run", "--help"), entry("run", "--help")
+    assert light.returncode == 0 and light.stdout == full.stdout
+    for args in (("run", "tracker"), ("run", "tracker", "--uav", "uav1", "--log-level", "loud")):
+        a, b = falconry(*args), entry(*args)
+        assert (a.returncode, a.stderr) == (b.returncode, b.stderr) and b.returncode == 2, b.stderr
+    imported = subprocess.run([sys.executable, "-c", "import sys, services.launcher.run_service; "
+                               "print(sorted(m for m in sys.modules if m.endswith('_cmd')))"],
+                              capture_output=True, text=True, timeout=60)
+    assert imported.stdout.strip() == "['services.launcher.run_cmd']", imported.stdout

@@ -3,19 +3,12 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
-import logging
 import sys
 
 from services.launcher import (analyze_cmd, campaign_cmd, certs_cmd, colors_cmd, completion_cmd, evaluate_cmd,
                                export_cmd, health_cmd, params_cmd, record_cmd, replay_cmd, router_cmd, run_cmd,
                                sim_cmd, units_cmd, view_cmd)
-from services.launcher.common import EXIT_CODES, Parser
-from services.runtime.errors import INTERRUPTED, RuntimeFailure, UsageError
-from services.runtime.zenoh_config import OpenCancelled
-from services.simulator.scenario import ScenarioError
-
-
-LOG_LEVELS = ("debug", "info", "warning", "error")
+from services.launcher.common import EXIT_CODES, Parser, add_log_level, execute
 
 
 def version() -> str:
@@ -53,11 +46,6 @@ def subcommand_parsers(parser: argparse.ArgumentParser) -> list[argparse.Argumen
     return found
 
 
-def add_log_level(parser: argparse.ArgumentParser, default) -> None:
-    parser.add_argument("--log-level", default=default, choices=LOG_LEVELS,
-                        help="log verbosity of this process (default: info); before or after the command")
-
-
 def build_parser() -> argparse.ArgumentParser:
     parser = Parser(
         prog="falconry",
@@ -90,19 +78,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)  # argparse itself exits 2 with a one-line usage error
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
-                        format="%(asctime)s.%(msecs)03d %(levelname).1s %(name)s: %(message)s", datefmt="%H:%M:%S")
-    try:
-        return args.handler(args)
-    except (UsageError, ScenarioError) as exc:
-        print(f"falconry {args.command}: error: {exc}", file=sys.stderr)
-        return UsageError.exit_code
-    except RuntimeFailure as exc:  # e.g. Zenoh unreachable: one line too, and a code that asks for a restart
-        print(f"falconry {args.command}: error: {exc}", file=sys.stderr)
-        return exc.exit_code
-    except (KeyboardInterrupt, OpenCancelled):
-        return INTERRUPTED
+    return execute(build_parser().parse_args(argv))  # argparse itself exits 2 with a one-line usage error
 
 

@@ -3,12 +3,15 @@ and the exit codes' explanation."""
 from __future__ import annotations
 
 import argparse
+import logging
 import os
+import sys
 
 from schemas import keys
 from services.runtime import tls
-from services.runtime.errors import INTERRUPTED, RUNTIME_FAILURE, USAGE_ERROR, UsageError
-from services.runtime.zenoh_config import PROFILES, RETRY_FIRST_S, RETRY_MAX_S, ZenohSettings
+from services.runtime.errors import INTERRUPTED, RUNTIME_FAILURE, USAGE_ERROR, RuntimeFailure, UsageError
+from services.runtime.zenoh_config import PROFILES, RETRY_FIRST_S, RETRY_MAX_S, OpenCancelled, ZenohSettings
+from services.simulator.scenario import ScenarioError
 
 EXIT_CODES = f"""exit codes:
   0    done (a finished run; a service stopped by SIGTERM or Ctrl-C)
@@ -19,6 +22,7 @@ EXIT_CODES = f"""exit codes:
        restart me, with back-off
   {INTERRUPTED}  interrupted (Ctrl-C)"""
 FOREVER = object()  # add_zenoh_options(connect_timeout=FOREVER): keep trying by default
+LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
 class CliError(UsageError):
@@ -43,6 +47,28 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str):
         self.exit(USAGE_ERROR, f"{self.prog}: error: {message} (see `{self.prog} --help`)\n")
+
+
+def add_log_level(parser: argparse.ArgumentParser, default) -> None:
+    parser.add_argument("--log-level", default=default, choices=LOG_LEVELS,
+                        help="log verbosity of this process (default: info); before or after the command")
+
+
+def execute(args: argparse.Namespace) -> int:
+    """Run a parsed command with its log level; a user error or a runtime failure is one line on
+    stderr and its exit code (EXIT_CODES)."""
+    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
+                        format="%(asctime)s.%(msecs)03d %(levelname).1s %(name)s: %(message)s", datefmt="%H:%M:%S")
+    try:
+        return args.handler(args)
+    except (UsageError, ScenarioError) as exc:
+        print(f"falconry {args.command}: error: {exc}", file=sys.stderr)
+        return UsageError.exit_code
+    except RuntimeFailure as exc:  # e.g. Zenoh unreachable: one line too, and a code that asks for a restart
+        print(f"falconry {args.command}: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except (KeyboardInterrupt, OpenCancelled):
+        return INTERRUPTED
 
 
 def add_zenoh_options(parser: argparse.ArgumentParser, embedded_hint: str, connect_timeout=None,
