@@ -295,5 +295,84 @@ def test_a_target_back_in_sight_soon_near_its_prediction_takes_its_identity_back
 
     [again] = run(back_after=0.5, offset=0.0)
     assert again.id == 1 and again.detections == 21 and again.confirmed
-    assert run(back_after=0.5, offset=8.0)[0].id == 2  # another target's place
-    assert run(back_after=4.0, offset=0.0)[0].id == 2  # gone too long
+    assert run(back_after=0.5, offset=8.0)[0].id == 2  # another target's place (until it is confirmed)
+    assert run(back_after=4.0, offset=0.0)[0].id == 2  # gone too long for this rule
+
+
+def seen_then_lost(tracker: TrackerCore, path, rng, scans: int = 20) -> int:
+    """`scans` scans of a target on `path(k)` with a detection each, then empty scans until its
+    track is dropped; returns the scan index after that."""
+    for k in range(scans):
+        tracker.new_point_cloud(stamp(k), cloud(blob(path(k), rng)))
+        tracker.new_detections(stamp(k), path(k)[None])
+    k = scans
+    while len(tracker):
+        tracker.new_point_cloud(stamp(k), cloud())
+        k += 1
+    return k
+
+
+def seen_again(tracker: TrackerCore, path, start: int, rng, scans: int = 3) -> list:
+    for k in range(start, start + scans):
+        tracker.new_point_cloud(stamp(k), cloud(blob(path(k), rng)))
+        tracker.new_detections(stamp(k), path(k)[None])
+    return tracker.estimates(stamp(start + scans - 1))
+
+
+def standing(x: float, y: float = 5.0):
+    return lambda k: np.array([x, y, 6.0])
+
+
+def test_a_newcomer_confirmed_within_a_lost_tracks_reach_and_moving_like_it_takes_its_identity():
+    """Track-segment association (stitch_time): the mover lost 10 s ago comes back 20 m on, and
+    the balloon out of sight for 10 s is seen where it stood: their identities, with their
+    detections, from the moment they are confirmed again."""
+    rng = np.random.default_rng(11)
+    mover, back = TrackerCore(), None
+    back = seen_then_lost(mover, moving, rng) + 100
+    elsewhere = lambda k: moving(k) + [-10.0, 6.0, 0.0]  # some 25 m from where it was lost; 3 m/s
+    before = seen_again(mover, elsewhere, back, rng, scans=2)
+    assert [(e.id, e.confirmed) for e in before] == [(2, False)]  # not yet: a false detection could be this
+    [after] = seen_again(mover, elsewhere, back + 2, rng, scans=1)
+    assert after.id == 1 and after.confirmed and after.detections == 23 and mover.counters.stitched == 1
+
+    balloon = TrackerCore()
+    back = seen_then_lost(balloon, standing(8.0), rng) + 100
+    [again] = seen_again(balloon, standing(8.3), back, rng)
+    assert again.id == 1 and again.detections == 23
+
+
+def test_no_identity_is_taken_out_of_reach_across_motions_or_after_stitch_time():
+    rng = np.random.default_rng(12)
+
+    def newcomer_id(lost_path, new_path, gap_scans: int, **params) -> int:
+        tracker = TrackerCore(TrackerParams(**params))
+        back = seen_then_lost(tracker, lost_path, rng) + gap_scans
+        return seen_again(tracker, new_path, back, rng)[0].id
+
+    # a balloon never flies off: 8 m from where it stood is another one
+    assert newcomer_id(standing(8.0), standing(16.0), 100) == 2
+    # a drone passing where a balloon stood does not take its identity, nor a balloon a drone's
+    assert newcomer_id(standing(8.0), lambda k: moving(k - 100 - 20) + [6.0, 0.0, 0.0], 100) == 2
+    assert newcomer_id(moving, standing(15.0), 100) == 2
+    # beyond stitch_speed × the time out of sight (8 m/s × ~1.3 s + r_max), or remembered too long
+    assert newcomer_id(moving, lambda k: moving(k) + [0.0, 30.0, 0.0], 4) == 2
+    assert newcomer_id(moving, lambda k: moving(k) + [0.0, 6.0, 0.0], 100, stitch_time=5.0) == 2
+    assert newcomer_id(moving, lambda k: moving(k) + [0.0, 6.0, 0.0], 100) == 1
+
+
+def test_of_two_lost_movers_the_one_nearest_for_its_reach_is_taken():
+    rng = np.random.default_rng(13)
+    tracker = TrackerCore()
+    first = seen_then_lost(tracker, moving, rng)
+    other = lambda k: moving(k) + [0.0, 30.0, 0.0]  # a second drone, 30 m to the side, lost later
+    k = first + 5
+    for j in range(k, k + 20):
+        tracker.new_point_cloud(stamp(j), cloud(blob(other(j), rng)))
+        tracker.new_detections(stamp(j), other(j)[None])
+    k += 20
+    while len(tracker):
+        tracker.new_point_cloud(stamp(k), cloud())
+        k += 1
+    [back] = seen_again(tracker, lambda j: other(j) + [2.0, 0.0, 0.0], k + 10, rng)
+    assert back.id == 2  # beside where the second was lost, not the first

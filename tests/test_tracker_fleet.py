@@ -62,12 +62,24 @@ def theirs(track_id: int, position, stamp: int = 0, variance: float = 0.2) -> Pa
 def test_a_target_both_see_is_one_fused_track_and_one_only_a_partner_sees_is_added():
     fleet = FleetPicture(PARAMS)
     fleet.partner_tracks("uav2", 0, [theirs(4, [10.3, 0.0, 5.0]), theirs(9, [40.0, 20.0, 6.0])])
-    out = fleet.fuse([own(1, [10.0, 0.0, 5.0], confirmed=False)], 0)
+    out = fleet.fuse([own(1, [10.0, 0.0, 5.0], confirmed=True)], 0)
     fused, added = out
     assert fused.id == 1 and fused.source == "uav1" and fused.fused_with == ("uav2",) and fused.confirmed
     assert 10.0 < fused.mean[0] < 10.3 and fused.detections == 8
     assert added.id == 2 * FLEET_ID_BASE + 9 and added.source == "uav2" and added.confirmed
     assert np.allclose(added.mean[:3], [40.0, 20.0, 6.0])
+
+
+def test_a_tentative_own_track_is_fused_under_the_partners_identity_until_we_confirm_it():
+    """Our tracker has not confirmed the target yet (nor given it its identity, perhaps a lost
+    track's): the fused track is the partner's, not a confirmed own track with a passing number."""
+    fleet = FleetPicture(PARAMS)
+    fleet.partner_tracks("uav2", 0, [theirs(4, [10.3, 0.0, 5.0])])
+    [fused] = fleet.fuse([own(7, [10.0, 0.0, 5.0], confirmed=False)], 0)
+    assert fused.id == 2 * FLEET_ID_BASE + 4 and fused.source == "uav2" and fused.confirmed
+    assert fused.fused_with == ("uav2",) and 10.0 < fused.mean[0] < 10.3
+    [alone] = fleet.fuse([own(7, [30.0, 0.0, 5.0], confirmed=False)], 0)[:1]
+    assert alone.id == 7 and alone.source == "uav1" and not alone.confirmed
 
 
 def test_partner_tracks_are_carried_to_now_and_dropped_when_the_partner_falls_silent():

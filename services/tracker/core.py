@@ -25,10 +25,17 @@ Where Falconry departs from the seed, and why:
   what in-order processing would have given. Without it a target whose returns the cloud update
   rejects (a balloon beside its pole, a target the map has not yet cleared) would only ever be
   predicted, and dropped at r_max while its detections keep coming.
-- A confirmed track dropped as too uncertain is remembered for `reidentify_time`: a new track
-  starting within r_max of where it would be by then takes its identity back. Alg. 2 gives a
-  target that left the sensor's reach for a moment a new identity, and the job manager follows an
-  interception by identity.
+- A confirmed track dropped as too uncertain keeps its identity for a target that comes back.
+  Alg. 2 gives a target that left the sensor's reach a new identity each time, and the job
+  manager follows an interception by identity. Two rules, both after track-segment association:
+  within `reidentify_time` a new track starting within r_max of where the lost one would be by
+  then (its manoeuvre model) takes its identity back at once; within `stitch_time` a new track
+  takes it when it is confirmed, if it moves like the lost one did (both faster than
+  `moving_speed`, or both slower) and lies within reach of where it was last seen: r_max plus
+  `stitch_speed` × the time since for a mover, r_max for a standing target. Among several such
+  lost tracks the one nearest relative to its reach is taken. Waiting for confirmation keeps
+  sporadic false detections from taking an identity; the motion check keeps a drone passing a
+  balloon that went out of sight from taking the balloon's.
 - Two tracks that end up on the same cluster are merged, keeping the older identity: the cloud
   update lets both take the nearest centroid, and two copies of one target would otherwise
   coexist until one drifts off.
@@ -76,6 +83,14 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     # radius_max of where it would be by then takes its identity and its detections back
     # (the target went out of sight and came back; Alg. 2 alone would give it a new identity)
     reidentify_time: float = 3.0
+    # s a confirmed track dropped is remembered for a new track that is confirmed later: it takes
+    # the identity if it moves like the lost one and is within its reach (the module's text)
+    stitch_time: float = 30.0
+    stitch_speed: float = 8.0  # m/s, the fastest a target is expected to fly while out of sight
+    # m/s, a track faster than this is a mover. A new track is confirmed on ~0.2 s of detections and
+    # its speed is still shrunk toward 0 then: a 3 m/s drone shows 0.9-1.5 m/s, a standing target
+    # below 0.5 in 95 % of simulated cases (σ = 0.1 m detections)
+    moving_speed: float = 0.5
     # Bounded work per scan whatever the input: a LiDAR returning garbage must not make the
     # tracker spend the whole tick on thousands of spurious tracks.
     max_tracks: int = 64
@@ -92,9 +107,11 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
         if self.filter not in FILTERS:
             raise msgspec.ValidationError(f"filter must be one of {', '.join(FILTERS)}, not {self.filter!r}")
         for name in ("radius_min", "radius_confidence", "radius_max", "cluster_distance", "cloud_noise",
-                     "trajectory_step", "manoeuvre_time"):
+                     "trajectory_step", "manoeuvre_time", "moving_speed"):
             if not getattr(self, name) > 0:
                 raise msgspec.ValidationError(f"{name} must be positive")
+        if not (self.reidentify_time >= 0 and self.stitch_time >= 0 and self.stitch_speed >= 0):
+            raise msgspec.ValidationError("reidentify_time, stitch_time and stitch_speed must be at least 0")
         if not 0.0 <= self.surface_bias <= 1.0:
             raise msgspec.ValidationError("surface_bias must be from 0 to 1")
         if self.buffer_size < 1 or self.confirm_detections < 1 or self.max_tracks < 1:
@@ -126,6 +143,7 @@ class _Track:
     detections: int
     last_detection: int  # ns
     statistics: InnovationStatistics = field(default_factory=InnovationStatistics)
+    stitch_checked: bool = False  # a lost identity was looked for when it was confirmed (or it took one at birth)
 
 
 @dataclass(frozen=True)
@@ -188,7 +206,8 @@ class TrackerCounters:
     diverged_tracks: int = 0  # filters driven to inf or NaN (by extreme input): dropped
     merged_tracks: int = 0  # duplicates of one target
     late_clouds: int = 0  # clouds older than the buffer's oldest: no detection can need them
-    reidentified: int = 0  # new tracks that took back a lost track's identity
+    reidentified: int = 0  # new tracks that took back a lost track's identity at birth (reidentify_time)
+    stitched: int = 0  # new tracks that took a lost track's identity when confirmed (stitch_time)
 
 
 class TrackerCore:
@@ -199,7 +218,7 @@ class TrackerCore:
         self.occupied: OccupiedVoxels | None = None
         self.counters = TrackerCounters()
         self._tracks: list[_Track] = []
-        self._lost: list[LostTrack] = []  # confirmed tracks dropped within reidentify_time
+        self._lost: list[LostTrack] = []  # confirmed tracks dropped within reidentify_time or stitch_time
         self._next_id = 1
 
     def __len__(self) -> int:
@@ -346,7 +365,8 @@ class TrackerCore:
         taken: set[int] = set()
         for k, noise, tentative in zip(rows, noises, replayed):
             assigned[k] = self._admit(stamp, positions[k], noise, tentative, view, taken)
-        return assigned
+        renamed = self._stitch_confirmed()
+        return [renamed.get(track_id, track_id) for track_id in assigned]
 
     def _usable(self, positions: np.ndarray, covariances: np.ndarray | None) -> np.ndarray:
         sound = np.isfinite(positions).all(axis=1)
@@ -371,7 +391,7 @@ class TrackerCore:
         track = _Track(self._next_id, tentative.estimate, tentative.corrected, 1, stamp, tentative.statistics)
         lost = self._lost_identity(tentative.estimate)
         if lost is not None:  # the same target back in sight: its identity and its detections
-            track.id, track.detections = lost.id, lost.detections + 1
+            track.id, track.detections, track.stitch_checked = lost.id, lost.detections + 1, True
             self.counters.reidentified += 1
         else:
             self._next_id += 1
@@ -450,7 +470,7 @@ class TrackerCore:
             if track.id in ids and track.detections >= self.params.confirm_detections:
                 self._lost.append(LostTrack(track.id, track.corrected, track.detections, now))
         self._tracks = [t for t in self._tracks if t.id not in ids]
-        limit = int(self.params.reidentify_time * NS)
+        limit = int(max(self.params.reidentify_time, self.params.stitch_time) * NS)
         self._lost = [lost for lost in self._lost if now - lost.dropped <= limit]
 
     def _lost_identity(self, estimate: Estimate) -> LostTrack | None:
@@ -467,6 +487,40 @@ class TrackerCore:
             gap = float(np.linalg.norm(expected - estimate.position))
             if gap <= best_gap:
                 best, best_gap = lost, gap
+        if best is not None:
+            self._lost.remove(best)
+        return best
+
+    def _stitch_confirmed(self) -> dict[int, int]:
+        """Tracks confirmed since the last look take the identity of a lost track they move like
+        and are within reach of (stitch_time); returns new id by old id."""
+        renamed = {}
+        for track in self._tracks:
+            if track.stitch_checked or track.detections < self.params.confirm_detections:
+                continue
+            track.stitch_checked = True
+            lost = self._stitched_identity(track.estimate)
+            if lost is not None:
+                renamed[track.id] = lost.id
+                track.id, track.detections = lost.id, track.detections + lost.detections
+                self.counters.stitched += 1
+        return renamed
+
+    def _stitched_identity(self, estimate: Estimate) -> LostTrack | None:
+        """The lost track, remembered within stitch_time, that `estimate` moves like and is nearest
+        to relative to its reach; taken out of the memory. None when there is none."""
+        p = self.params
+        moving = float(np.linalg.norm(estimate.mean[3:6])) > p.moving_speed
+        best, best_share = None, 1.0
+        for lost in self._lost:
+            elapsed = (estimate.stamp - lost.corrected.stamp) / NS
+            was_moving = float(np.linalg.norm(lost.corrected.mean[3:6])) > p.moving_speed
+            if elapsed <= 0.0 or elapsed > p.stitch_time or moving != was_moving:
+                continue
+            reach = p.radius_max + (p.stitch_speed * elapsed if moving else 0.0)
+            share = float(np.linalg.norm(estimate.mean[:3] - lost.corrected.mean[:3])) / reach
+            if share <= best_share:
+                best, best_share = lost, share
         if best is not None:
             self._lost.remove(best)
         return best

@@ -9,7 +9,10 @@ Each tracker publishes its tracks; each also listens to its partners' and publis
   whatever the correlation between the two estimates, which is unknown here: the two trackers
   saw the same target, often in the same scans' time, and each may already hold the other's
   information from an earlier exchange. A Kalman-style fusion would count it twice and grow
-  overconfident;
+  overconfident. An own track not yet confirmed is fused too, but published under the
+  partner's fleet id and `source` (below) until our own tracker confirms it: only then does
+  our tracker give it its identity (possibly a lost track's, core.py), and a tentative number
+  published as a confirmed own track would be one identity too many;
 - a partner's track no own track matches is published as a track of ours with `source` set to
   the partner, under a fleet id: 1,000,000 × the partner's number + its id (stable while the
   partner keeps its id, never equal to an own id), so a UAV can go for a target only a partner sees.
@@ -116,16 +119,24 @@ class FleetPicture:
     def fuse(self, own: list[FleetTrack], now: int) -> list[FleetTrack]:
         """`own` (at `now`) joined with every fresh partner's tracks carried to `now`."""
         out = list(own)
+        tentative = {i for i, t in enumerate(own) if not t.confirmed}  # published as a partner's when fused
         for partner, tracks in self.partners(now).items():
             carried = [self._carried(t, now) for t in tracks]
             matches = self._matches(out, carried)
             for k, track in enumerate(carried):
                 if k in matches:
                     out[matches[k]] = self._fused(out[matches[k]], track, partner)
+                    if matches[k] in tentative:
+                        tentative.discard(matches[k])
+                        out[matches[k]] = replace(out[matches[k]], id=self.fleet_id(partner, track.id), source=partner)
                 else:
-                    out.append(FleetTrack(partner_number(partner) * FLEET_ID_BASE + track.id, track.mean,
+                    out.append(FleetTrack(self.fleet_id(partner, track.id), track.mean,
                                           track.covariance, track.detections, True, partner))
         return out
+
+    @staticmethod
+    def fleet_id(partner: str, track_id: int) -> int:
+        return partner_number(partner) * FLEET_ID_BASE + track_id
 
     def _carried(self, track: PartnerTrack, now: int) -> PartnerTrack:
         dt = max(0.0, (now - track.stamp) / NS)
