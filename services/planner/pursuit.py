@@ -6,11 +6,18 @@ changing is followed smoothly (the merge of intercept.py instead waits on the pr
 The reference is a virtual vehicle flown forward in time under the target's predicted path
 p_T(t): the tracker's own prediction (its filter's trajectory, curved for a turning target) when
 the command carries one, else the constant-velocity line p + v·t. It demands the target's
-predicted velocity plus a closing velocity towards the predicted target of at most √(2·b·gap) (b = BRAKING·a_max, so it can always brake onto the
-track without overshooting), and reaches that demand at up to a_max; speed stays within the
-profile's total and vertical limits. So every sample is within the profile by construction, the
-gap closes as fast as the limits allow, and the reference then lies on the predicted track.
+predicted velocity plus a closing velocity towards the predicted target of at most √(2·b·gap)
+(b = BRAKING·a_max, so it can always brake onto the track without overshooting), and reaches
+that demand at up to a_max; speed stays within the profile's total and vertical limits. So
+every sample is within the profile by construction, the gap closes as fast as the limits allow,
+and the reference then lies on the predicted track.
 After `horizon` it brakes to rest, in case no newer prediction comes.
+
+Close in, the closing speed is at most TERMINAL_GAIN·gap (below 2b/k², 2.0 m at the attack
+profile). The net takes a drone at a relative speed of at most 2 m/s within 1 m, and the
+square-root law alone arrives there at up to 1.7 m/s plus the control lag: against agile seed
+5's random manoeuvrer, which flies into the waiting UAV, it gave misses within 0.4-1.3 m at
+3-4 m/s relative. The linear law closes the last metres at 1.2 m/s per metre, still onto the track.
 """
 from __future__ import annotations
 
@@ -22,6 +29,7 @@ from services.tracker.view import PredictedPath
 
 BRAKING = 0.5  # share of max_acceleration the closing speed plans to brake with
 GAIN = 4.0  # 1/s: how fast the velocity demand is taken up (then capped by max_acceleration)
+TERMINAL_GAIN = 1.2  # 1/s: the closing speed close in is at most this × the gap (a capture's relative speed)
 _MARGIN = 0.98  # of each limit, so differences of the samples stay inside it too
 
 
@@ -57,7 +65,8 @@ def pursuit(position, target_position, target_velocity, *, profile: ConstraintPr
     for k in range(steps):  # inherently sequential: a vehicle flown forward in time
         gap = targets[k] - p
         distance = float(np.linalg.norm(gap))
-        closing = np.sqrt(2.0 * braking * distance) * gap / distance if distance > 1e-9 else np.zeros(3)
+        speed = min(np.sqrt(2.0 * braking * distance), TERMINAL_GAIN * distance)
+        closing = speed * gap / distance if distance > 1e-9 else np.zeros(3)
         demand = _limit_velocity(target_velocities[k] + closing, profile)
         dv = _clip(GAIN * (demand - v) * dt, accel * dt)
         v_next = _limit_velocity(v + dv, profile)
