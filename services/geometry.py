@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+GRAVITY = 9.80665  # m/s², standard gravity: the world frame is z up, gravity along −z
+
 
 def rotation_matrix(orientation_wxyz) -> np.ndarray:
     """(3, 3) rotation of a quaternion given as (w, x, y, z), the order of schemas' Pose; normalised

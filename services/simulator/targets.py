@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.messages import TargetTruth
+from services.geometry import GRAVITY
 from services.simulator.paths import DronePath
 from services.simulator.specs import Scenario
 
@@ -27,7 +28,6 @@ LEAN_45_WIND = 8.0  # m/s of wind at which a balloon leans 45°
 CROSS_GUST_SHARE = 0.5  # the cross-wind gust's amplitude relative to the along-wind gust
 CROSS_GUST_FREQUENCY = 1.618  # relative to the along-wind gust's; irrational, so the sway never repeats exactly
 VELOCITY_STEP_S = 1e-3  # central differences for the balloons' (smooth, closed-form) velocity
-GRAVITY = 9.81
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,7 @@ from typing import NamedTuple
 import numpy as np
 
 from schemas.messages import VehicleTruth
+from services.geometry import GRAVITY
 from services.simulator.checks import start_poses
 from services.simulator.specs import NS, Scenario
 
@@ -42,7 +43,6 @@ KD = 2.5
 BRAKING_MARGIN = 0.8  # fraction of max_acceleration the approach speed cap plans to brake with
 TAKEOFF_HEIGHT = 0.2  # above ground: airborne
 LANDED_HEIGHT = 0.05  # above ground: landed again (hysteresis against chatter)
-GRAVITY = 9.81
 EMERGENCY_DESCENT = 1.0  # m/s
 OFFBOARD_TIMEOUT_S = 5.0  # s without a trajectory reference before an airborne UAV holds its position
 MIN_VARIANCE = 1e-6  # reported for a noiseless estimate, so the covariance stays invertible
