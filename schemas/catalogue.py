@@ -29,6 +29,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("falconry/sim/resume", m.GroundTruth, "launcher (queryable: the last ground truth of the run)", "a restarted simulator", "on query"),
     Entry("falconry/sim/faults", m.FaultCommand, "simulator (from the scenario's fault schedule)", "sensor_driver, launcher; every service's runtime (lockstep: a silenced upstream is not waited for)", "at each fault's time"),
     Entry("falconry/<uav>/odometry", m.Odometry, "simulator (onboard: flight controller bridge)", "job_manager, planner", "1/tick"),
+    Entry("falconry/<uav>/imu", m.ImuBatch, "simulator (onboard: flight controller bridge)", "none yet (the LiDAR-inertial localizer to come)", "1/tick, 200 samples/s (`[simulator.imu] rate_hz`)"),
     Entry("falconry/<uav>/points", m.PointCloud, "sensor_driver", "classifier, mapper (ray casting), tracker (track updates)", "10 Hz"),
     Entry("falconry/<uav>/points_truth", m.PointTruth, "sensor_driver (simulated LiDAR only)", "oracle detector, launcher (evaluation: targets in sight)", "with every scan"),
     Entry("falconry/<uav>/camera", m.CameraFrame, "camera (onboard: RealSense driver)", "object_detect, `falconry snapshot` (raw frames stay on their UAV)", "10 Hz, between LiDAR scans"),

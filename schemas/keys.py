@@ -75,6 +75,8 @@ def ack(scope: str, service: str) -> str:
 # Per-UAV topics that a party other than the UAV's own services publishes: the access control of
 # a team (services/runtime/tls.py) grants exactly these, and their publishers name them from here.
 ODOMETRY = "odometry"  # the flight controller's pose; in simulation the simulator stands in for it
+IMU = "imu"  # the flight controller's accelerometer and gyroscope samples; in simulation the simulator's
+FLIGHT_CONTROLLER_TOPICS = (ODOMETRY, IMU)  # what the flight controller (the simulator) publishes per UAV
 COLORS = "colors"  # a colour file sent live from the ground (`falconry colors pick --send`)
 
 ALL_ALIVE = f"{ROOT}/*/alive/*"

@@ -120,6 +120,22 @@ class Odometry(msgspec.Struct, kw_only=True):
     covariance: Array | None = None
 
 
+class ImuBatch(msgspec.Struct, kw_only=True):
+    """One UAV's IMU samples over one clock tick (onboard, the flight controller's raw IMU), in the
+    body frame: x forward, y left, z up (FLU), at the vehicle's centre. Sample j was taken at
+    stamps[j]; the stamps lie on the grid k · (1 s / rate_hz) of mission time within [the previous
+    batch's stamp, header.stamp), so consecutive batches tile the stream without gap or repeat (tick
+    0's batch holds none). `accelerometer` is the specific force, acceleration minus gravity (at rest
+    +9.81 m/s² along z, in free fall 0), `gyroscope` the angular rate; both carry the sensor's white
+    noise and bias (services/simulator/imu.py). Every batch is needed: subscribe without shedding."""
+
+    header: Header  # stamp: the tick's end; frame: the UAV's body frame, named after the UAV ("uav1")
+    stamps: Array  # int64 (N,) mission time of each sample, ns
+    accelerometer: Array  # float64 (N, 3) specific force, m/s², body frame
+    gyroscope: Array  # float64 (N, 3) angular rate, rad/s, body frame
+    rate_hz: int  # samples per second of mission time
+
+
 class Detections(msgspec.Struct, kw_only=True):
     """Flying objects found in one scan: N rows in every array."""
 
@@ -443,4 +459,5 @@ ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (
     CameraFrame,
     CompressedFrame,
     ColorUpdate,
+    ImuBatch,
 )

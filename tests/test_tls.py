@@ -227,6 +227,7 @@ def test_certificate_names_serve_loopback_the_radio_and_compose():
     ("uav2", "ingress", "declare_subscriber", "**", False),
     ("uav3", "ingress", "put", "falconry/uav3/status", False),  # not in this team
     ("sim", "ingress", "put", "falconry/uav1/odometry", True),
+    ("sim", "ingress", "put", "falconry/uav1/imu", True),
     ("sim", "ingress", "put", "falconry/sim/clock", True),
     ("sim", "ingress", "put", "falconry/uav1/command", False),
     ("sim", "ingress", "put", "falconry/uav1/trajectory", False),
@@ -284,7 +285,7 @@ class _Declarations:
 def test_the_access_control_admits_everything_each_service_declares(service):
     """Every publisher, subscriber, queryable and the liveliness token of the real node classes,
     checked against the team's ACL for the identity that service presents (the simulator's
-    per-UAV odometry included): the ACL cannot starve the team."""
+    per-UAV odometry and IMU included): the ACL cannot starve the team."""
     parser = cli.build_parser()
     argv = ["run", service] + (["--uavs", "2"] if service in keys.SIM_SERVICES else ["--uav", "uav1"])
     args = parser.parse_args(argv)
@@ -298,7 +299,8 @@ def test_the_access_control_admits_everything_each_service_declares(service):
     assert not refused, f"{service} as {identity}: {refused}"
     assert len({m for m, _ in made}) >= 4
     if service == "simulator":  # it stands in for each UAV's flight controller
-        assert {k for m, k in made if m == "put"} >= {keys.uav(u, keys.ODOMETRY) for u in TEAM}
+        flight_controllers = {keys.uav(u, t) for u in TEAM for t in keys.FLIGHT_CONTROLLER_TOPICS}
+        assert {k for m, k in made if m == "put"} >= flight_controllers
     # what `falconry sim`'s launcher (identity sim) declares besides: run events, the resume queryable
     for message, key in (("put", keys.EVENTS), ("declare_queryable", keys.RESUME), ("reply", keys.RESUME)):
         assert allowed(acl, tls.SIM, "ingress", message, key)

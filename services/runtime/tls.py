@@ -23,8 +23,8 @@ by the remote's certificate CN. Default deny, and
 - a UAV may *publish* (ingress put, delete, liveliness token, queryable, reply) only under
   falconry/<its uav>/**: its services' data, acknowledgements, health answers and liveliness.
 - sim may publish only falconry/sim/** (clock, world, truth, events, faults, resume, its own
-  health/ack/alive) and each team UAV's flight-controller key, falconry/<uav>/odometry
-  (keys.ODOMETRY, what the simulator publishes for each UAV).
+  health/ack/alive) and each team UAV's flight-controller keys, falconry/<uav>/odometry and
+  falconry/<uav>/imu (keys.FLIGHT_CONTROLLER_TOPICS, what the simulator publishes for each UAV).
 - ground may publish only each team UAV's falconry/<uav>/colors (keys.COLORS, a live colour file
   from `falconry colors pick --send`). Health is a query (an ask). `falconry replay` is NOT
   granted: it publishes sensor data, odometry, the clock and liveliness tokens on behalf of
@@ -228,7 +228,8 @@ def access_control(team) -> dict[str, object]:
         {"id": "ask", "messages": list(ASK), "flows": ["ingress"], "permission": "allow", "key_exprs": everything},
     ]
     publishes = {uav: [keys.uav(uav, "**")] for uav in team}
-    publishes[SIM] = [keys.sim("**")] + [keys.uav(uav, keys.ODOMETRY) for uav in team]
+    flight_controllers = [keys.uav(uav, topic) for uav in team for topic in keys.FLIGHT_CONTROLLER_TOPICS]
+    publishes[SIM] = [keys.sim("**")] + flight_controllers
     publishes[GROUND] = [keys.uav(uav, keys.COLORS) for uav in team]
     subjects, policies = [], []
     for identity, key_exprs in publishes.items():
@@ -330,7 +331,7 @@ The compose router with mutual TLS and the access control of team {','.join(team
 Services connect with
   falconry run SERVICE --uav uavN --zenoh-profile router --connect tls/{COMPOSE_ROUTER_HOST}:{ZENOH_PORT} --tls {DEPLOY_TLS_DIR}
 Each UAV may publish only under falconry/<its uav>/**, sim only falconry/sim/** and each
-UAV's odometry, ground only each UAV's colors; everyone may read falconry/**."""
+UAV's odometry and imu, ground only each UAV's colors; everyone may read falconry/**."""
     return _render(header, nest(router_inserts([listen], tls_files=_deploy_files(ROUTER), team=list(team))))
 
 

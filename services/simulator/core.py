@@ -4,28 +4,41 @@ Pure and deterministic: no clocks, no I/O; mission time only moves through `step
 integrates the UAVs in sub-steps of at most MAX_SUBSTEP_S and checks balloon hits and drone
 captures at every sub-step. The pieces live in their own modules: `vehicles.py` (UAV point masses, odometry
 with noise and jumps, emergency landing), `targets.py` (balloons swaying in the wind, scripted
-drones, destruction and capture), `paths.py` (the drones' scripted paths).
+drones, destruction and capture), `paths.py` (the drones' scripted paths), `imu.py` (each UAV's
+accelerometer and gyroscope).
+
+IMU: every step hands each UAV's IMU the true motion of the tick at its knots (the start and the
+end of every sub-step: velocity and heading), and `imu(uav)` returns the samples stamped in
+[the step's start, its end). Each UAV's IMU draws from its own generator, keyed like the odometry
+noise by (seed, UAV index, a salt) and by the mission time its stream starts (0 for a new run,
+the resume time for a restarted simulator, which gets new biases), so nothing else that draws
+moves its samples. The IMU measures whatever the vehicle does, alive or not: resting on the
+ground (landed, or dead and fallen) it reads +g along body z, a dead one falling 0, and the
+impact a spike of the velocity it lost within one sub-step.
 
 Later issues deepen it: collisions with obstacles, wind on the UAVs, attitude dynamics.
 """
 from __future__ import annotations
 
 import math
+import zlib
 
 import numpy as np
 
 from schemas.messages import Obstacle
+from services.simulator.imu import Imu, ImuParams, ImuSamples, TickMotion
 from services.simulator.specs import NS, POLE_RADIUS, Scenario
 from services.simulator.targets import Balloons, Drones, TargetState
 from services.simulator.vehicles import Fleet, OdometryReading, VehicleState, make_reference
 
 MAX_SUBSTEP_S = 0.01
+IMU_SALT = zlib.crc32(b"imu")
 
-__all__ = ["Simulation", "VehicleState", "TargetState", "OdometryReading", "MAX_SUBSTEP_S"]
+__all__ = ["Simulation", "VehicleState", "TargetState", "OdometryReading", "ImuSamples", "MAX_SUBSTEP_S"]
 
 
 class Simulation:
-    def __init__(self, scenario: Scenario, uav_names: list[str], seed: int) -> None:
+    def __init__(self, scenario: Scenario, uav_names: list[str], seed: int, imu: ImuParams | None = None) -> None:
         self.scenario = scenario
         self.uav_names = list(uav_names)
         self.seed = seed
@@ -36,6 +49,9 @@ class Simulation:
         self.drones = Drones(scenario, seed)
         self._static = self._static_obstacles()
         self._pending: list[tuple[str, str, str]] = []  # events raised between steps
+        self.imu_params = imu if imu is not None else ImuParams()
+        self._imus = self._switch_on_imus()
+        self._imu_samples = [ImuSamples.empty() for _ in self.uav_names]  # of the last step
 
     # ------------------------------------------------------------ inputs
     def index(self, uav: str) -> int:
@@ -95,26 +111,34 @@ class Simulation:
             if tid in gone:  # it falls (or rests) from where the truth last saw it
                 self.drones.captured_at[k] = self.time_ns / NS
                 self.drones.capture_points[k] = gone[tid].position
+        self._imus = self._switch_on_imus()
+        self._imu_samples = [ImuSamples.empty() for _ in self.uav_names]
 
     # ------------------------------------------------------------ physics
     def step(self, dt: float) -> list[tuple[str, str, str]]:
         """Advance by dt seconds; returns the events (kind, subject, detail) in the order they happened."""
         events, self._pending = self._pending, []
-        if dt <= 0:
+        total_ns = int(round(dt * NS)) if dt > 0 else 0
+        if total_ns <= 0:  # no mission time passes (dt <= 0 or under half a nanosecond): nothing moves
+            self._imu_samples = [ImuSamples.empty() for _ in self.uav_names]
             return events
-        total_ns = int(round(dt * NS))
         substeps = max(1, math.ceil(dt / MAX_SUBSTEP_S - 1e-9))
         h = dt / substeps
         fleet = self.fleet
         count = len(self.uav_names)
         times_ns = [self.time_ns + total_ns * k // substeps for k in range(1, substeps + 1)]
         positions, velocities = np.empty((substeps, count, 3)), np.empty((substeps, count, 3))
+        headings = np.empty((substeps, count))
+        start_velocities, start_headings = fleet.velocity.copy(), fleet.heading.copy()
         tagged: list[tuple[int, int, tuple[str, str, str]]] = []  # (sub-step, source, event)
         for k, t_ns in enumerate(times_ns):
             flown: list[tuple[str, str, str]] = []
             fleet.integrate(t_ns, h, flown)
             tagged += [(k, 0, e) for e in flown]
-            positions[k], velocities[k] = fleet.position, fleet.velocity
+            positions[k], velocities[k], headings[k] = fleet.position, fleet.velocity, fleet.heading
+        self._measure_imus(np.array([self.time_ns] + times_ns, dtype=np.int64),
+                           np.concatenate([start_velocities[None], velocities]),
+                           np.concatenate([start_headings[None], headings]))
         # Targets move on closed forms of time, so hits and captures are checked for all sub-steps at once.
         t = np.array(times_ns, dtype=float) / NS
         tagged += [(k, 1, e) for k, e in self.balloons.check_hits(t, positions, fleet.alive, self.uav_names)]
@@ -132,12 +156,29 @@ class Simulation:
         """What the UAV's own state estimate says now: (position, velocity, heading, covariance 6×6)."""
         return self.fleet.odometry(self.index(uav), self.time_ns)
 
+    def imu(self, uav: str) -> ImuSamples:
+        """The UAV's IMU samples over the last step, stamped in [its start, its end), body frame (FLU);
+        none before the first step."""
+        return self._imu_samples[self.index(uav)]
+
     def targets(self) -> list[TargetState]:
         t = self.time_ns / NS
         return self.balloons.states(t) + self.drones.states(t)
 
     def obstacles(self) -> list[Obstacle]:
         return list(self._static)
+
+    def _switch_on_imus(self) -> list[Imu]:
+        """A fresh IMU per UAV (new biases), its stream starting at the current mission time."""
+        start_ns = max(self.time_ns, 0)
+        return [Imu(self.imu_params, np.random.default_rng([self.fleet.seed, i, IMU_SALT, start_ns]))
+                for i in range(len(self.uav_names))]
+
+    def _measure_imus(self, knots_ns: np.ndarray, velocities: np.ndarray, headings: np.ndarray) -> None:
+        """Each UAV's samples of the step just flown, from its knots: stamps (K + 1,), velocities
+        (K + 1, UAVs, 3) and headings (K + 1, UAVs) at the step's start and each sub-step's end."""
+        self._imu_samples = [imu.samples(TickMotion(knots_ns, velocities[:, i], headings[:, i]))
+                             for i, imu in enumerate(self._imus)]
 
     def _static_obstacles(self) -> list[Obstacle]:
         s = self.scenario

@@ -1,6 +1,6 @@
 """A simulated IMU per UAV: the true motion over one simulator tick in, the accelerometer and gyroscope
-samples of that tick out. For the LiDAR-inertial localizer to come: seed 003 sec. 2.1's "Grape" system
-fused a Pixhawk Mini's IMU with GTSAM's preintegrated IMU factor.
+samples of that tick out (seed 003 sec. 2.1's "Grape" system fused a Pixhawk Mini's IMU with GTSAM's
+preintegrated IMU factor).
 
 Pure: numpy in, numpy out; the noise comes from an injected `numpy.random.Generator`.
 
@@ -15,8 +15,7 @@ Frames: body x forward, y left, z up (FLU) at the vehicle's point mass (no lever
 the heading as yaw about it, as vehicles.py and the simulator node's pose quaternion have it. The
 vehicles are point masses that fly level with a heading only, so roll and pitch are taken as 0:
 R_wb = Rz(heading) and ω_b = (0, 0, heading rate). A real multirotor tilts to accelerate and feels a
-horizontal manoeuvre mostly along its body z; this level IMU feels it along body x and y. Once the
-vehicle model has attitude, R_wb and ω_b should come from it.
+horizontal manoeuvre mostly along its body z; this level IMU feels it along body x and y.
 
 The true motion of a tick (TickMotion) is given at its knots, the start of the tick and the end of each
 physics sub-step, as world velocity and heading; between knots the acceleration and the yaw rate are
@@ -174,6 +173,11 @@ class ImuSamples:
 
     def __len__(self) -> int:
         return len(self.stamps_ns)
+
+    @classmethod
+    def empty(cls) -> ImuSamples:
+        """No samples: what an IMU gives over no time."""
+        return cls(np.empty(0, dtype=np.int64), np.empty((0, 3)), np.empty((0, 3)))
 
 
 class Imu:

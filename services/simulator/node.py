@@ -1,7 +1,7 @@
 """Simulator node: owns the mission clock and drives the run.
 
 Each tick it applies the trajectory references the planners sent, advances the world,
-publishes odometry, ground truth and events, then the clock tick. In lockstep mode it
+publishes odometry, IMU samples, ground truth and events, then the clock tick. In lockstep mode it
 waits for every live service's acknowledgement of the tick before the next one, and
 tells the services (in the tick's `bounds`) exactly which messages belong to it; in
 real-time mode it paces ticks at the requested real-time factor.
@@ -25,6 +25,7 @@ from schemas.messages import (
     FaultCommand,
     GroundTruth,
     Header,
+    ImuBatch,
     Odometry,
     Pose,
     SimClock,
@@ -39,7 +40,8 @@ from services.runtime.errors import UsageError
 from services.runtime.counted import CountedWarnings
 from services.runtime.lockstep import LockstepGate
 from services.runtime.node import Node
-from services.simulator.core import Simulation
+from services.simulator.core import ImuSamples, Simulation
+from services.simulator.imu import ImuParams
 from services.simulator.checks import check_team
 from services.simulator.scenario import load_scenario
 
@@ -51,6 +53,9 @@ class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     startup_timeout: float = 60.0  # s of wall time to wait for every service before starting anyway
     startup_settle: float = 1.0  # s of wall time between the last service coming up and the first tick
     world_period: float = 1.0  # s of mission time between WorldModel re-publications
+    # Every UAV's IMU, a Pixhawk-class one by default: services/simulator/imu.py documents each field
+    # and its source. A rate_hz that is a multiple of 100 puts samples on the physics' 10 ms sub-steps.
+    imu: ImuParams = msgspec.field(default_factory=ImuParams)
 
 
 def _vec(values) -> tuple[float, float, float]:
@@ -79,7 +84,7 @@ class SimulatorNode(Node):
         if self.duration <= 0 or self.rtf <= 0 or self.tick_s <= 0:
             raise UsageError("--duration, --rtf and --tick must be positive")
         check_team(self.scenario, self.uav_names)
-        self.sim = Simulation(self.scenario, self.uav_names, self.seed)
+        self.sim = Simulation(self.scenario, self.uav_names, self.seed, imu=self.params.imu)
         self._alive: set[str] = set()
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
         self._refused_references = 0
@@ -97,6 +102,7 @@ class SimulatorNode(Node):
         self.events_pub = self.publisher(keys.EVENTS, SimEvent)
         self.faults_pub = self.publisher(keys.FAULTS, FaultCommand)
         self.odometry_pubs = {u: self.publisher(keys.uav(u, keys.ODOMETRY), Odometry) for u in self.uav_names}
+        self.imu_pubs = {u: self.publisher(keys.uav(u, keys.IMU), ImuBatch) for u in self.uav_names}
         for u in self.uav_names:
             self.subscribe(keys.uav(u, "trajectory"), TrajectoryReference, self.on_trajectory)
         self.subscribe_runtime(keys.ALL_ACKS, StepAck, self._on_ack)
@@ -294,6 +300,7 @@ class SimulatorNode(Node):
             self.odometry_pubs[v.name].put(Odometry(
                 header=Header(stamp=now), pose=Pose(position=_vec(position), orientation=heading_quaternion(heading)),
                 velocity=_vec(velocity), covariance=from_numpy(np.asarray(covariance, dtype=np.float64))))
+            self.imu_pubs[v.name].put(imu_batch(self.sim.imu(v.name), now, v.name, self.sim.imu_params.rate_hz))
         self.truth_pub.put(GroundTruth(
             header=Header(stamp=now), step=step,
             uavs=[VehicleTruth(name=v.name, position=tuple(float(x) for x in v.position),
@@ -304,6 +311,13 @@ class SimulatorNode(Node):
     def event(self, kind: str, subject: str, detail: str = "") -> None:
         self.log.info("event %s %s %s", kind, subject, detail)
         self.events_pub.put(SimEvent(header=Header(stamp=self.clock.now_ns()), kind=kind, subject=subject, detail=detail))
+
+
+def imu_batch(samples: ImuSamples, now: int, uav: str, rate_hz: int) -> ImuBatch:
+    """The message of one UAV's samples over the tick ending at `now`, in its body frame."""
+    return ImuBatch(header=Header(stamp=now, frame=uav), stamps=from_numpy(samples.stamps_ns),
+                    accelerometer=from_numpy(samples.accelerometer), gyroscope=from_numpy(samples.gyroscope),
+                    rate_hz=rate_hz)
 
 
 NODE = SimulatorNode
