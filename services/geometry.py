@@ -6,9 +6,16 @@ Pure numpy (no scipy: see services/runtime/warmup.py). Polygons are (K, 2) verte
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 GRAVITY = 9.80665  # m/s², standard gravity: the world frame is z up, gravity along −z
+
+
+def heading_quaternion(heading: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of a level body turned `heading` rad about the world's z (up) axis."""
+    return (math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2))
 
 
 def rotation_matrix(orientation_wxyz) -> np.ndarray:

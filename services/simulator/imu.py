@@ -61,7 +61,7 @@ from dataclasses import dataclass
 import msgspec
 import numpy as np
 
-from services.geometry import GRAVITY, rotation_matrix  # GRAVITY: also the unit "g" of the datasheets' µg
+from services.geometry import GRAVITY, heading_quaternion, rotation_matrix  # GRAVITY: also the unit "g" of the datasheets' µg
 from services.simulator.specs import NS
 
 MIN_RATE_HZ = 100  # at least 10 samples between two of the localizer's 10 Hz LiDAR scans
@@ -252,7 +252,7 @@ def body_to_world(headings: np.ndarray) -> np.ndarray:
         return np.empty((0, 3, 3))
     # A vehicle holding its heading (at rest, hovering, flying straight) needs a single rotation.
     distinct, which = np.unique(headings, return_inverse=True)
-    rotations = np.stack([rotation_matrix((math.cos(h / 2), 0.0, 0.0, math.sin(h / 2))) for h in distinct])
+    rotations = np.stack([rotation_matrix(heading_quaternion(h)) for h in distinct])
     return rotations[which.reshape(-1)]
 
 

@@ -12,7 +12,6 @@ liveliness token returns.
 """
 from __future__ import annotations
 
-import math
 import time
 
 import msgspec
@@ -35,6 +34,7 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
+from services.geometry import heading_quaternion
 from services.runtime.clock import seconds, to_ns
 from services.runtime.errors import UsageError
 from services.runtime.counted import CountedWarnings
@@ -60,10 +60,6 @@ class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
 
 def _vec(values) -> tuple[float, float, float]:
     return (float(values[0]), float(values[1]), float(values[2]))
-
-
-def heading_quaternion(heading: float) -> tuple[float, float, float, float]:
-    return (math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2))
 
 
 class SimulatorNode(Node):
