@@ -18,6 +18,15 @@ def heading_quaternion(heading: float) -> tuple[float, float, float, float]:
     return (math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2))
 
 
+def rotate_yaw(vectors: np.ndarray, heading) -> np.ndarray:
+    """(..., 3) vectors turned by `heading` rad about z (a level body's frame to the world's; the
+    negative heading turns world vectors into the body frame). `heading` is a scalar or broadcasts
+    against the vectors' leading axes, one angle per vector."""
+    c, s = np.cos(heading), np.sin(heading)
+    x, y = vectors[..., 0], vectors[..., 1]
+    return np.stack([c * x - s * y, s * x + c * y, vectors[..., 2]], axis=-1)
+
+
 def rotation_matrix(orientation_wxyz) -> np.ndarray:
     """(3, 3) rotation of a quaternion given as (w, x, y, z), the order of schemas' Pose; normalised
     first (a message's quaternion is only approximately unit); all NaN for a zero quaternion."""

@@ -18,7 +18,7 @@ What the paper leaves open, and what Falconry chose:
 - Of the candidates that pass, the nearest by centre is taken: the same wall seen in two sectors
   gives two map planes that both pass, and the nearer patch is the better-placed landmark.
 - The map only grows here; seed 003 prunes the oldest features from the graph, which is the
-  caller's to do (`FeatureMap` has no removal yet).
+  caller's to do: `FeatureMap` never removes a feature.
 
 Pure: numpy and scipy; the k-d trees are rebuilt lazily, on the first query after features were added.
 """

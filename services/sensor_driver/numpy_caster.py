@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from services.geometry import rotate_yaw
+
 EPS = 1e-9  # hits closer than this along the ray are the surface the ray starts on
 
 
@@ -148,12 +150,6 @@ def _hit_cone(o: np.ndarray, d: np.ndarray, row: np.ndarray) -> np.ndarray:
         np.minimum(best, np.where((z >= z0) & (z <= z0 + h), t, np.inf), out=best)
     np.minimum(best, _disk(o, d, cx, cy, z0, r), out=best)
     return best
-
-
-def rotate_yaw(directions: np.ndarray, heading: float) -> np.ndarray:
-    c, s = np.cos(heading), np.sin(heading)
-    x, y = directions[..., 0], directions[..., 1]
-    return np.stack([c * x - s * y, s * x + c * y, directions[..., 2]], axis=-1)
 
 
 def scan(origin: np.ndarray, heading: float, directions: np.ndarray, primitives,

@@ -61,7 +61,7 @@ from dataclasses import dataclass
 import msgspec
 import numpy as np
 
-from services.geometry import GRAVITY, heading_quaternion, rotation_matrix  # GRAVITY: also the unit "g" of the datasheets' µg
+from services.geometry import GRAVITY, rotate_yaw  # GRAVITY: also the unit "g" of the datasheets' µg
 from services.simulator.specs import NS
 
 MIN_RATE_HZ = 100  # at least 10 samples between two of the localizer's 10 Hz LiDAR scans
@@ -239,21 +239,10 @@ def true_readings(motion: TickMotion, stamps_ns: np.ndarray, gravity: float) -> 
     elapsed = (stamps_ns - motion.stamps_ns[segment]) / NS
     headings = motion.headings[segment] + yaw_rates * elapsed
     world_force = motion.accelerations()[segment] + np.array([0.0, 0.0, gravity])  # a_w − g_w
-    specific_force = np.einsum("nji,nj->ni", body_to_world(headings), world_force)  # R_wbᵀ f_w
+    specific_force = rotate_yaw(world_force, -headings)  # R_wbᵀ f_w: a level body turned by its heading
     angular_rate = np.zeros((len(stamps_ns), 3))
     angular_rate[:, 2] = yaw_rates  # level flight: the body rate is the heading rate about z
     return specific_force, angular_rate
-
-
-def body_to_world(headings: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) R_wb of a level body at each heading, through geometry's quaternion rotation."""
-    headings = np.asarray(headings, dtype=np.float64).reshape(-1)
-    if len(headings) == 0:
-        return np.empty((0, 3, 3))
-    # A vehicle holding its heading (at rest, hovering, flying straight) needs a single rotation.
-    distinct, which = np.unique(headings, return_inverse=True)
-    rotations = np.stack([rotation_matrix(heading_quaternion(h)) for h in distinct])
-    return rotations[which.reshape(-1)]
 
 
 def _random_walk(start: np.ndarray, steps: np.ndarray) -> np.ndarray:
