@@ -447,3 +447,20 @@ def test_a_sweep_interrupted_mid_line_resumes_where_the_vehicle_is_the_way_it_wa
     positions, _ = lawnmower(wide, 5.0, 20.0, profile=SWEEP, start=on_line, start_heading=0.0)
     first_leg = positions[: int(np.argmin(np.abs(positions[:, 0] - 98.0)))]
     assert np.all(np.diff(first_leg[:, 0]) >= -1e-9)
+
+
+def test_pursuit_never_follows_a_prediction_below_its_floor():
+    """Agile seed 4: a drone braking out of a dive, unseen behind a tree, was predicted on into the
+    ground, and the pursuing UAV hit it at 3 m/s. The reference holds the floor under such a prediction."""
+    from services.planner.core import pursuit
+    uav, target = np.array([0.0, 0.0, 4.0]), np.array([6.0, 0.0, 3.0])
+    diving = np.array([2.0, 0.0, -1.5])
+    positions, headings = pursuit(uav, target, diving, profile=ATTACK, start_velocity=np.array([3.0, 0.0, -1.0]),
+                                  start_heading=0.0, horizon=12.0, floor=1.0)
+    check_profile(positions, headings, ATTACK)
+    assert positions[:, 2].min() >= 1.0 - 1e-9
+    late = positions[int(round(6.0 / DT)):int(round(12.0 / DT))]
+    np.testing.assert_allclose(late[:, 2], 1.0, atol=0.05)  # under the prediction, at the floor's height
+    unfloored, _ = pursuit(uav, target, diving, profile=ATTACK, start_velocity=np.array([3.0, 0.0, -1.0]),
+                           start_heading=0.0, horizon=12.0)
+    assert unfloored[:, 2].min() < 0.0  # the case is real: without the floor it goes underground
