@@ -7,6 +7,7 @@ import pytest
 
 from schemas.voxels import STATE_OCCUPIED
 from services.tracker.core import OccupiedVoxels, TrackerCore, TrackerParams
+from services.tracker.filters.models import manoeuvre_path, manoeuvre_state
 from services.tracker.kernels import points_near
 
 NS = 1_000_000_000
@@ -376,3 +377,30 @@ def test_of_two_lost_movers_the_one_nearest_for_its_reach_is_taken():
         k += 1
     [back] = seen_again(tracker, lambda j: other(j) + [2.0, 0.0, 0.0], k + 10, rng)
     assert back.id == 2  # beside where the second was lost, not the first
+
+
+def test_a_track_coasting_through_missed_scans_is_published_by_the_manoeuvre_model():
+    """Eq. 27 holds the last acceleration as long as a track coasts: 2 s of a 4 m/s² brake turn
+    into 8 m. The published state carries the last correction on with the acceleration fading
+    (manoeuvre_time), the covariance is the filter's prediction (so r_unc and dropping are as before)."""
+    rng = np.random.default_rng(3)
+    tracker = TrackerCore()
+    for k in range(15):
+        tracker.new_detections(stamp(k), detections_only(k, rng), np.eye(3)[None] * 0.02)
+    corrected = tracker.estimates(stamp(14))[0]
+    later = stamp(14) + 2 * NS
+    [coasting] = tracker.estimates(later)
+    expected = manoeuvre_state(corrected.state, 2.0, tracker.params.manoeuvre_time)
+    np.testing.assert_allclose(coasting.state, expected, atol=1e-9)
+    np.testing.assert_allclose(coasting.trajectory[0], manoeuvre_path(expected, 0.25, 1, tracker.params.manoeuvre_time)[0])
+    assert coasting.uncertainty_radius > corrected.uncertainty_radius
+
+
+def test_the_manoeuvre_state_is_the_derivative_of_the_manoeuvre_path():
+    mean = np.array([1.0, 2.0, 3.0, 4.0, -1.0, 0.5, -4.0, 2.0, 1.0])
+    for tau in (0.5, 1.0, np.inf):
+        state = manoeuvre_state(mean, 1.3, tau)
+        (here,), (ahead,) = manoeuvre_path(mean, 1.3, 1, tau), manoeuvre_path(mean, 1.3 + 1e-6, 1, tau)
+        np.testing.assert_allclose(state[:3], here)
+        np.testing.assert_allclose(state[3:6], (ahead - here) / 1e-6, atol=1e-4)
+        np.testing.assert_allclose(manoeuvre_state(state, 0.7, tau), manoeuvre_state(mean, 2.0, tau), atol=1e-9)

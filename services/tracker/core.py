@@ -57,7 +57,7 @@ from services.classifier.core import surface_offset
 from services.geometry import is_covariance
 from services.tracker.filters import FILTERS, FilterParams, make_filter
 from services.tracker.filters.base import NS, Estimate, InnovationStatistics
-from services.tracker.filters.models import covariance_at_least, manoeuvre_path, uncertainty_radius
+from services.tracker.filters.models import covariance_at_least, manoeuvre_path, manoeuvre_state, uncertainty_radius
 from services.tracker.kernels import points_near
 from services.voxels.kernels import clusters_near_occupied, euclidean_clusters
 
@@ -527,20 +527,26 @@ class TrackerCore:
 
     def estimates(self, now_ns: int, trajectory: bool = True) -> list[TrackEstimate]:
         """Every track predicted to now_ns (never backwards), without changing the filters; the
-        confirmed track with the most detections is marked primary."""
+        confirmed track with the most detections is marked primary. The state published is the
+        last correction carried on by the manoeuvre model (manoeuvre_time), the covariance the
+        filter's prediction: a track coasting through missed scans would otherwise hold a
+        manoeuvre's acceleration for as long as it lasts (eq. 27), and in agile seed 4 a drone
+        braking behind a tree was reported running on south at 6 m/s and into the ground."""
         p, predict = self.params, self.filter.predictor.predict
         out = []
         for track in self._tracks:
             now = predict(track.estimate, now_ns)
+            coasted = max(now.stamp - track.corrected.stamp, 0) / NS
+            state = manoeuvre_state(track.corrected.mean, coasted, p.manoeuvre_time)
             out.append(TrackEstimate(
                 id=track.id,
-                state=np.asarray(now.mean, dtype=np.float64).reshape(9),
+                state=state,
                 covariance=np.asarray(now.covariance, dtype=np.float64),
                 detections=track.detections,
                 confirmed=track.detections >= p.confirm_detections,
                 uncertainty_radius=self.radius(now),
                 last_detection=track.last_detection,
-                trajectory=self._trajectory(now) if trajectory else np.zeros((0, 3)),
+                trajectory=self._trajectory(state) if trajectory else np.zeros((0, 3)),
                 updates=track.statistics.updates,
                 mean_nis=track.statistics.mean_nis,
                 last_innovation=track.statistics.last_residual,
@@ -552,7 +558,7 @@ class TrackerCore:
             out = [replace(e, primary=e is best) for e in out]
         return out
 
-    def _trajectory(self, estimate: Estimate) -> np.ndarray:
+    def _trajectory(self, state: np.ndarray) -> np.ndarray:
         p = self.params
-        return manoeuvre_path(estimate.mean, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step),
+        return manoeuvre_path(state, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step),
                               p.manoeuvre_time)

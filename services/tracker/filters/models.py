@@ -105,3 +105,17 @@ def manoeuvre_path(mean: np.ndarray, step: float, count: int, manoeuvre_time: fl
         tau = manoeuvre_time
         reach = tau * tau * (np.exp(-t / tau) - 1.0 + t / tau)
     return (m[:3] + m[3:6] * t + m[6:9] * reach).reshape(-1, 3)
+
+
+def manoeuvre_state(mean: np.ndarray, elapsed: float, manoeuvre_time: float) -> np.ndarray:
+    """(9,) the position-velocity-acceleration state `elapsed` s after `mean` under the same
+    fading-acceleration model as manoeuvre_path: a(t) = a e^(-t/τ), v(t) = v + a τ (1 - e^(-t/τ))."""
+    m = np.asarray(mean, dtype=np.float64).reshape(-1)
+    t = float(elapsed)
+    (position,) = manoeuvre_path(m, t, 1, manoeuvre_time)
+    if np.isinf(manoeuvre_time):
+        gained, fade = t, 1.0
+    else:
+        fade = float(np.exp(-t / manoeuvre_time))
+        gained = manoeuvre_time * (1.0 - fade)
+    return np.concatenate([position, m[3:6] + m[6:9] * gained, m[6:9] * fade])
