@@ -47,6 +47,7 @@ class PartnerTrack:
     mean: np.ndarray  # (9,) position, velocity, acceleration
     covariance: np.ndarray  # (9, 9)
     detections: int
+    last_correction: int = 0  # ns, its last correction by the partner's scans or detections (0: not said)
 
 
 @dataclass(frozen=True)
@@ -60,6 +61,7 @@ class FleetTrack:
     confirmed: bool
     source: str  # the UAV that keeps it (ours for an own track, fused or not)
     fused_with: tuple[str, ...] = ()  # partners whose tracks were fused into an own track
+    last_correction: int = 0  # ns, the latest correction of any track fused into it (0: not known)
 
 
 @dataclass(frozen=True)
@@ -130,8 +132,8 @@ class FleetPicture:
                         tentative.discard(matches[k])
                         out[matches[k]] = replace(out[matches[k]], id=self.fleet_id(partner, track.id), source=partner)
                 else:
-                    out.append(FleetTrack(self.fleet_id(partner, track.id), track.mean,
-                                          track.covariance, track.detections, True, partner))
+                    out.append(FleetTrack(self.fleet_id(partner, track.id), track.mean, track.covariance,
+                                          track.detections, True, partner, last_correction=track.last_correction))
         return out
 
     @staticmethod
@@ -170,7 +172,8 @@ class FleetPicture:
         except np.linalg.LinAlgError:  # a singular covariance (a degenerate filter): keep ours
             return mine
         return replace(mine, mean=mean, covariance=covariance, detections=max(mine.detections, theirs.detections),
-                       confirmed=True, fused_with=mine.fused_with + (partner,))
+                       confirmed=True, fused_with=mine.fused_with + (partner,),
+                       last_correction=max(mine.last_correction, theirs.last_correction))
 
 
 def sound_partner_track(mean: np.ndarray, covariance: np.ndarray) -> bool:

@@ -116,7 +116,8 @@ class TrackerNode(Node):
             if not (sound_partner_track(mean, covariance) and 0 <= track.id < FLEET_ID_BASE):
                 self._refuse("partner tracks refused (not a finite positive-definite CA state, or an id out of range)")
                 continue
-            tracks.append(PartnerTrack(track.id, msg.header.stamp, mean, covariance, track.detections))
+            tracks.append(PartnerTrack(track.id, msg.header.stamp, mean, covariance, track.detections,
+                                       min(track.last_correction, msg.header.stamp)))
         self.fleet.partner_tracks(partner, msg.header.stamp, tracks)
         self._report()
 
@@ -132,7 +133,8 @@ class TrackerNode(Node):
         for track_id in self.core.prune(now_ns):
             self.log.debug("track %d lost", track_id)
         estimates = {e.id: e for e in self.core.estimates(now_ns)}
-        own = [FleetTrack(e.id, e.state, e.covariance, e.detections, e.confirmed, self.uav) for e in estimates.values()]
+        own = [FleetTrack(e.id, e.state, e.covariance, e.detections, e.confirmed, self.uav,
+                          last_correction=e.last_correction) for e in estimates.values()]
         fleet = self.fleet.fuse(own, now_ns) if self.params.fleet else own
         quiet = self._last_published_ns is None or now_ns - self._last_published_ns >= self._alive_period_ns
         if not fleet and not quiet:
@@ -164,7 +166,7 @@ class TrackerNode(Node):
             last_innovation=own.last_innovation if own is not None else 0.0,
             primary=own.primary if own is not None else False,
             source=track.source,
-            last_correction=own.last_correction if own is not None else 0,
+            last_correction=track.last_correction,
         )
 
 
