@@ -245,6 +245,9 @@ class MissionCommand(msgspec.Struct, kw_only=True):
     # `target_velocity` hold at header.stamp. None: a straight line from target along target_velocity.
     target_path: Array | None = None  # float64 (K, 3)
     target_path_dt: float = 0.0  # s
+    # Appended: when the target was last measured (a scan or detection), ns; 0: at header.stamp. A
+    # prediction is only as good as the sighting it starts from (the planner's pursuit_trust).
+    target_seen: int = 0
 
 
 class TrajectoryReference(msgspec.Struct, kw_only=True):

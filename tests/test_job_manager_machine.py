@@ -585,3 +585,44 @@ def test_a_mover_that_runs_out_a_timer_is_skipped_for_t_f():
         rig.tick(round(t, 3), detections=[mover(t)])
         t += 0.1
     assert rig.last.action in ("stop", "intercept") and rig.jm.state is not State.GOING_AROUND
+
+
+def test_a_partners_track_coasting_unseen_is_no_sighting():
+    """Agile seed 4: a partner's track of a drone that had braked out of sight behind a tree coasted
+    on, and counted as a sighting it kept the UAV chasing the empty prediction. A partner's track
+    counts while its partner corrected it within FLEET_SEEN_WITHIN (last_correction 0: not said, counts)."""
+    def drone(t: float) -> np.ndarray:
+        return np.array([80.0 + 3.0 * t, 40.0, 6.0])
+
+    def run(corrected_at):
+        rig = Rig(uav="uav2")
+        rig.tick(0.0, position=[70.0, 20.0, 0.0])
+        rig.tick(1.0, position=[70.0, 20.0, 5.0])
+        for t in (1.1, 1.2, 1.3):
+            rig.jm.observe_tracks(s(t), np.array([2_000_005]), drone(t)[None], np.array([[3.0, 0.0, 0.0]]),
+                                  fleet=np.array([True]), covariances=np.eye(3)[None] * 0.04,
+                                  corrected=np.array([corrected_at(t)], dtype=np.int64))
+            rig.tick(t)
+        return rig.jm.state
+
+    assert run(lambda t: s(t - 0.1)) is State.GOING_TO_TARGET  # corrected 0.1 s before: seen
+    assert run(lambda t: 0) is State.GOING_TO_TARGET  # not said (an older partner): as before
+    assert run(lambda t: s(0.5)) is State.GOING_AROUND  # coasting since 0.5 s: nothing seen
+
+
+def test_an_intercept_is_renewed_at_least_every_intercept_refresh_and_says_when_its_target_was_seen():
+    """The planner follows a prediction pursuit_trust s past the sighting only; a mover that keeps
+    to its prediction would otherwise get no new command, and the UAV would stop following it."""
+    def drone(t: float) -> np.ndarray:
+        return np.array([30.0 + 3.0 * t, 40.0, 6.0])
+
+    rig = Rig().airborne()
+    t = 1.1
+    while t < 4.0:
+        rig.jm.observe_tracks(s(t), np.array([7]), drone(t)[None], np.array([[3.0, 0.0, 0.0]]))
+        rig.tick(t, detections=[drone(t)])
+        t = round(t + 0.1, 2)
+    sent = [d for d in rig.decisions if d.action == "intercept"]
+    assert len(sent) >= 3  # the prediction never moved: renewed by time
+    assert all(0 < d.target_seen for d in sent)
+    assert sent[-1].target_seen >= s(3.0)

@@ -1,7 +1,11 @@
 """The planner's choice of manoeuvre per command and where a re-plan starts (services/planner/commands.py)."""
 from __future__ import annotations
 
+import math
+
+import msgspec
 import numpy as np
+import pytest
 
 from schemas.arrays import from_numpy
 from schemas.messages import ConstraintProfile, Header, MissionCommand, TrajectoryReference
@@ -71,8 +75,9 @@ def test_an_intercept_along_a_curved_prediction_stays_on_the_turning_target():
                      target_path=from_numpy(path), target_path_dt=0.25)
     straight = command("intercept", target=tuple(start), target_velocity=tuple(velocity), profile=profile)
     at = int(8.0 / PARAMS.dt)
-    on_turn = plan_command(curved, vehicle_state, PARAMS).path[0][at]
-    on_line = plan_command(straight, vehicle_state, PARAMS).path[0][at]
+    trusting = msgspec.structs.replace(PARAMS, pursuit_trust=math.inf)  # one command followed for 8 s
+    on_turn = plan_command(curved, vehicle_state, trusting).path[0][at]
+    on_line = plan_command(straight, vehicle_state, trusting).path[0][at]
     assert np.linalg.norm(on_turn - circle(8.0)) < 0.5  # caught up by 5 s, on the turn since
     assert np.linalg.norm(on_line - circle(8.0)) > 5.0
 
@@ -93,3 +98,24 @@ def test_a_target_path_that_is_not_positions_is_a_hover_with_the_reason():
                       target_path=from_numpy(path), target_path_dt=dt)
         plan = plan_command(bad, vehicle(), PARAMS)
         assert "target path" in plan.note and np.isfinite(plan.path[0]).all()
+
+
+def test_a_pursuit_follows_a_prediction_only_so_long_past_the_last_sighting():
+    """Agile seed 4: a drone last seen at 4.5 m/s braked behind a tree; the UAV flew its straight
+    prediction on for 3 s at 7 m/s. A prediction is followed pursuit_trust s past the sighting (and
+    no further than the path it carries), then the reference waits where it puts the target."""
+    from services.planner.commands import pursuit_trust
+
+    line = dict(target=(20.0, 0.0, 6.0), target_velocity=(4.0, 0.0, 0.0),
+                profile=ConstraintProfile(name="attack", max_speed=8.3, max_acceleration=3.0))
+    seen_late = msgspec.structs.replace(command("intercept", **line), target_seen=NS)
+    seen_late.header.stamp = 2 * NS  # decided at 2 s from a sighting at 1 s
+    assert pursuit_trust(seen_late, 2 * NS, 1.5) == pytest.approx(0.5)
+    assert pursuit_trust(command("intercept", **line), 0, 1.5) == pytest.approx(1.5)  # not said: the stamp
+    short = command("intercept", **line, target_path=from_numpy(np.array([[21.0, 0.0, 6.0]])), target_path_dt=0.25)
+    assert pursuit_trust(short, 0, 1.5) == pytest.approx(0.25)  # the path it carries ends first
+    vehicle_state = VehicleState(np.array([0.0, 0.0, 6.0]), np.zeros(3), 0.0, 0.0, now_ns=2 * NS)
+    positions = plan_command(seen_late, vehicle_state, PARAMS).path[0]
+    waited = np.array([20.0 + 4.0 * 0.5, 0.0, 6.0])  # where the prediction puts it 1.5 s past the sighting
+    assert np.linalg.norm(positions[-1] - waited) < 0.3
+    assert np.abs(positions[:, 0]).max() < waited[0] + 0.5  # never beyond it

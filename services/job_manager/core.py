@@ -59,6 +59,7 @@ _WATCHED = (State.TAKING_OFF, *MISSION_STATES)  # the abort system and the missi
 _DESCENDING = (State.LANDING, State.EMERGENCY_LANDING)
 REPLAN_LOOKAHEAD = 1.0  # s over which a mover's new prediction is compared with the one sent
 TRACK_SEEN_WITHIN = 0.15  # s: a track corrected this recently (a scan period and a half) sees its target
+FLEET_SEEN_WITHIN = 0.5  # s: a partner's track corrected this recently is a sighting (its link and tick add lag)
 _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "going_timeout",
           State.DESTROYING: "destroying_timeout"}
 
@@ -76,6 +77,7 @@ class MissionDecision:
     target_velocity: tuple[float, float, float] | None = None
     target_path: tuple[tuple[float, float, float], ...] = ()  # a mover's predicted positions every target_path_dt
     target_path_dt: float = 0.0
+    target_seen: int = 0  # ns: when the target was last measured (0: not said)
 
 
 @dataclass(frozen=True)
@@ -157,6 +159,7 @@ class JobManager:
         self._sent_target: np.ndarray | None = None
         self._sent_prediction: PredictedPath | None = None  # of a mover, with _sent_at
         self._sent_at = 0
+        self._sent_seen = 0  # when the mover of the sent prediction was last measured
         self._now = 0
         self.seen = Sightings(params)
         self._previous_target: np.ndarray | None = None  # what was locked before CHECKING_TARGET
@@ -218,16 +221,23 @@ class JobManager:
         predicted path (M, 3) every path_dt s. They tell at the lock whether a target moves (the
         target filter finds out by itself a little later), and a mover is intercepted along them.
         `fleet` (K,) marks the tracks only partners see (their position covariances (K, 3, 3)):
-        those count as detections of the fleet (Sightings.fleet). `corrected` (K,): when a scan or a
-        detection last corrected each track; a fresh correction of the track a mover is followed by
-        counts as seeing it (`_track_sees_the_mover`)."""
+        those count as detections of the fleet (Sightings.fleet) while their partner corrected them
+        within FLEET_SEEN_WITHIN. `corrected` (K,): when a scan or a detection last corrected each
+        track; a fresh correction of the track a mover is followed by counts as seeing it
+        (`_track_sees_the_mover`). Agile seed 4: a partner's track coasting on after the drone
+        braked behind a tree, counted as a sighting, kept the UAV chasing the empty prediction."""
         self.seen.confirmed_tracks(ConfirmedTracks.of(stamp, ids, positions, velocities, paths, path_dt))
         if corrected is not None:
             self._track_sees_the_mover(stamp, np.asarray(ids).reshape(-1), np.asarray(positions).reshape(-1, 3),
                                        np.asarray(corrected).reshape(-1), covariances)
-        if fleet is None or not np.any(fleet):
+        if fleet is None:
             return
-        fleet = np.asarray(fleet, dtype=bool)
+        fleet = np.asarray(fleet, dtype=bool).copy()
+        if corrected is not None:  # a partner's track coasting unseen is a guess, not a sighting (0: not said)
+            age = stamp - np.asarray(corrected, dtype=np.int64).reshape(-1)
+            fleet &= (np.asarray(corrected).reshape(-1) == 0) | (age <= int(FLEET_SEEN_WITHIN * NS))
+        if not fleet.any():
+            return
         seen, covs = self.seen.fleet(stamp, np.asarray(positions, dtype=np.float64).reshape(-1, 3)[fleet],
                                      None if covariances is None else np.asarray(covariances)[fleet])
         above = seen[:, 2] >= self.ground_z + self.params.min_target_height
@@ -647,8 +657,10 @@ class JobManager:
     def _intercept(self, now: int) -> MissionDecision:
         """Intercept the locked mover along its tracker's prediction (the confirmed track it was
         locked with, or the moving track now at it); without one, along the target filter's
-        straight line. A new command goes out only when the prediction now differs from the one
-        sent by more than intercept_replan_distance (position, or velocity in m/s)."""
+        straight line. A new command goes out when the prediction now differs from the one sent by
+        more than intercept_replan_distance (position, or velocity in m/s), and at least every
+        intercept_refresh s: the planner follows a prediction for a limited time only (its
+        pursuit_trust), since one that is not renewed may be of a target no longer seen."""
         p, e = self.params, self.engagement
         followed = self.seen.followed_track(e.track_id, e.position(now), now)
         if followed is not None:
@@ -656,12 +668,15 @@ class JobManager:
         else:
             prediction = PredictedPath(e.position(now), e.filter.velocity.copy())
         sent = self._sent_prediction if self._sent_target is not None else None
-        if sent is None or self._prediction_moved(sent, prediction, now):
+        stale = sent is not None and now - self._sent_at >= int(p.intercept_refresh * NS)
+        if sent is None or stale or self._prediction_moved(sent, prediction, now):
             self._sent_prediction, self._sent_at, self._sent_target = prediction, now, prediction.position.copy()
+            self._sent_seen = min(e.last_seen(), now)
         s = self._sent_prediction
         return MissionDecision("intercept", height=float(s.position[2]), spacing=p.scan_spacing, profile="attack",
                                target=_tuple(s.position), target_velocity=_tuple(s.velocity),
-                               target_path=tuple(_tuple(q) for q in s.path), target_path_dt=s.dt)
+                               target_path=tuple(_tuple(q) for q in s.path), target_path_dt=s.dt,
+                               target_seen=self._sent_seen)
 
     def _prediction_moved(self, sent: PredictedPath, prediction: PredictedPath, now: int) -> bool:
         """Whether the sent prediction and the new one part by more than intercept_replan_distance

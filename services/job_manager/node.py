@@ -176,6 +176,7 @@ class JobManagerNode(Node):
             target_path=from_numpy(np.array(decision.target_path, dtype=np.float64).reshape(-1, 3))
             if decision.target_path else None,
             target_path_dt=decision.target_path_dt,
+            target_seen=decision.target_seen,
             area=list(decision.area),
             height=decision.height,
             spacing=decision.spacing,

@@ -38,6 +38,7 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     motion_sigmas: float = 3.0  # ... and whose fitted speed is this many standard errors above 0 (not noise)
     track_gate: float = 2.0  # m between a detection and a track for them to be the same object
     intercept_replan_distance: float = 0.3  # m a new prediction must part from the sent one (over 1 s ahead) before a new intercept goes out
+    intercept_refresh: float = 1.0  # s: an intercept's prediction is sent again at least this often (below the planner's pursuit_trust)
     velocity_window: float = 1.0  # s of detections the target filter fits a target's velocity to
     filter_sigma: float = 0.15  # m, target filter measurement noise
     filter_process_sigma: float = 0.05  # m/√s, target filter process noise (a balloon sways)

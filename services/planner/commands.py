@@ -32,6 +32,8 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     merge_acceleration: float = 1.5  # m/s² along a moving target's path when merging onto it
     follow_time: float = 4.0  # s flown alongside a moving target after the merge
     pursuit_horizon: float = 12.0  # s a pursuit flies the predicted track before braking (re-planned sooner)
+    pursuit_trust: float = 1.5  # s past the target's last sighting a pursuit follows its prediction (at most to the path's end), then waits there
+    pursuit_floor: float = 1.0  # m above the ground no pursuit goes below (the job manager's lowest target height)
     rejoin_distance: float = 1.5  # m: a re-plan starts on the current trajectory while this close to it
     republish_period: float = 2.0  # s of mission time
     repeat_scan: bool = True  # sweep again once a scan trajectory has ended
@@ -135,6 +137,18 @@ def predicted_path(command: MissionCommand, target: np.ndarray, velocity: np.nda
     return sent.rebased(late, len(path), command.target_path_dt)
 
 
+def pursuit_trust(command: MissionCommand, now_ns: int, trust_after_sighting: float) -> float:
+    """How long from now a pursuit may follow the command's prediction: to the end of the path it
+    carries, and no more than `trust_after_sighting` s past the target's last measurement
+    (target_seen; the command's stamp when not given)."""
+    stamp = command.header.stamp
+    seen = command.target_seen if 0 < command.target_seen <= stamp else stamp
+    end = seen / NS + trust_after_sighting
+    if command.target_path is not None and command.target_path_dt > 0:
+        end = min(end, stamp / NS + len(to_numpy(command.target_path).reshape(-1, 3)) * command.target_path_dt)
+    return end - now_ns / NS
+
+
 def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleState, params: PlannerParams) -> Plan:
     """Pursuit re-plans smoothly from the current state on every new prediction; the merge (wait on
     the predicted path) is the fallback when no blend fits the profile; chasing the position is
@@ -143,8 +157,9 @@ def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleStat
     moving = dict(start_velocity=vehicle.velocity, start_heading=vehicle.heading)
     velocity = np.asarray(command.target_velocity or (0.0, 0.0, 0.0), dtype=np.float64)
     predicted = predicted_path(command, target, velocity, vehicle.now_ns)
+    trust = pursuit_trust(command, vehicle.now_ns, prm.pursuit_trust)
     path = core.pursuit(p, target, velocity, profile=profile, dt=dt, horizon=prm.pursuit_horizon,
-                        predicted=predicted, **moving)
+                        predicted=predicted, floor=vehicle.ground_z + prm.pursuit_floor, trust=trust, **moving)
     if path is None:
         path = core.intercept(p, target, velocity, profile=profile, dt=dt, merge_acceleration=prm.merge_acceleration,
                               follow_time=prm.follow_time, **moving)
