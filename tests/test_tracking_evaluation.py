@@ -15,7 +15,7 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from schemas import keys
@@ -43,8 +43,22 @@ def stone_soup_gospa(tracks: np.ndarray, truths: np.ndarray, c: float, p: float)
     when = datetime.datetime(2025, 1, 1)
     states = [[State(StateVector(point), timestamp=when) for point in points] for points in (tracks, truths)]
     metric, truth_to_track = GOSPAMetric(c=c, p=p).compute_gospa_metric(*states)
-    pairs = {(int(i), j) for j, i in enumerate(truth_to_track) if i != -1}
-    return metric.value, pairs
+    parts = dict(metric.value)
+    pairs = set()
+    for j, i in enumerate(truth_to_track):
+        if i == -1:
+            continue
+        if np.linalg.norm(np.asarray(tracks[i]) - np.asarray(truths[j])) < c:
+            pairs.add((int(i), j))
+            continue
+        # Stone Soup means to leave a pair at the cut-off unassigned (missed + false, c^p/2 each), but
+        # decides "at the cut-off" by exact equality of np.power(min(d, c), p) with c ** p, which
+        # differ in the last bit for some c, p (2.5 and 2.5: 9.882117688026185 and ...186); it then
+        # books c^p as localisation instead. Its own convention, applied here without the rounding:
+        parts["localisation"] -= c ** p
+        parts["missed"] += c ** p / 2
+        parts["false"] += c ** p / 2
+    return parts, pairs
 
 
 def random_points(rng: np.random.Generator, count: int, spread: float) -> np.ndarray:
@@ -53,6 +67,7 @@ def random_points(rng: np.random.Generator, count: int, spread: float) -> np.nda
 
 
 @settings(max_examples=300, deadline=None, derandomize=True, database=None)
+@example(seed=0, n_tracks=1, n_truths=1, c=2.5, p=2.5)  # a pair far beyond c, where Stone Soup's rounding books it
 @given(seed=st.integers(0, 2 ** 32 - 1), n_tracks=st.integers(0, 7), n_truths=st.integers(0, 7),
        c=st.floats(0.2, 20.0), p=st.one_of(st.sampled_from([1.0, 2.0]), st.floats(1.0, 4.0)))
 def test_gospa_agrees_with_stone_soup(seed, n_tracks, n_truths, c, p):
