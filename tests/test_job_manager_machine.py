@@ -626,3 +626,20 @@ def test_an_intercept_is_renewed_at_least_every_intercept_refresh_and_says_when_
     assert len(sent) >= 3  # the prediction never moved: renewed by time
     assert all(0 < d.target_seen for d in sent)
     assert sent[-1].target_seen >= s(3.0)
+
+
+def test_a_mover_passed_close_keeps_its_pursuit_past_t_d_and_one_never_reached_does_not():
+    """T_d counts for a mover from its latest close pass (a just-seen sighting within
+    close_pass_distance): agile's dodger brakes harder than the UAV and took several passes, and a
+    pursuit given up at 20 s left every mover skipped for t_f while the UAV swept an empty area."""
+    def run(offset: float):
+        rig = Rig(destroying_timeout=3.0, filter_switch_distance=20.0).airborne()
+        mover = lambda t: drone_at(t - 1.1, velocity=(1.5, 0, 0))  # noqa: E731
+        t = 1.1
+        while t < 12.0:
+            rig.tick(round(t, 3), detections=[mover(t)], position=mover(t) + [0, offset, 0])
+            t += 0.1
+        return [x.reason for x in rig.jm.transitions if x.source is State.DESTROYING]
+
+    assert run(offset=1.5) == []  # alongside it the whole time: still DESTROYING after 9 s
+    assert any("state timer 3 s" in reason for reason in run(offset=12.0))  # never close: given up

@@ -10,7 +10,7 @@ system (§3.5.3) sends any flying state to EMERGENCY_LANDING when the LiDAR stre
 Detections message per scan) or odometry has been silent for `sensor_timeout`.
 
 Routines beside the machine (§3.5): state timers T_c, T_g, T_d that forbid the current target
-and return to IDLE; forbidden zones and the tries counter (targets.py); the detection filter
+and return to IDLE (T_d for a mover counts from its latest close pass: `_timed_since`); forbidden zones and the tries counter (targets.py); the detection filter
 (working area, forbidden zones, partners' claims); the team rules — revenge mode, one chaser
 per target, separation (team.py).
 
@@ -97,6 +97,7 @@ class Engagement:
     moving: bool = False
     track_id: int | None = None  # the tracker's confirmed track of a mover, followed by its identity
     track_corrected: int = 0  # ns: that track's last correction already taken as a sighting
+    close_pass_at: int = 0  # ns: when a mover, just seen, was last within close_pass_distance (restarts T_d)
     attacking: bool = False
     attack_direction: np.ndarray | None = None  # horizontal unit vector
     attack_target: np.ndarray | None = None
@@ -445,7 +446,7 @@ class JobManager:
             if (self.team is not None and self.takeoff_at is not None and self.team.isolated(now, self.takeoff_at)
                     and self.team.lands_when_isolated(now, self.takeoff_at)):
                 return State.LANDING, f"lost link: no partner heard for {p.lost_link_time:g} s, landing where I am"
-        if state in _TIMED and now - self.state_since > int(getattr(p, _TIMED[state]) * NS):
+        if state in _TIMED and now - self._timed_since(now, position) > int(getattr(p, _TIMED[state]) * NS):
             limit = getattr(p, _TIMED[state])
             b_c = self.engagement.position(now) if self.engagement is not None else self._checked
             if self.engagement is not None and self.engagement.moving:
@@ -509,6 +510,20 @@ class JobManager:
             if not airborne:
                 return State.LANDED, "on the ground"
         return state, ""
+
+    def _timed_since(self, now: int, position: np.ndarray) -> int:
+        """Where the state timer counts from: entering the state; for a mover in DESTROYING, its
+        latest close pass. T_d (seed 004) gives up a target the UAV cannot get at; a mover that a
+        just-seen sighting puts within close_pass_distance is being got at, and one that brakes
+        harder than the UAV can (agile's 4 m/s² against 3) may need several passes. Given up, it
+        would be skipped with every other mover for forbidden_lifetime while the UAV sweeps."""
+        e, p = self.engagement, self.params
+        if self.state is not State.DESTROYING or e is None or not e.moving:
+            return self.state_since
+        fresh = now - e.last_seen() <= int(p.detection_max_age * NS)
+        if fresh and np.linalg.norm(e.position(now) - position) <= p.close_pass_distance:
+            e.close_pass_at = now
+        return max(self.state_since, e.close_pass_at)
 
     def _destroying(self, now: int, position: np.ndarray, velocity: np.ndarray) -> tuple[State, str]:
         p, e = self.params, self.engagement

@@ -20,7 +20,8 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     target_time: float = 3.0  # [t_m] s: unseen this long = lost; seen this long = confirmed for attack
     checking_timeout: float = 30.0  # [T_c] s
     going_timeout: float = 30.0  # [T_g] s
-    destroying_timeout: float = 20.0  # [T_d] s
+    destroying_timeout: float = 20.0  # [T_d] s (for a mover: since its latest close pass)
+    close_pass_distance: float = 2.0  # m: a just-seen mover this close restarts T_d (it is being got at)
     forbidden_radius: float = 4.5  # [r_f] m
     forbidden_lifetime: float = 15.0  # [t_f] s
     forbidden_tries: int = 2  # [n_f] attacks at one place before it is forbidden
