@@ -1,6 +1,6 @@
 """Sensor fusion and precision steps of seed 003's Grape localizer (sec. 2.1): IMU preintegration and
-the scans' plane and edge landmarks in one factor graph, solved incrementally by iSAM2, then a rigid
-re-alignment of the last five scans to the map, weighted by the age of the features.
+the scans' plane and edge landmarks in one factor graph, solved incrementally by iSAM2 over a fixed
+lag, then a rigid re-alignment of the last five scans to the map, weighted by the age of the features.
 
 Seed 003's method, as read here:
 (c) Sensor fusion. GTSAM's preintegrated IMU factor links the states of successive scans; planar and
@@ -52,7 +52,9 @@ How it is done here, and why:
   much and change the 10 s test flight by under a millimetre.
 - Precision step: a batch Gauss–Newton over ONE rigid correction C applied to the fused poses of
   the last `precision_window` scans, T_j ↦ C·T_j (the paper's "rigid transform"), against the
-  landmarks as iSAM2 currently estimates them, held fixed (the map). C corrects x, y, z and yaw,
+  landmarks as the smoother currently estimates them, held fixed (the map; a landmark back from
+  the fixed-lag window's map is its map estimate, moved by the new sightings only as far as its map
+  covariance lets them). C corrects x, y, z and yaw,
   the drift the paper's precision node is for; roll and pitch, which it leaves to gravity through
   the IMU, stay as fused (precision_roll_pitch = True corrects them too: in the tests the window's
   normals then only add noise there). Each sighting is weighted by its landmark's age (scans since
@@ -72,18 +74,45 @@ How it is done here, and why:
   covariance is therefore the fusion step's (iSAM2's marginal of the newest pose), which accounts
   for the map's own uncertainty; the Gauss–Newton covariance of C, conditional on a fixed map,
   would be too small.
-- What the precision step is worth here: little. With the whole flight in the graph, iSAM2's
-  estimate is already the best the data allow and weighs each landmark by what the graph knows of
-  it, which age weighting approximates. On the 10 s noisy test flight (seeds 3-6) the step moves
-  the pose by ~3.5 mm (median) and changes the position RMS by −6 % to +3 % and the mean yaw error
-  by ±0.01°: neutral within noise. It is kept, on by default, because it is the seed's, because it
-  costs ~1-2 ms, and because it is what anchors the pose to old features once the graph prunes them.
-- Departure: no pruning. The seed removes the oldest features to bound the graph on a Raspberry Pi;
-  here the graph keeps every state and landmark. iSAM2 re-eliminates every pose that sighted a
-  landmark whenever that landmark is relinearised, so the time per scan grows with the flight:
-  with 40 features seen every scan, ~12 ms at the start and ~28 ms after 60 s (8 features:
-  ~4 ms, then ~8 ms). A flight of several minutes at 10 Hz needs a fixed-lag smoother
-  (gtsam.IncrementalFixedLagSmoother) with the pruned landmarks kept as the precision step's map.
+- What the precision step is worth here: little. With the window's sightings and the map's priors
+  in the graph, the smoother's estimate is already about the best the data allow and weighs each
+  landmark by what the graph knows of it, which age weighting approximates. On the 10 s noisy test
+  flight (seeds 3-6) the step moves the pose by ~3.5 mm (median) and changes the position RMS by
+  −6 % to +3 % and the mean yaw error by ±0.01°: neutral within noise. It is kept, on by default,
+  because it is the seed's and costs ~1-2 ms.
+- Fixed-lag window: seed 003 prunes the oldest features to bound the graph on a Raspberry Pi.
+  Here a gtsam.IncrementalFixedLagSmoother (iSAM2 inside) keeps the states of the last
+  `smoother_lag` seconds (3 s) and the landmarks sighted in them: every new variable is stamped with
+  its scan's time and a landmark is re-stamped at each sighting (the smoother's timestamp map
+  updates a key it holds), so a landmark still seen stays however old it is. Whatever is older is
+  marginalised: its information stays as a linear prior on what remains (GTSAM's marginal factor,
+  fixed at its linearisation point). A landmark leaving the window goes to the map with its last
+  estimate and marginal covariance (a line's anchor and direction each, their cross-covariance
+  dropped); sighted again, it re-enters the smoother at that estimate with a prior of that
+  covariance, counts as associated, and keeps its first sighting, so its age, for the precision
+  step. The prior counts some information twice (sightings whose poses' marginal is also on the
+  window's oldest state), so returning to old ground is somewhat overconfident; re-entering with
+  no prior would make the fusion step forget the map altogether. (The smoother's Python API handles
+  landmarks fine: the fall-back of periodically rebuilding a fresh iSAM2 was not needed.)
+- Marginalisation in batches: whenever IncrementalFixedLagSmoother marginalises it re-orders the
+  leaving variables first and re-eliminates every clique above them, i.e. the whole window when
+  landmarks are seen from every state; done every scan (the smoother's own way) that cost ~100 ms
+  a scan with 40 features (on the loaded machine below), 2-5 times unbounded iSAM2's. So the lag
+  is held infinite (nothing leaves) until the oldest state is twice `smoother_lag` old, then one
+  update marginalises all that is older than the lag: the window holds lag to 2·lag seconds of
+  states (30 to 60 at 10 Hz), the updates between are plain iSAM2 ones, and one scan in a lag's
+  worth (1 in 30), sometimes with the next, pays for the batch.
+- Measured: time per add_scan on a 60 s flight with 40 features seen every scan (the tests'
+  40-feature world on a slow straight path, default parameters), median / 90th percentile over
+  scans 50-150 and 500-600, on a 2-core machine running another heavy benchmark at the same time
+  (noisy). The quietest run, then the range over three loaded runs:
+                      unbounded iSAM2 (before)          fixed lag, 3 s (now)
+      5-15 s          11 / 12 ms   (19 / 36-40 ms)      10 / 11 ms   (10-16 / 11-30 ms)
+      50-60 s         28 / 31 ms   (31-107 / 70-163)     9 / 10 ms   (10-16 / 10-27 ms)
+  A batch costs its scan (or two) up to ~120 ms (~250 ms loaded): the p99 and maximum. The
+  unbounded graph's time grows with the flight; the window's does not. The accuracy is unchanged:
+  on the noisy 10 s test flight (seeds 3-6, marginalised from 6 s on) the worst position error is
+  the same to 0.1 mm and the RMS within 0.3 mm; the 60 s flight's position RMS is 0.7 cm either way.
 - Departure: the LiDAR sits at the body origin, axes aligned (the features are taken in the body
   frame). The paper tilted its lidar forward; a caller with a mounting transform moves the features
   first: association.transform_features(features, R_body_sensor, t_body_sensor).
@@ -100,6 +129,7 @@ Pure: numpy and gtsam in, numpy out; no clock, no IO, no globals.
 """
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 from dataclasses import dataclass, field
@@ -118,6 +148,7 @@ from services.simulator.specs import NS
 _IMU = ImuParams()  # the simulated IMU's defaults: the noise the fusion step expects
 Health = Literal["tracking", "degraded", "lost"]
 _DRIFTING_AXES = np.array([2, 3, 4, 5])  # of a world perturbation (ω, v): yaw, x, y, z
+_NO_LAG = 1e12  # s: the smoother's lag between its marginalisation batches (nothing leaves)
 _ANCHOR_GAUGE_SIGMA = 1.0  # m: any value; it only says where on its line a line's anchor sits
 
 
@@ -155,6 +186,11 @@ class GraphParams(msgspec.Struct, forbid_unknown_fields=True):
     relinearize_threshold: float = 0.05
     relinearize_skip: int = 1  # relinearisation checked every this many updates
     extra_iterations: int = 0  # further iSAM2 updates per scan (each relinearises and re-solves again)
+    # s: the fixed-lag smoother's window. States older than this, and landmarks not sighted for this
+    # long, are marginalised, in batches once the oldest state is twice this old; the landmarks' last
+    # estimates stay as the map (see the docstring). Below the precision window's span (0.5 s at
+    # 10 Hz) the precision step leaves out the window's scans whose states are gone
+    smoother_lag: float = 3.0
     # Precision step (d)
     precision_window: int = 5  # scans re-aligned together (seed 003: five); 0 turns the step off
     precision_full_weight_age: int = 20  # scans since first sighting at which a landmark weighs fully
@@ -175,7 +211,7 @@ class GraphParams(msgspec.Struct, forbid_unknown_fields=True):
                      "start_position_sigma", "start_yaw_sigma", "start_tilt_sigma", "start_velocity_sigma",
                      "accelerometer_bias_sigma", "gyroscope_bias_sigma", "plane_normal_sigma",
                      "plane_offset_sigma", "line_distance_sigma", "line_direction_sigma",
-                     "relinearize_threshold", "max_constraint_sigma", "tracking_position_sigma",
+                     "relinearize_threshold", "smoother_lag", "max_constraint_sigma", "tracking_position_sigma",
                      "lost_position_sigma"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):  # each is a σ of a noise model or a threshold
@@ -380,6 +416,32 @@ def _direction_key(landmark_id: int) -> int:
     return gtsam.symbol("d", landmark_id)
 
 
+def _landmark_keys(landmark_id: int, kind: type) -> tuple[int, ...]:
+    return ((_plane_key(landmark_id),) if kind is PlaneFeature
+            else (_anchor_key(landmark_id), _direction_key(landmark_id)))
+
+
+def _value_at(values: gtsam.Values, key: int):
+    kind = chr(gtsam.Symbol(key).chr())
+    return (values.atOrientedPlane3(key) if kind == "p" else values.atUnit3(key) if kind == "d"
+            else values.atPoint3(key))
+
+
+def _plane_prior(key: int, plane: gtsam.OrientedPlane3, noise) -> gtsam.CustomFactor:
+    """A prior on a plane (GTSAM's Python has none): its local coordinates at `plane`, with a
+    numerical Jacobian (a map landmark re-entering the smoother: rare)."""
+    def error(_factor, values: gtsam.Values, jacobians) -> np.ndarray:
+        estimate = values.atOrientedPlane3(key)
+        if jacobians is not None:
+            step = 1e-6
+            jacobians[0] = np.stack([(plane.localCoordinates(estimate.retract(step * e))
+                                      - plane.localCoordinates(estimate.retract(-step * e))) / (2 * step)
+                                     for e in np.eye(3)], axis=1)
+        return plane.localCoordinates(estimate)
+
+    return gtsam.CustomFactor(noise, [key], error)
+
+
 def _line_factor(noise, pose_key: int, anchor_key: int, direction_key: int, edge: EdgeFeature) -> gtsam.CustomFactor:
     centre = np.asarray(edge.centre, dtype=np.float64)[None]
     direction = np.asarray(edge.direction, dtype=np.float64)[None]
@@ -439,6 +501,15 @@ class _Landmark:
 
 
 @dataclass(frozen=True)
+class _MapEntry:
+    """A landmark marginalised out of the smoother: its last estimate and marginal covariances,
+    by key (a plane's one key, a line's anchor and direction)."""
+
+    values: dict[int, object]  # key -> OrientedPlane3, Point3 (ndarray) or Unit3
+    covariances: dict[int, np.ndarray]
+
+
+@dataclass(frozen=True)
 class _ScanRecord:
     state: int
     observations: tuple[Observation, ...]
@@ -456,7 +527,7 @@ class _ImuStream:
 
 
 class LocalizerGraph:
-    """Seed 003's fusion (iSAM2 over IMU, plane and line factors) and precision steps, one scan at a
+    """Seed 003's fusion (fixed-lag iSAM2 over IMU, plane and line factors) and precision steps, one scan at a
     time: start, then add_imu with the samples as they come and add_scan with each scan's sightings."""
 
     def __init__(self, params: GraphParams | None = None) -> None:
@@ -464,14 +535,17 @@ class LocalizerGraph:
         isam_params = gtsam.ISAM2Params()
         isam_params.setRelinearizeThreshold(self.params.relinearize_threshold)
         isam_params.relinearizeSkip = self.params.relinearize_skip
-        self._isam = gtsam.ISAM2(isam_params)
+        self._smoother = gtsam.IncrementalFixedLagSmoother(_NO_LAG, isam_params)
+        self._oldest_state = 0  # the oldest state in the smoother
         self._preintegration_params = self._imu_params()
         self._plane_noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(
             [self.params.plane_normal_sigma] * 2 + [self.params.plane_offset_sigma]))
         self._robust_plane_noise = self._robust(self._plane_noise)
         self._line_noise = self._robust(gtsam.noiseModel.Diagonal.Sigmas(np.array(
             [self.params.line_distance_sigma] * 2 + [self.params.line_direction_sigma] * 2)))
-        self._landmarks: dict[int, _Landmark] = {}
+        self._landmarks: dict[int, _Landmark] = {}  # every landmark ever sighted
+        self._active: set[int] = set()  # those in the smoother's window
+        self._map: dict[int, _MapEntry] = {}  # those marginalised out: the map
         self._window: deque[_ScanRecord] = deque(maxlen=max(self.params.precision_window, 1))
         self._stamps: list[int] = []  # of each state
         self._scanned_start = False  # the start state has had its scan
@@ -480,6 +554,7 @@ class LocalizerGraph:
         self._pending = (gtsam.NonlinearFactorGraph(), gtsam.Values())  # the start's priors until the first scan
         self._imu = _ImuStream(np.empty(0, dtype=np.int64), np.empty((0, 3)), np.empty((0, 3)))
         self._unassociated_scans = 0
+        self._smoother_stamps: dict[int, float] = {}  # key -> s since the start: the smoother's timestamps
 
     # ------------------------------------------------------------------ public API
     def start(self, stamp_ns: int, rotation: np.ndarray, translation: np.ndarray, velocity: np.ndarray) -> None:
@@ -533,7 +608,7 @@ class LocalizerGraph:
     def add_scan(self, stamp_ns: int, sightings: Sequence[Observation]) -> PoseEstimate:
         """One scan's sightings (body frame, with global landmark ids) at `stamp_ns`: a new state
         linked to the last by the IMU samples between them (the start state itself, for a scan at
-        the start's stamp), the sightings' factors, an iSAM2 update and the precision step."""
+        the start's stamp), the sightings' factors, a fixed-lag smoother update and the precision step."""
         if not self._stamps:
             raise ValueError("start the graph before adding scans")
         stamp = _stamp(stamp_ns, "scan stamp")
@@ -551,14 +626,53 @@ class LocalizerGraph:
             predicted = self._add_state(stamp, factors, values)
         self._scanned_start = True
         associated = self._add_sightings(state, predicted, sightings, factors, values)
-        self._isam.update(factors, values)
-        for _ in range(self.params.extra_iterations):
-            self._isam.update()
+        self._smoother_update(stamp, sightings, factors, values)
         estimate = self._estimate(_ScanRecord(state, sightings), associated)
         self._window.append(_ScanRecord(state, sightings))
         return estimate
 
     # ------------------------------------------------------------------ fusion step (c)
+    def _smoother_update(self, stamp: int, sightings: tuple[Observation, ...], factors: gtsam.NonlinearFactorGraph,
+                         values: gtsam.Values) -> None:
+        """The smoother's update with this scan's factors: every new variable and every landmark
+        sighted is stamped now (a re-sighting refreshes its landmark's stamp), so what is
+        marginalised is the states older than the lag and the landmarks unsighted for as long.
+        Those landmarks' estimates and marginal covariances go to the map first."""
+        now = (stamp - self._stamps[0]) / NS
+        timestamps = {key: now for key in values.keys()}
+        for sighting in sightings:
+            timestamps.update((key, now) for key in _landmark_keys(sighting.landmark_id, type(sighting.feature)))
+        self._smoother_stamps.update(timestamps)
+        # Marginalised in batches: once the oldest state is a lag past the lag, everything older
+        # than the lag goes in one update; the updates between are plain iSAM2 ones (see the docstring)
+        lag = self.params.smoother_lag
+        oldest = (self._stamps[self._oldest_state] - self._stamps[0]) / NS
+        if now - oldest <= 2 * lag:
+            self._smoother.update(factors, values, timestamps)
+            for _ in range(self.params.extra_iterations):
+                self._smoother.update()
+            return
+        cutoff = now - lag  # the smoother marginalises what is stamped before this
+        leaving = {landmark_id for landmark_id in self._active  # a landmark's keys share their stamp
+                   if self._smoother_stamps[_landmark_keys(landmark_id, self._landmarks[landmark_id].kind)[0]]
+                   < cutoff}
+        if leaving:
+            estimate = self._smoother.calculateEstimate()
+            for landmark_id in leaving:
+                keys = _landmark_keys(landmark_id, self._landmarks[landmark_id].kind)
+                self._map[landmark_id] = _MapEntry(
+                    {key: _value_at(estimate, key) for key in keys},
+                    {key: self._smoother.marginalCovariance(key) for key in keys})
+            self._active -= leaving
+        self._smoother.setSmootherLag(lag)
+        self._smoother.update(factors, values, timestamps)
+        self._smoother.setSmootherLag(_NO_LAG)
+        for _ in range(self.params.extra_iterations):
+            self._smoother.update()
+        for key in [key for key, at in self._smoother_stamps.items() if at < cutoff]:
+            del self._smoother_stamps[key]
+        self._oldest_state = bisect.bisect_left(self._stamps, self._stamps[0] + cutoff * NS)
+
     def _imu_params(self) -> gtsam.PreintegrationParams:
         p = self.params
         params = gtsam.PreintegrationParams.MakeSharedU(p.gravity)  # gravity along world −z
@@ -657,6 +771,8 @@ class LocalizerGraph:
             known = self._landmarks.get(landmark_id)
             if known is not None and known.first_state < state:
                 associated.append(sighting)
+            if known is not None and landmark_id not in self._active:
+                self._reenter(landmark_id, factors, values)
             if isinstance(feature, PlaneFeature):
                 if known is None:
                     normal = rotation @ feature.normal
@@ -673,17 +789,32 @@ class LocalizerGraph:
                                          _direction_key(landmark_id), feature))
             if known is None:
                 self._landmarks[landmark_id] = _Landmark(type(feature), state)
+            self._active.add(landmark_id)
         return associated
+
+    def _reenter(self, landmark_id: int, factors: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        """A landmark of the map sighted again goes back into the smoother at its map estimate, with a
+        prior of its marginal covariance when it left."""
+        entry = self._map.pop(landmark_id)
+        for key, value in entry.values.items():
+            values.insert(key, value)
+            noise = gtsam.noiseModel.Gaussian.Covariance(entry.covariances[key])
+            if isinstance(value, gtsam.OrientedPlane3):
+                factors.add(_plane_prior(key, value, noise))
+            elif isinstance(value, gtsam.Unit3):
+                factors.add(gtsam.PriorFactorUnit3(key, value, noise))
+            else:
+                factors.add(gtsam.PriorFactorPoint3(key, value, noise))
 
     # ------------------------------------------------------------------ the estimate
     def _estimate(self, scan: _ScanRecord, associated: list[Observation]) -> PoseEstimate:
         state = scan.state
-        estimate = self._isam.calculateEstimate([_pose_key(state), _velocity_key(state), _bias_key(state)])
+        estimate = self._smoother.calculateEstimate()
         fused = estimate.atPose3(_pose_key(state))
         velocity = estimate.atVector(_velocity_key(state))
         self._bias = estimate.atConstantBias(_bias_key(state))
-        pose_covariance = self._isam.marginalCovariance(_pose_key(state))
-        correction = self._precision(scan, fused, pose_covariance)
+        pose_covariance = self._smoother.marginalCovariance(_pose_key(state))
+        correction = self._precision(scan, fused, pose_covariance, estimate)
         pose = correction.compose(fused)
         velocity = correction.rotation().rotate(velocity)
         self._best = gtsam.NavState(pose.rotation(), pose.translation(), velocity)
@@ -721,30 +852,28 @@ class LocalizerGraph:
         return "tracking"
 
     # ------------------------------------------------------------------ precision step (d)
-    def _precision(self, scan: _ScanRecord, fused: gtsam.Pose3, pose_covariance: np.ndarray) -> gtsam.Pose3:
+    def _precision(self, scan: _ScanRecord, fused: gtsam.Pose3, pose_covariance: np.ndarray,
+                   estimate: gtsam.Values) -> gtsam.Pose3:
         """The rigid correction C of the fused poses of this scan and the window's earlier ones
         (identity when the step is off or nothing was sighted)."""
         if self.params.precision_window == 0:
             return gtsam.Pose3()
         earlier = list(self._window)[-(self.params.precision_window - 1):] if self.params.precision_window > 1 else []
         records = [*earlier, scan]
-        problem = self._precision_problem(scan.state, records)
+        problem = self._precision_problem(scan.state, records, estimate)
         if problem is None:
             return gtsam.Pose3()
         adjoint = fused.AdjointMap()  # right (body) perturbation → left (world) perturbation
         return align_rigidly(problem, adjoint @ pose_covariance @ adjoint.T, self.params)
 
-    def _precision_problem(self, state: int, records: list[_ScanRecord]) -> "PrecisionProblem | None":
-        keys = {_pose_key(r.state) for r in records}
-        for record in records:
-            for sighting in record.observations:
-                if isinstance(sighting.feature, PlaneFeature):
-                    keys.add(_plane_key(sighting.landmark_id))
-                else:
-                    keys.update((_anchor_key(sighting.landmark_id), _direction_key(sighting.landmark_id)))
-        if len(keys) == len(records):
+    def _precision_problem(self, state: int, records: list[_ScanRecord],
+                           estimate: gtsam.Values) -> "PrecisionProblem | None":
+        """The window's sightings against the smoother's landmark estimates. A scan whose state the
+        smoother has marginalised (a lag shorter than the window) is left out; the landmarks of the
+        others are in the smoother, as they were sighted no earlier than their scan."""
+        records = [r for r in records if estimate.exists(_pose_key(r.state))]  # all, unless the lag is short
+        if not any(r.observations for r in records):
             return None  # no sightings in the window
-        estimate = self._isam.calculateEstimate(sorted(keys))
         return precision_problem(records, estimate, self._landmarks, state, self.params)
 
 
