@@ -10,9 +10,10 @@ system (§3.5.3) sends any flying state to EMERGENCY_LANDING when the LiDAR stre
 Detections message per scan) or odometry has been silent for `sensor_timeout`.
 
 Routines beside the machine (§3.5): state timers T_c, T_g, T_d that forbid the current target
-and return to IDLE (T_d for a mover counts from its latest close pass: `_timed_since`); forbidden zones and the tries counter (targets.py); the detection filter
-(working area, forbidden zones, partners' claims); the team rules — revenge mode, one chaser
-per target, separation (team.py).
+and return to IDLE (T_d for a mover counts from its latest close pass: `_timed_since`);
+forbidden zones and the tries counter (targets.py); the detection filter (working area,
+forbidden zones, partners' claims); the team rules — revenge mode, one chaser per target,
+separation (team.py).
 
 Deviations from the seed, and why: the seed's camera needed the search height and a stop to
 see well; a 360° LiDAR does not, so CHECKING_TARGET only waits for the stop manoeuvre and the

@@ -32,7 +32,8 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     merge_acceleration: float = 1.5  # m/s² along a moving target's path when merging onto it
     follow_time: float = 4.0  # s flown alongside a moving target after the merge
     pursuit_horizon: float = 12.0  # s a pursuit flies the predicted track before braking (re-planned sooner)
-    pursuit_trust: float = 1.5  # s past the target's last sighting a pursuit follows its prediction (at most to the path's end), then waits there
+    # s past the target's last sighting a pursuit follows its prediction (at most to the path's end), then waits
+    pursuit_trust: float = 1.5
     pursuit_floor: float = 1.0  # m above the ground no pursuit goes below (the job manager's lowest target height)
     rejoin_distance: float = 1.5  # m: a re-plan starts on the current trajectory while this close to it
     republish_period: float = 2.0  # s of mission time
