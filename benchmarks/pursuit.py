@@ -7,7 +7,7 @@ UAV 12 m from the drone at 5 m height; prints the capture time (within the scena
 relative speed, 1 m and 2 m/s by default), or the closest pass.
 
 A run takes seconds where a whole mission takes two minutes, so the law's constants can be tried
-here first (`--braking`, `--terminal` override pursuit.BRAKING and TERMINAL_SPEED for the run).
+here first (`--braking`, `--terminal` override pursuit.BRAKING and TERMINAL_GAIN for the run).
 
     .venv/bin/python benchmarks/pursuit.py                          # agile's dodger, seeds 1-5 x 10 starts
     .venv/bin/python benchmarks/pursuit.py --drone eight --latency 0.3 --period 0.3
@@ -118,12 +118,12 @@ def main() -> int:
     parser.add_argument("--period", type=float, default=0.3, help="s between re-plans (default 0.3)")
     parser.add_argument("--limit", type=float, default=60.0, help="s a pursuit may take (default 60, the goal)")
     parser.add_argument("--braking", type=float, help=f"override pursuit.BRAKING ({pursuit_law.BRAKING})")
-    parser.add_argument("--terminal", type=float, help=f"override pursuit.TERMINAL_SPEED ({pursuit_law.TERMINAL_SPEED} m/s)")
+    parser.add_argument("--terminal", type=float, help=f"override pursuit.TERMINAL_GAIN ({pursuit_law.TERMINAL_GAIN} 1/s)")
     args = parser.parse_args()
     if args.braking is not None:
         pursuit_law.BRAKING = args.braking
     if args.terminal is not None:
-        pursuit_law.TERMINAL_SPEED = args.terminal
+        pursuit_law.TERMINAL_GAIN = args.terminal
     try:
         scenario = load_scenario(args.scenario)
     except (OSError, ValueError) as error:

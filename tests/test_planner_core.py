@@ -465,18 +465,3 @@ def test_pursuit_never_follows_a_prediction_below_its_floor():
                            start_heading=0.0, horizon=12.0)
     assert unfloored[:, 2].min() < 0.0  # the case is real: without the floor it goes underground
 
-
-def test_the_closing_speed_brakes_within_its_budget_all_the_way_to_the_target():
-    """The closing speed v(d) asks a deceleration v·dv/dd; it must stay within the braking share it
-    plans with, also where the braking law hands over to the terminal one (the law before asked
-    twice that there), and reach the target at rest relative to it."""
-    from services.planner.pursuit import TERMINAL_DISTANCE, TERMINAL_SPEED, closing_speed
-    braking = 1.47
-    d = np.linspace(0.0, 30.0, 30001)
-    v = np.array([closing_speed(x, braking) for x in d])
-    deceleration = np.diff(v**2) / (2.0 * np.diff(d))  # d(v²/2)/dd, exact for a constant deceleration
-    assert deceleration.max() <= braking * 1.001
-    assert closing_speed(0.0, braking) == 0.0
-    assert closing_speed(TERMINAL_DISTANCE, braking) == pytest.approx(TERMINAL_SPEED)
-    assert np.all(np.diff(v) >= 0) and np.abs(np.diff(v)).max() < 0.01  # continuous, never faster closer in
-    assert closing_speed(1.0, braking) < 2.0  # within the net's reach it is slower than the net allows
