@@ -57,13 +57,13 @@ def _limit_velocity(velocity: np.ndarray, profile: ConstraintProfile) -> np.ndar
 
 def pursuit(position, target_position, target_velocity, *, profile: ConstraintProfile, dt: float = DT,
             start_velocity=None, start_heading: float | None = None, horizon: float = 12.0,
-            predicted: PredictedPath | None = None, floor: float = -np.inf, trust: float = np.inf) -> Path | None:
+            predicted: PredictedPath | None = None, floor: float = -np.inf,
+            trust: float = np.inf) -> Path | None:
     """Close on the predicted track and fly along it for `horizon` s, then brake to rest; heading
     along the target's velocity. `predicted` (time 0 = now): the target's predicted path, else the
     line from target_position along target_velocity, followed for `trust` s and then waited at;
-    pursued no lower than `floor` (world z). None
-    when the target is now faster than the profile allows (where only its prediction is, the
-    closing demand is capped by the profile)."""
+    pursued no lower than `floor` (world z). None when the target is now faster than the profile
+    allows (where only its prediction is, the closing demand is capped by the profile)."""
     accel = _MARGIN * profile.max_acceleration
     pt, vt = np.asarray(target_position, float).reshape(3), np.asarray(target_velocity, float).reshape(3)
     if np.linalg.norm(vt) >= _MARGIN * profile.max_speed or abs(vt[2]) >= _MARGIN * profile.max_vertical_speed:
