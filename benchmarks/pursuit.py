@@ -24,9 +24,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from schemas.messages import ConstraintProfile  # noqa: E402
+from schemas.arrays import from_numpy  # noqa: E402
+from schemas.messages import ConstraintProfile, Header, TrajectoryReference  # noqa: E402
 from services.job_manager.params import JobManagerParams  # noqa: E402
 from services.planner import pursuit as pursuit_law  # noqa: E402
+from services.planner.commands import PlannerParams, start_state  # noqa: E402
 from services.simulator.paths import DronePath  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 from services.simulator.specs import DroneSpec  # noqa: E402
@@ -39,7 +41,6 @@ NS = 1_000_000_000
 STEP = 0.01  # s, the simulator's largest sub-step
 START_DISTANCE = 12.0  # m from the drone
 START_HEIGHT = 5.0  # m
-REJOIN = 1.5  # m: a re-plan starts on the current reference while this close to it (planner rejoin_distance)
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,7 @@ def prediction(path: DronePath, t: float, latency: float, noise: float, rng: np.
 
 def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args, rng) -> Outcome:
     path = DronePath(spec, scenario, seed, index)
-    jm, tracker = JobManagerParams(), TrackerParams()
+    jm, tracker, planner = JobManagerParams(), TrackerParams(), PlannerParams()
     profile = ConstraintProfile(name="attack", max_speed=jm.attack_speed, max_acceleration=jm.attack_acceleration)
     limits = np.array([profile.max_speed, profile.max_acceleration, profile.max_heading_rate, profile.max_vertical_speed])
     fleet = Fleet(scenario, ["uav1"], seed)
@@ -74,25 +75,22 @@ def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args,
     fleet.position[0] = [target[0] + START_DISTANCE * np.cos(bearing), target[1] + START_DISTANCE * np.sin(bearing),
                          scenario.ground_z + START_HEIGHT]
     fleet.airborne[0], fleet.hold[0] = True, fleet.position[0]
-    reference, next_plan, events, t = None, start, [], start
+    sent, next_plan, events, t = None, start, [], start
     closest = (np.inf, 0.0)
     while t < start + args.limit:
         if t >= next_plan - 1e-9:
             predicted = prediction(path, t, args.latency, args.noise, rng, tracker.manoeuvre_time)
-            p, v = fleet.position[0].copy(), fleet.velocity[0].copy()
-            if reference is not None:
-                u = (t - reference.start_ns / NS) / reference.dt
-                if 0 <= u < len(reference.positions) - 1:
-                    i = int(u)
-                    here = reference.positions[i] + (u - i) * (reference.positions[i + 1] - reference.positions[i])
-                    if np.linalg.norm(here - p) <= REJOIN:
-                        p, v = here, reference.velocities[i]
-            plan = pursuit_law.pursuit(p, predicted.position, predicted.velocity, profile=profile, dt=0.1,
-                                       horizon=12.0, predicted=predicted, start_velocity=v,
-                                       start_heading=float(fleet.heading[0]), floor=scenario.ground_z + 1.0)
+            p, v = start_state(sent, int(round(t * NS)), fleet.position[0].copy(), fleet.velocity[0].copy(),
+                               planner.rejoin_distance)
+            plan = pursuit_law.pursuit(p, predicted.position, predicted.velocity, profile=profile, dt=planner.dt,
+                                       horizon=planner.pursuit_horizon, predicted=predicted, start_velocity=v,
+                                       start_heading=float(fleet.heading[0]),
+                                       floor=scenario.ground_z + planner.pursuit_floor)
             if plan is not None:
-                reference = make_reference("uav1", int(round(t * NS)), 0.1, plan[0], plan[1])
-                fleet.set_reference(0, reference, limits)
+                start_ns = int(round(t * NS))
+                sent = TrajectoryReference(header=Header(stamp=start_ns), command_id=0, start=start_ns, dt=planner.dt,
+                                           positions=from_numpy(plan[0]), headings=from_numpy(plan[1]))
+                fleet.set_reference(0, make_reference("uav1", start_ns, planner.dt, plan[0], plan[1]), limits)
             next_plan += args.period
         t += STEP
         fleet.integrate(int(round(t * NS)), STEP, events)

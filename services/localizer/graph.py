@@ -136,6 +136,7 @@ from dataclasses import dataclass, field
 from typing import Literal, Sequence
 
 import gtsam
+from gtsam.symbol_shorthand import A, B, D, P, V, X
 import msgspec
 import numpy as np
 from numba import njit
@@ -392,28 +393,9 @@ def line_kernel(anchors, directions, rotations, translations, measured_direction
 # Keys and factors
 
 
-def _pose_key(state: int) -> int:
-    return gtsam.symbol("x", state)
-
-
-def _velocity_key(state: int) -> int:
-    return gtsam.symbol("v", state)
-
-
-def _bias_key(state: int) -> int:
-    return gtsam.symbol("b", state)
-
-
-def _plane_key(landmark_id: int) -> int:
-    return gtsam.symbol("p", landmark_id)
-
-
-def _anchor_key(landmark_id: int) -> int:
-    return gtsam.symbol("a", landmark_id)
-
-
-def _direction_key(landmark_id: int) -> int:
-    return gtsam.symbol("d", landmark_id)
+# gtsam's symbol shorthands: state k's pose, velocity and IMU bias; landmark i's plane, line anchor and direction
+_pose_key, _velocity_key, _bias_key = X, V, B
+_plane_key, _anchor_key, _direction_key = P, A, D
 
 
 def _landmark_keys(landmark_id: int, kind: type) -> tuple[int, ...]:
