@@ -16,6 +16,9 @@ CAMERA_SERVICES = ("camera", "object_detect")
 # Evaluation-only detector that replaces the classifier: noisy detections made from the LiDAR
 # points that really hit a target (simulation only; `falconry sim --detector oracle`).
 ORACLE = "oracle"
+# The LiDAR-inertial localizer (seed 003's Grape): started for a UAV that flies without GNSS
+# (scenario [uav] positioning = "lidar"); its estimate is published on LOCALIZATION.
+LOCALIZER = "localizer"
 SIM_SERVICES = ("simulator",)
 # `falconry sim --detector`: onboard = LiDAR perception for drones and the camera for balloons;
 # classifier = the LiDAR perception alone; oracle = the evaluation detector alone.
@@ -23,15 +26,21 @@ DETECTORS = ("onboard", "classifier", "oracle")
 DEFAULT_DETECTOR = "onboard"
 
 
-def uav_services(detector: str = DEFAULT_DETECTOR) -> list[str]:
+POSITIONING = ("gnss", "lidar")  # where a UAV's position comes from (services/simulator/specs.py)
+
+
+def uav_services(detector: str = DEFAULT_DETECTOR, positioning: str = "gnss") -> list[str]:
     """The per-UAV services of a run: the oracle, when chosen, replaces the classifier; onboard adds
-    the camera and Object Detect."""
+    the camera and Object Detect; a UAV without GNSS (positioning "lidar") adds the localizer."""
     if detector not in DETECTORS:
         raise ValueError(f"unknown detector {detector!r} (choose from {', '.join(DETECTORS)})")
+    if positioning not in POSITIONING:
+        raise ValueError(f"unknown positioning {positioning!r} (choose from {', '.join(POSITIONING)})")
     services = [ORACLE if s == "classifier" and detector == ORACLE else s for s in UAV_SERVICES]
-    return services + list(CAMERA_SERVICES) if detector == "onboard" else services
+    services += list(CAMERA_SERVICES) if detector == "onboard" else []
+    return services + ([LOCALIZER] if positioning == "lidar" else [])
 
-SERVICES = SIM_SERVICES + UAV_SERVICES + CAMERA_SERVICES + (ORACLE,)
+SERVICES = SIM_SERVICES + UAV_SERVICES + CAMERA_SERVICES + (ORACLE, LOCALIZER)
 
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 
@@ -76,6 +85,7 @@ def ack(scope: str, service: str) -> str:
 # a team (services/runtime/tls.py) grants exactly these, and their publishers name them from here.
 ODOMETRY = "odometry"  # the flight controller's pose; in simulation the simulator stands in for it
 IMU = "imu"  # the flight controller's accelerometer and gyroscope samples; in simulation the simulator's
+LOCALIZATION = "localization"  # the localizer's estimate (Odometry with its health), which the flight controller flies on
 FLIGHT_CONTROLLER_TOPICS = (ODOMETRY, IMU)  # what the flight controller (the simulator) publishes per UAV
 COLORS = "colors"  # a colour file sent live from the ground (`falconry colors pick --send`)
 

@@ -110,14 +110,22 @@ class ColorUpdate(msgspec.Struct, kw_only=True):
     toml: str = ""
 
 
+# What a LiDAR-inertial localizer says of its own estimate (services/localizer/graph.py): "tracking"
+# while the scans' features hold the pose, "degraded" while too few do (the IMU carries it and it
+# drifts), "lost" once its uncertainty is beyond use. "" where no localizer stands behind the pose.
+PositioningHealth = Literal["", "tracking", "degraded", "lost"]
+
+
 class Odometry(msgspec.Struct, kw_only=True):
-    """Estimated state of one UAV. `covariance` is float64 6×6 over (x, y, z, roll, pitch, yaw)."""
+    """Estimated state of one UAV. `covariance` is float64 6×6 over (x, y, z, roll, pitch, yaw).
+    `health` is the localizer's when the pose comes from one (GNSS-denied flight), else ""."""
 
     header: Header
     pose: Pose
     velocity: Vec3 = (0.0, 0.0, 0.0)
     angular_velocity: Vec3 = (0.0, 0.0, 0.0)
     covariance: Array | None = None
+    health: PositioningHealth = ""
 
 
 class ImuBatch(msgspec.Struct, kw_only=True):
@@ -350,6 +358,7 @@ class WorldModel(msgspec.Struct, kw_only=True):
     duration: float = 0.0  # s of mission time
     sensors: dict[str, str] = {}  # UAV -> LiDAR model its sensor driver simulates
     appearance: Appearance = msgspec.field(default_factory=Appearance)
+    positioning: dict[str, str] = {}  # UAV -> "lidar" when it flies without GNSS, on its localizer; else absent
 
 
 class VehicleTruth(msgspec.Struct, kw_only=True):

@@ -18,6 +18,12 @@ def heading_quaternion(heading: float) -> tuple[float, float, float, float]:
     return (math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2))
 
 
+def yaw_of(quaternion_wxyz) -> float:
+    """The heading (rad, about world z) of a (w, x, y, z) quaternion, ZYX Euler yaw."""
+    w, x, y, z = quaternion_wxyz
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
 def rotate_yaw(vectors: np.ndarray, heading) -> np.ndarray:
     """(..., 3) vectors turned by `heading` rad about z (a level body's frame to the world's; the
     negative heading turns world vectors into the body frame). `heading` is a scalar or broadcasts

@@ -236,9 +236,12 @@ def test_noisy_flight_stays_within_three_sigma_and_five_centimetres(noisy_runs):
 
 
 # ------------------------------------------------------------------ (c) no features
+STRICT_HEALTH = GraphParams(max_constraint_sigma=0.1, tracking_position_sigma=0.1, lost_position_sigma=1.0)
+
+
 def test_without_features_the_imu_drifts_and_health_goes_degraded_then_lost():
     blackout = range(10, 41)  # from 1 s on, three seconds with nothing sighted
-    run = fly(40, ImuParams(), noise=NOISY, seed=4,
+    run = fly(40, ImuParams(), STRICT_HEALTH, noise=NOISY, seed=4,
               seen=lambda scan: ({}, {}) if scan in blackout else (PLANES, LINES))
     health = [e.health for e in run.estimates]
     assert set(health[:10]) == {"tracking"}
@@ -256,7 +259,7 @@ def test_without_features_the_imu_drifts_and_health_goes_degraded_then_lost():
 
 # ------------------------------------------------------------------ (d) a floor alone
 def test_a_floor_alone_leaves_the_horizontal_position_unobserved():
-    run = fly(15, ImuParams(), noise=NOISY, seed=5, seen=lambda scan: ({0: FLOOR}, {}))
+    run = fly(15, ImuParams(), STRICT_HEALTH, noise=NOISY, seed=5, seen=lambda scan: ({0: FLOOR}, {}))
     assert run.estimates[0].health == "tracking"  # the start state: its prior
     assert {e.health for e in run.estimates[1:]} == {"degraded"}
     assert all(math.isinf(e.constraint_sigma) for e in run.estimates[1:])

@@ -9,6 +9,12 @@ GOING_TO_TARGET, DESTROYING (§3.4) — until the mission timer says LANDING →
 system (§3.5.3) sends any flying state to EMERGENCY_LANDING when the LiDAR stream (one
 Detections message per scan) or odometry has been silent for `sensor_timeout`.
 
+Flying without GNSS (`positioning_by_localizer`), the odometry carries the localizer's health
+(services/localizer): PREFLIGHT also waits for "tracking"; in flight "degraded" flies every
+command slower (profile "degraded", `degraded_speed`), and "lost" holds position (a stop) and,
+lost for `sensor_timeout`, is treated as a silent LiDAR: EMERGENCY_LANDING. Not in the seed,
+whose UAV had GNSS.
+
 Routines beside the machine (§3.5): state timers T_c, T_g, T_d that forbid the current target
 and return to IDLE (T_d for a mover counts from its latest close pass: `_timed_since`);
 forbidden zones and the tries counter (targets.py); the detection filter (working area,
@@ -30,7 +36,7 @@ always passed in (int ns of mission time).
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -167,6 +173,9 @@ class JobManager:
         self._previous_target: np.ndarray | None = None  # what was locked before CHECKING_TARGET
         self._no_moving_until = 0  # a moving target that ran out a state timer: movers are skipped till then
         self._unseen_from = 0  # when the locked target last came within reliable range
+        self.positioning_by_localizer = False  # flying without GNSS: the odometry's health counts
+        self.positioning = ""  # the latest odometry's health ("" when no localizer says any)
+        self._positioning_lost_since: int | None = None
 
     # ----------------------------------------------------------------- inputs
     def set_world(self, arena: np.ndarray, uavs: list[str], duration_s: float, ground_z: float = 0.0) -> bool:
@@ -294,10 +303,13 @@ class JobManager:
 
     # ------------------------------------------------------------------ step
     def update(self, now_ns: int, position: np.ndarray, airborne: bool, services_ready: bool,
-               position_stamp_ns: int | None = None, velocity: np.ndarray | None = None) -> MissionDecision | None:
+               position_stamp_ns: int | None = None, velocity: np.ndarray | None = None,
+               positioning: str = "") -> MissionDecision | None:
         """Advance the machine; returns the new decision when it changed, else None.
-        `position_stamp_ns` is the stamp of the odometry `position` came from (default: now)."""
+        `position_stamp_ns` is the stamp of the odometry `position` came from (default: now);
+        `positioning` its health (Odometry.health: "" without a localizer)."""
         self._now = now_ns
+        self._note_positioning(positioning, now_ns)
         position = np.asarray(position, dtype=np.float64).reshape(3)
         velocity = np.zeros(3) if velocity is None else np.asarray(velocity, dtype=np.float64).reshape(3)
         stamp = now_ns if position_stamp_ns is None else position_stamp_ns
@@ -317,9 +329,33 @@ class JobManager:
         if target is not self.state:
             self._enter(target, now_ns, reason, position)
         decision = self._yielding(now_ns, position) or self._decision_for(now_ns, position)
+        decision = self._within_positioning(decision, position)
         if decision == self._decision:
             return None
         self._decision = decision
+        return decision
+
+    def _note_positioning(self, health: str, now: int) -> None:
+        if not self.positioning_by_localizer:
+            return
+        if health != self.positioning and self.state is not State.PREFLIGHT:
+            self.notes.append(f"positioning {health or 'unknown'}" + {
+                "degraded": f": flying at {self.params.degraded_speed:g} m/s at most",
+                "lost": f": holding position; landing if lost for {self.params.sensor_timeout:g} s"}.get(health, ""))
+        self.positioning = health
+        if health != "lost":
+            self._positioning_lost_since = None
+        elif self._positioning_lost_since is None:
+            self._positioning_lost_since = now
+
+    def _within_positioning(self, decision: MissionDecision, position: np.ndarray) -> MissionDecision:
+        """A flying decision as the localizer's health allows: held while lost, slowed while degraded."""
+        if not self.positioning_by_localizer or self.state not in _WATCHED:
+            return decision
+        if self.positioning == "lost":
+            return MissionDecision("stop", height=self.params.search_height, spacing=decision.spacing)
+        if self.positioning == "degraded":
+            return replace(decision, profile="degraded")
         return decision
 
     def _enter(self, target: State, now: int, reason: str, position: np.ndarray) -> None:
@@ -442,6 +478,9 @@ class JobManager:
             heard = self.seen.scan_stamp if self.seen.scan_stamp is not None else self.takeoff_at
             if heard is not None and now - max(heard, self.takeoff_at) > timeout:
                 return State.EMERGENCY_LANDING, f"LiDAR silent {(now - max(heard, self.takeoff_at)) / NS:.1f} s"
+            lost = self._positioning_lost_since
+            if lost is not None and now - lost > timeout:
+                return State.EMERGENCY_LANDING, f"positioning lost {(now - lost) / NS:.1f} s"
             if self._mission_over(now):
                 return State.LANDING, "mission timer"
             if (self.team is not None and self.takeoff_at is not None and self.team.isolated(now, self.takeoff_at)
@@ -462,7 +501,8 @@ class JobManager:
             if self._mission_over(now):
                 return State.LANDED, "mission over before take-off"
             lidar_heard = self.seen.scan_stamp is not None and now - self.seen.scan_stamp <= timeout
-            if services_ready and lidar_heard and self.working_area is not None:
+            positioned = not self.positioning_by_localizer or self.positioning == "tracking"
+            if services_ready and lidar_heard and positioned and self.working_area is not None:
                 return State.TAKING_OFF, "pre-flight check passed"
         elif state is State.TAKING_OFF:
             if airborne and position[2] >= p.search_height - p.height_tolerance:

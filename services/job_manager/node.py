@@ -54,7 +54,11 @@ class JobManagerNode(Node):
             "sweeping": ConstraintProfile(name="sweeping", max_speed=p.sweeping_speed,
                                           max_acceleration=p.sweeping_acceleration),
             "attack": ConstraintProfile(name="attack", max_speed=p.attack_speed, max_acceleration=p.attack_acceleration),
+            # flying without GNSS on a degraded position (core.py)
+            "degraded": ConstraintProfile(name="degraded", max_speed=p.degraded_speed,
+                                          max_acceleration=p.sweeping_acceleration),
         }
+        self.positioning = ""  # the odometry's health: the localizer's when flying without GNSS
         self.position: np.ndarray | None = None
         self.velocity = np.zeros(3)
         self.position_stamp = 0
@@ -87,6 +91,10 @@ class JobManagerNode(Node):
             if self._refused_worlds == 1:
                 self.log.warning("the first refused world model: %s", exc)
             return
+        by_localizer = msg.positioning.get(self.uav) == "lidar"
+        if by_localizer != self.core.positioning_by_localizer:
+            self.core.positioning_by_localizer = by_localizer
+            self.log.info("positioning: %s", "the localizer's estimate (no GNSS)" if by_localizer else "GNSS")
         if changed:
             area = self.core.working_area
             self.log.info("working area %d of %d: x %.1f..%.1f, %d vertices; mission %.0f s",
@@ -97,6 +105,7 @@ class JobManagerNode(Node):
         self.position = np.asarray(msg.pose.position, dtype=np.float64)
         self.velocity = np.asarray(msg.velocity, dtype=np.float64)
         self.position_stamp = msg.header.stamp
+        self.positioning = msg.health
 
     def on_detections(self, msg: Detections, key: str) -> None:
         self.core.observe_detections(msg.header.stamp, *_positions_and_covariances(msg))
@@ -136,14 +145,14 @@ class JobManagerNode(Node):
     # ------------------------------------------------------------------ tick
     @property
     def services_ready(self) -> bool:
-        return all(s in self.alive_services for s in REQUIRED_SERVICES) and \
-            any(d in self.alive_services for d in DETECTORS)
+        required = REQUIRED_SERVICES + ((keys.LOCALIZER,) if self.core.positioning_by_localizer else ())
+        return all(s in self.alive_services for s in required) and any(d in self.alive_services for d in DETECTORS)
 
     def on_tick(self, now_ns: int) -> None:
         if self.position is not None:
             decision = self.core.update(now_ns, self.position, self.core.is_airborne(self.position[2]),
                                         self.services_ready, position_stamp_ns=self.position_stamp,
-                                        velocity=self.velocity)
+                                        velocity=self.velocity, positioning=self.positioning)
             self.report()
             if decision is not None:
                 self.send_command(now_ns, decision)

@@ -54,3 +54,7 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     sweeping_acceleration: float = 1.5  # m/s²
     attack_speed: float = 8.3  # m/s, constraint profile "attack" (attack, intercept)
     attack_acceleration: float = 3.0  # m/s²
+    # Flying without GNSS (the localizer's health in the odometry): "degraded" flies every command
+    # with the profile "degraded" at this speed at most; "lost" holds position, and lost for
+    # sensor_timeout lands as a silent LiDAR does (an emergency landing)
+    degraded_speed: float = 2.0  # m/s

@@ -29,7 +29,9 @@ def own_router_wanted(args: argparse.Namespace) -> bool:
 
 
 def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: float, port: int,
-             network: UavNetwork | None) -> RunPlan:
+             network: UavNetwork | None, positioning: dict[str, str] | None = None) -> RunPlan:
+    """`positioning`: UAV -> "gnss" or "lidar" (the scenario's, or --positioning; default gnss): a
+    UAV flying without GNSS runs a localizer too."""
     embedded = args.zenoh_profile == "embedded" and not args.zenoh_config
     # --tls: every link is mutual TLS, each child presenting its own identity (derived from its
     # command line); the run's own router then also enforces the team's access control
@@ -73,9 +75,10 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
         "simulator", *extra, *zenoh_args([loopback_hub], sim_listen, gossip_connect=network is None),
         "--scenario", args.scenario,
         "--uavs", str(len(uavs)), "--seed", str(seed), "--duration", str(duration), "--rtf", str(args.rtf),
-        "--tick", str(args.tick), "--detector", args.detector] + (["--lockstep"] if args.lockstep else [])
+        "--tick", str(args.tick), "--detector", args.detector] + (["--lockstep"] if args.lockstep else []) \
+        + (["--positioning", args.positioning] if getattr(args, "positioning", None) else [])
     for uav in uavs:
-        for service in uav_services(args.detector):
+        for service in uav_services(args.detector, (positioning or {}).get(uav, "gnss")):
             if network:  # the ground and the partners over the radio, the simulator over the airframe link
                 connect = [f"tcp/{network.host_address}:{port}", f"tcp/{network.sim_address(uav)}:{port}"]
                 argv = base + [service, "--uav", uav, *extra, *zenoh_args(connect, [f"tcp/{network.address(uav)}:0"])]

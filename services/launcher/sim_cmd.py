@@ -110,7 +110,10 @@ class SimRun:
         try:
             self.scenario = load_scenario(args.scenario)
             read_tables(args.config)
-            for service in ["simulator", *keys.uav_services(args.detector)]:
+            self.positioning = {u: self.scenario.positioning(u, args.positioning)
+                                for u in keys.uav_names(args.uavs or self.scenario.uavs)}
+            services = {s for u, how in self.positioning.items() for s in keys.uav_services(args.detector, how)}
+            for service in ["simulator", *sorted(services)]:
                 params_for(service, node_class(service).params_type, args.config)
             self.safety_distance = params_for("job_manager", node_class("job_manager").params_type,
                                               args.config).safety_distance
@@ -153,7 +156,7 @@ class SimRun:
         self.segments_before = shm.segments()
         port = args.port or free_port()
         self.network = netns.UavNetwork(port, self.uavs) if needs_network else None
-        self.plan = plan_run(args, self.uavs, self.seed, self.duration, port, self.network)
+        self.plan = plan_run(args, self.uavs, self.seed, self.duration, port, self.network, self.positioning)
         self.monitor = RunMonitor(self.outputs.truth, digests=args.digest_json is not None,
                                   safety_distance=self.safety_distance)
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()

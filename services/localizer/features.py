@@ -72,10 +72,14 @@ import msgspec
 import numpy as np
 from numba import njit
 
+from services.localizer.poles import group_poles, pole_slices
+
 
 class FeatureParams(msgspec.Struct, forbid_unknown_fields=True):
     sectors: int = 4  # azimuth sectors, each giving its own features (seed 003: forward, left, back, right)
-    per_sector: int = 1  # planes and edges kept per sector (seed 003: one of each)
+    # planes and edges kept per sector (seed 003: one of each). Two, with min_angle_between_deg, give
+    # a wall beside the floor: the floor alone leaves x, y and yaw to the IMU (an open field's scans)
+    per_sector: int = 2
     window: int = 5  # neighbours on each side in the smoothness (LOAM: 5)
     # Steps between successive returns longer than a surface at this incidence would give mark
     # occlusions and grazing surfaces, whose points get no c (LOAM rejects both)
@@ -107,8 +111,29 @@ class FeatureParams(msgspec.Struct, forbid_unknown_fields=True):
     # that runs obliquely through the grid (a wall meeting the floor): 2–3 cm RMSE at 5 m
     edge_max_rmse: float = 0.05
     min_separation: float = 1.0  # m between the centres of features kept in one sector (per_sector > 1)
+    # A further plane (edge) in a sector is kept only when its normal (direction) lies at least this
+    # far from every one kept there, either sign; 0: by RMSE alone (the seed). The floor is the smoothest
+    # surface in every sector of an open field: by RMSE alone every plane is floor, which observes
+    # height, roll and pitch and nothing else, while a wall 30 m off goes unused
+    min_angle_between_deg: float = 45.0
+    # Poles (poles.py: the axes of trunks and poles as lines, beyond the seed): kept per sector; 0: none
+    poles_per_sector: int = 2
+    pole_min_step: float = 0.5  # m: a free-standing run's ends step back at least this far
+    pole_thin_width: float = 0.3  # m: a run this narrow is a thin pole, its returns' mean the axis
+    pole_max_radius: float = 3.0  # m, of a fitted trunk
+    pole_max_fit_rmse: float = 0.03  # m, radial RMSE of a trunk's circle fit: a few times the range noise
+    pole_match: float = 0.3  # m between a row's axis point and its pole's
+    pole_min_rows: int = 6  # rows with an axis point on the pole
+    pole_min_height: float = 1.0  # m the axis points span: a drone or a balloon spans less
+    pole_max_rmse: float = 0.1  # m, of the axis points from the pole's line
 
     def __post_init__(self) -> None:
+        if self.poles_per_sector < 0 or self.pole_min_rows < 2:
+            raise msgspec.ValidationError("poles_per_sector must not be negative, pole_min_rows at least 2")
+        for name in ("pole_min_step", "pole_thin_width", "pole_max_radius", "pole_max_fit_rmse", "pole_match",
+                     "pole_min_height", "pole_max_rmse"):
+            if not 0.0 < getattr(self, name) < math.inf:
+                raise msgspec.ValidationError(f"{name} must be positive and finite")
         for name in ("sectors", "per_sector", "window", "tile_rows", "tile_columns", "edge_roi_half_length"):
             if getattr(self, name) < 1:
                 raise msgspec.ValidationError(f"{name} must be at least 1")
@@ -121,6 +146,8 @@ class FeatureParams(msgspec.Struct, forbid_unknown_fields=True):
         for name in ("plane_max_smoothness", "plane_max_rmse", "edge_max_rmse"):
             if not getattr(self, name) > 0:
                 raise msgspec.ValidationError(f"{name} must be positive")
+        if not 0.0 <= self.min_angle_between_deg <= 90.0:
+            raise msgspec.ValidationError("min_angle_between_deg must be from 0 to 90")
         for name in ("edge_min_smoothness", "edge_min_deviation", "min_separation"):
             if not 0.0 <= getattr(self, name) < math.inf:
                 raise msgspec.ValidationError(f"{name} must be finite and not negative")
@@ -145,8 +172,9 @@ class EdgeFeature:
     centre: np.ndarray  # (3,) on the line, abreast of the traced samples' centroid
     direction: np.ndarray  # (3,) unit, signless (largest component positive)
     rmse: float  # m, of the traced samples from their own line (what selection ranks by)
-    point_count: int  # traced samples
+    point_count: int  # traced samples (a pole's: rows)
     sector: int
+    pole: bool = False  # the axis of a trunk or pole (poles.py), not a corner
 
 
 @dataclass(frozen=True)
@@ -166,7 +194,28 @@ def extract_features(points: np.ndarray, params: FeatureParams | None = None) ->
     along_rows = line_smoothness(grid, params.window, step_factor, params.max_dropouts, True, params.wrap_columns)
     along_columns = line_smoothness(grid, params.window, step_factor, params.max_dropouts, False, False)
     return Features(_plane_features(grid, along_rows[0], along_columns[0], params),
-                    _edge_features(grid, along_rows, along_columns, params))
+                    _edge_features(grid, along_rows, along_columns, params) + _pole_features(grid, params))
+
+
+def _pole_features(grid, params: FeatureParams) -> tuple[EdgeFeature, ...]:
+    """Per sector the `poles_per_sector` poles of lowest RMSE (poles.py), as lines."""
+    if params.poles_per_sector == 0:
+        return ()
+    slices = pole_slices(grid, params.pole_min_step, params.pole_thin_width, params.pole_max_radius,
+                         params.pole_max_fit_rmse)
+    poles = [p for p in group_poles(slices, params.pole_match, params.pole_min_rows, params.pole_min_height)
+             if p[2] <= params.pole_max_rmse]
+    if not poles:
+        return ()
+    centres = np.array([p[0] for p in poles])
+    sectors = sector_of(centres, params.sectors)
+    kept = []
+    for sector in range(params.sectors):
+        members = [k for k in np.flatnonzero(sectors == sector)]
+        members.sort(key=lambda k: poles[k][2])
+        kept += [(k, sector) for k in members[:params.poles_per_sector]]
+    return tuple(EdgeFeature(poles[k][0].copy(), poles[k][1].copy(), float(poles[k][2]), int(poles[k][3]), sector,
+                             pole=True) for k, sector in kept)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -320,7 +369,7 @@ def _plane_features(grid, smooth_rows, smooth_columns, params: FeatureParams) ->
     normals = axes[:, :, 0]
     normals *= np.where(np.einsum("ki,ki->k", normals, centres) > 0, -1.0, 1.0)[:, None]  # toward the sensor
     rmse = np.sqrt(np.maximum(eigenvalues[:, 0], 0.0) / np.maximum(counts, 1))
-    chosen = _select(centres, rmse, counts >= params.plane_min_points, params.plane_max_rmse, params)
+    chosen = _select(centres, normals, rmse, counts >= params.plane_min_points, params.plane_max_rmse, params)
     return tuple(PlaneFeature(centres[k].copy(), normals[k].copy(), float(-normals[k] @ centres[k]), float(rmse[k]),
                               int(counts[k]), sector) for k, sector in chosen)
 
@@ -414,7 +463,7 @@ def _edge_features(grid, along_rows, along_columns, params: FeatureParams) -> tu
     largest = np.take_along_axis(directions, np.abs(np.nan_to_num(directions)).argmax(axis=1)[:, None], axis=1)
     directions *= np.where(largest < 0, -1.0, 1.0)
     rmse = np.sqrt(np.maximum(eigenvalues[:, 0] + eigenvalues[:, 1], 0.0) / np.maximum(counts, 1))
-    chosen = _select(centres, rmse, counts >= params.edge_min_points, params.edge_max_rmse, params)
+    chosen = _select(centres, directions, rmse, counts >= params.edge_min_points, params.edge_max_rmse, params)
     edges = []
     for k, sector in chosen:
         centre, direction = _corner_line(grid, path_rows[k], path_cols[k], crosses_rows[k], params)
@@ -558,9 +607,11 @@ def sector_of(centres: np.ndarray, sectors: int) -> np.ndarray:
     return (np.floor((azimuth + width / 2) / width).astype(np.int64)) % sectors
 
 
-def _select(centres, rmse, enough_points, max_rmse, params: FeatureParams) -> list[tuple[int, int]]:
+def _select(centres, vectors, rmse, enough_points, max_rmse, params: FeatureParams) -> list[tuple[int, int]]:
     """(index, sector) of the fits kept: per sector the `per_sector` lowest RMSE among those with
-    enough points and an RMSE within `max_rmse`, at least `min_separation` apart."""
+    enough points and an RMSE within `max_rmse`, at least `min_separation` apart and with normals
+    (directions, `vectors`) at least `min_angle_between_deg` apart."""
+    max_cosine = math.cos(math.radians(params.min_angle_between_deg))
     eligible = np.flatnonzero(enough_points & (rmse <= max_rmse))
     if len(eligible) == 0:
         return []
@@ -572,7 +623,8 @@ def _select(centres, rmse, enough_points, max_rmse, params: FeatureParams) -> li
         for k in members[np.argsort(rmse[members], kind="stable")]:
             if len(kept) == params.per_sector:
                 break
-            if all(np.linalg.norm(centres[k] - centres[j]) >= params.min_separation for j in kept):
+            if all(np.linalg.norm(centres[k] - centres[j]) >= params.min_separation
+                   and (max_cosine >= 1.0 or abs(float(vectors[k] @ vectors[j])) <= max_cosine) for j in kept):
                 kept.append(int(k))
         chosen.extend((k, sector) for k in kept)
     return chosen

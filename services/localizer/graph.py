@@ -116,9 +116,10 @@ How it is done here, and why:
 - Departure: the LiDAR sits at the body origin, axes aligned (the features are taken in the body
   frame). The paper tilted its lidar forward; a caller with a mounting transform moves the features
   first: association.transform_features(features, R_body_sensor, t_body_sensor).
-- Health, beyond the paper (which only reports getting "lost"): "tracking" while the associated
-  features pin the position in all three directions (1/√ of the smallest eigenvalue of their
-  translation information ≤ max_constraint_sigma) and iSAM2's position σ ≤ tracking_position_sigma;
+- Health, beyond the paper (which only reports getting "lost"): "tracking" while iSAM2's position
+  σ ≤ tracking_position_sigma and, when max_constraint_sigma is finite (default: not asked), the
+  associated features pin the position in all three directions (1/√ of the smallest eigenvalue of
+  their translation information ≤ max_constraint_sigma);
   "lost" after lost_after_scans scans in a row with no associated feature or once the position σ
   exceeds lost_position_sigma; "degraded" otherwise (e.g. a floor alone: x and y unobserved). The
   start state counts as constrained by its prior.
@@ -201,9 +202,15 @@ class GraphParams(msgspec.Struct, forbid_unknown_fields=True):
     # holds roll and pitch through the IMU factor, and the window's normals would only add noise there
     precision_roll_pitch: bool = False
     # Health
-    max_constraint_sigma: float = 0.1  # m, position σ the associated features alone allow, worst direction
-    tracking_position_sigma: float = 0.1  # m, iSAM2's position σ (worst direction) for "tracking"
-    lost_position_sigma: float = 1.0  # m, beyond this "lost"
+    # m, position σ the associated features alone allow, worst direction, for "tracking"; inf: not
+    # asked. Off by default: in an open field a scan often sees the floor and one wall, and the IMU
+    # bridges the direction they leave open for a while; the position σ says when too long
+    max_constraint_sigma: float = math.inf
+    # m, iSAM2's position σ (worst direction) for "tracking". The map frame and the detections share
+    # the estimate's error, so what a target interception needs is the error's growth over a pass,
+    # well under this; the arena's geometry and the team's separation need the absolute σ under a metre
+    tracking_position_sigma: float = 0.5
+    lost_position_sigma: float = 2.0  # m, beyond this "lost"
     lost_after_scans: int = 10  # scans in a row without an associated feature: "lost" (1 s at 10 Hz)
 
     def __post_init__(self) -> None:
@@ -212,8 +219,7 @@ class GraphParams(msgspec.Struct, forbid_unknown_fields=True):
                      "start_position_sigma", "start_yaw_sigma", "start_tilt_sigma", "start_velocity_sigma",
                      "accelerometer_bias_sigma", "gyroscope_bias_sigma", "plane_normal_sigma",
                      "plane_offset_sigma", "line_distance_sigma", "line_direction_sigma",
-                     "relinearize_threshold", "smoother_lag", "max_constraint_sigma", "tracking_position_sigma",
-                     "lost_position_sigma"):
+                     "relinearize_threshold", "smoother_lag", "tracking_position_sigma", "lost_position_sigma"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):  # each is a σ of a noise model or a threshold
                 raise msgspec.ValidationError(f"{name} must be a finite number > 0, got {value!r}")
@@ -226,6 +232,8 @@ class GraphParams(msgspec.Struct, forbid_unknown_fields=True):
         if not 0.0 < self.precision_min_weight <= 1.0:
             raise msgspec.ValidationError(f"precision_min_weight must be above 0 and at most 1, "
                                           f"got {self.precision_min_weight!r}")
+        if not self.max_constraint_sigma > 0:  # inf allowed: not asked
+            raise msgspec.ValidationError(f"max_constraint_sigma must be > 0 (inf: not asked), got {self.max_constraint_sigma!r}")
         if self.lost_position_sigma < self.tracking_position_sigma:
             raise msgspec.ValidationError("lost_position_sigma must be at least tracking_position_sigma")
 
@@ -517,6 +525,7 @@ class LocalizerGraph:
         isam_params = gtsam.ISAM2Params()
         isam_params.setRelinearizeThreshold(self.params.relinearize_threshold)
         isam_params.relinearizeSkip = self.params.relinearize_skip
+        isam_params.setFactorization("QR")
         self._smoother = gtsam.IncrementalFixedLagSmoother(_NO_LAG, isam_params)
         self._oldest_state = 0  # the oldest state in the smoother
         self._preintegration_params = self._imu_params()
@@ -539,6 +548,10 @@ class LocalizerGraph:
         self._smoother_stamps: dict[int, float] = {}  # key -> s since the start: the smoother's timestamps
 
     # ------------------------------------------------------------------ public API
+    @property
+    def started(self) -> bool:
+        return bool(self._stamps)
+
     def start(self, stamp_ns: int, rotation: np.ndarray, translation: np.ndarray, velocity: np.ndarray) -> None:
         """The first state: pose (body → world) and world velocity at `stamp_ns`, with the priors of
         GraphParams. Its pose defines the map frame."""
@@ -693,10 +706,36 @@ class LocalizerGraph:
         if self._imu.held is None and not (len(self._imu.stamps) and self._imu.stamps[0] < stamp):
             raise ValueError(f"no IMU sample before the scan stamped {stamp} ns")
 
+    def predicted_pose(self, stamp_ns: int) -> tuple[np.ndarray, np.ndarray]:
+        """(rotation (3, 3) body → world, translation (3,)) predicted for `stamp_ns` from the
+        best-known newest state by the IMU samples received so far (the pose a scan's features are
+        associated from); nothing is consumed. Before any sample, or at the last state's stamp, the
+        newest state's pose."""
+        if not self._stamps:
+            raise ValueError("start the graph before predicting")
+        stamp = _stamp(stamp_ns, "prediction stamp")
+        imu = self._imu
+        if stamp <= self._stamps[-1] or (imu.held is None and not len(imu.stamps)):
+            pose = self._best.pose()
+        else:
+            preintegrated, _ = self._integrate(stamp)
+            pose = preintegrated.predict(self._best, self._bias).pose()
+        return pose.rotation().matrix(), pose.translation()
+
     def _preintegrate(self, stamp: int) -> gtsam.PreintegratedImuMeasurements:
         """The samples over [last state, stamp), each held until the next one's stamp; the one in
         effect at the last state's stamp covers the start of the interval (before any sample at all,
-        the first sample does)."""
+        the first sample does). They are consumed: the next interval starts at `stamp`."""
+        preintegrated, count = self._integrate(stamp)
+        imu = self._imu
+        imu.held = (imu.accelerometer[count - 1], imu.gyroscope[count - 1]) if count else \
+            (imu.held or (imu.accelerometer[0], imu.gyroscope[0]))
+        imu.stamps, imu.accelerometer, imu.gyroscope = (imu.stamps[count:], imu.accelerometer[count:],
+                                                         imu.gyroscope[count:])
+        return preintegrated
+
+    def _integrate(self, stamp: int) -> tuple[gtsam.PreintegratedImuMeasurements, int]:
+        """The preintegration over [last state, stamp) and the count of samples stamped before `stamp`."""
         imu, start = self._imu, self._stamps[-1]
         count = int(np.searchsorted(imu.stamps, stamp, side="left"))  # samples stamped before the scan
         preintegrated = gtsam.PreintegratedImuMeasurements(self._preintegration_params, self._bias)
@@ -706,10 +745,7 @@ class LocalizerGraph:
         for (force, rate), begin, end in zip(readings, bounds[:-1], bounds[1:]):
             if end > begin:  # the held reading spans nothing when a sample falls on the last stamp
                 preintegrated.integrateMeasurement(force, rate, (end - begin) / NS)
-        imu.held = readings[-1]
-        imu.stamps, imu.accelerometer, imu.gyroscope = (imu.stamps[count:], imu.accelerometer[count:],
-                                                         imu.gyroscope[count:])
-        return preintegrated
+        return preintegrated, count
 
     def _plane_factor(self, state: int, landmark_id: int, plane: PlaneFeature) -> gtsam.NonlinearFactor:
         factor = gtsam.OrientedPlane3Factor(np.append(plane.normal, plane.offset), self._plane_noise,

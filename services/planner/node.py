@@ -22,16 +22,12 @@ import numpy as np
 
 from schemas.arrays import from_numpy
 from schemas.messages import Header, MissionCommand, Odometry, TrajectoryReference, UavStatus
+from services.geometry import yaw_of
 from services.planner import core
 from services.planner.commands import PlannerParams, VehicleState, plan_command, start_state
 from services.planner.watchdog import JobManagerWatchdog
 from services.runtime.clock import NS
 from services.runtime.node import Node
-
-
-def yaw_of(quaternion: tuple[float, float, float, float]) -> float:
-    w, x, y, z = quaternion
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 class PlannerNode(Node):

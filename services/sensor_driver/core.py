@@ -264,6 +264,18 @@ def yaw_rotation(heading: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+def reregistered(points: np.ndarray, origin: np.ndarray, heading: float, believed_origin: np.ndarray,
+                 believed_heading: float) -> np.ndarray:
+    """A scan cast from (origin, heading) as the vehicle would register it from where it believes the
+    sensor is: each point keeps its place relative to the sensor, which moves to the belief
+    (float32, NaN stays NaN). A UAV flying without GNSS registers its scans by its localizer's
+    estimate; the perception behind it then works in the estimate's frame, as onboard."""
+    turn = yaw_rotation(believed_heading) @ yaw_rotation(heading).T
+    relative = np.asarray(points, dtype=np.float64) - np.asarray(origin, dtype=np.float64)
+    moved = relative @ turn.T + np.asarray(believed_origin, dtype=np.float64)
+    return moved.astype(np.float32)
+
+
 def small_rotation(roll: float, pitch: float, yaw: float) -> np.ndarray:
     """Rz(yaw)·Ry(pitch)·Rx(roll)."""
     cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)

@@ -10,6 +10,12 @@ falconry/sim/faults for this UAV are acted on here: `lidar_silent` publishes not
 `lidar_nan` an all-NaN cloud, `lidar_garbage` random ranges on every beam (truth -1 for both).
 Only this service and the simulator may read ground truth. Later issues add a recorded-file
 source and real hardware behind the same output.
+
+A UAV that flies without GNSS (the world model's `positioning` says "lidar") registers its scans
+by its own odometry (falconry/<uav>/odometry: the localizer's estimate, which its flight
+controller flies on) instead of the true pose: the rays are still cast from the true pose, and
+every point keeps its place relative to the sensor (core.reregistered). Perception, the tracker
+and the job manager then work in the estimate's frame, as they would onboard.
 """
 from __future__ import annotations
 
@@ -20,7 +26,8 @@ import numpy as np
 
 from schemas import keys
 from schemas.arrays import from_numpy
-from schemas.messages import FaultCommand, GroundTruth, Header, PointCloud, PointTruth, Pose, WorldModel
+from schemas.messages import FaultCommand, GroundTruth, Header, Odometry, PointCloud, PointTruth, Pose, WorldModel
+from services.geometry import heading_quaternion, yaw_of
 from services.lidar.models import lidar_model
 from services.lidar.rays import body_mask, pack_mask
 from services.runtime.counted import CountedWarnings
@@ -31,9 +38,11 @@ from services.sensor_driver.core import (
     SensorDriverParams,
     noise_stream_key,
     primitives_from_obstacles,
+    reregistered,
     scan,
     yaw_rotation,
 )
+
 from services.sensor_driver.faults import LIDAR_FAULTS, LidarFaults, faulty_scan
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
@@ -65,6 +74,9 @@ class SensorDriverNode(Node):
         self.truth_pub = self.publisher(self.topic("points_truth"), PointTruth)
         self.subscribe(keys.WORLD, WorldModel, self.on_world)
         self.subscribe(keys.TRUTH, GroundTruth, self.on_truth)
+        self.subscribe(self.topic(keys.ODOMETRY), Odometry, self.on_odometry)
+        self.odometry: Odometry | None = None
+        self.registered_by_odometry = False  # the world model says this UAV flies without GNSS
         self.subscribe(keys.FAULTS, FaultCommand, self.on_fault, keep=None)  # events: each one counts
 
     def _use_model(self, name: str) -> None:
@@ -97,12 +109,19 @@ class SensorDriverNode(Node):
         if world.obstacles != self.obstacles:
             self.obstacles = world.obstacles
             self.static = primitives_from_obstacles(world.obstacles)
+        lidar = world.positioning.get(self.uav) == "lidar"
+        if lidar != self.registered_by_odometry:
+            self.registered_by_odometry = lidar
+            self.log.info("scans registered by %s", "the odometry (no GNSS)" if lidar else "the true pose")
         if (key := noise_stream_key(world, self.uav)) != self.rng_key:
             self.rng_key = key
             self.rng = np.random.default_rng([*key, RNG_SALT])
 
     def on_truth(self, truth: GroundTruth, key: str) -> None:
         self.truth = truth
+
+    def on_odometry(self, odometry: Odometry, key: str) -> None:
+        self.odometry = odometry
 
     def on_fault(self, fault: FaultCommand, key: str) -> None:
         if fault.uav != self.uav or fault.kind not in LIDAR_FAULTS:
@@ -140,14 +159,14 @@ class SensorDriverNode(Node):
         if fault is not None:
             beams = self.model.directions(int(slot)) @ yaw_rotation(me.heading).T
             result = faulty_scan(result, fault, origin, beams, self.min_range, self.max_range, self.rng)
-        half = me.heading / 2.0
+        points, origin, heading = self._registered(result.points, origin, me.heading)
         rows, cols = result.hits.shape
         self.points_pub.put(PointCloud(
             header=Header(stamp=now_ns),
             width=cols,
             height=rows,
-            sensor_pose=Pose(position=tuple(origin.tolist()), orientation=(math.cos(half), 0.0, 0.0, math.sin(half))),
-            points=from_numpy(result.points),
+            sensor_pose=Pose(position=tuple(origin.tolist()), orientation=heading_quaternion(heading)),
+            points=from_numpy(points),
             intensity=None if result.intensity is None else from_numpy(result.intensity),
             sensor_model=self.model.name,
             min_range=self.min_range,
@@ -163,6 +182,18 @@ class SensorDriverNode(Node):
             hits=from_numpy(result.hits),
             targets=[t.id for t in self.truth.targets],
         ))
+
+
+    def _registered(self, points: np.ndarray, origin: np.ndarray, heading: float) -> tuple[np.ndarray, np.ndarray, float]:
+        """The scan, the sensor's origin and heading as the vehicle registers them: by the true pose,
+        or by its odometry when it flies without GNSS (then by the truth until the first odometry)."""
+        odometry = self.odometry
+        if not self.registered_by_odometry or odometry is None:
+            return points, origin, heading
+        believed_heading = yaw_of(odometry.pose.orientation)
+        believed_origin = np.asarray(odometry.pose.position, dtype=float) + \
+            yaw_rotation(believed_heading) @ np.asarray(self.params.mount)
+        return reregistered(points, origin, heading, believed_origin, believed_heading), believed_origin, believed_heading
 
 
 NODE = SensorDriverNode

@@ -90,6 +90,15 @@ class Simulation:
         self.fleet.offset[self.index(uav)] += offset
         self.fleet.jumped = True
 
+    def set_odometry_error(self, uav: str, offset) -> None:
+        """The UAV's odometry error is `offset` (x, y, z, m) from now on: its flight controller flies on
+        truth + offset (a UAV without GNSS, on its localizer's estimate: services/simulator/positioning.py)."""
+        offset = np.asarray(offset, dtype=float).reshape(3)
+        if not np.all(np.isfinite(offset)):
+            raise ValueError(f"{uav}: odometry offset must be finite, got {offset}")
+        self.fleet.offset[self.index(uav)] = offset
+        self.fleet.jumped = True
+
     def resume(self, time_ns: int, vehicles: list, targets: list) -> None:
         """Continue a run from its last ground truth (a restarted simulator): mission time, each
         vehicle's position, velocity, heading, airborne and alive flags, and the targets already

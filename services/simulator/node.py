@@ -9,6 +9,10 @@ real-time mode it paces ticks at the requested real-time factor.
 Before the first tick it waits until every service of every UAV is alive (automatic
 start); a service that dies is no longer waited for, and is waited for again once its
 liveliness token returns.
+
+A UAV flying without GNSS (positioning "lidar": the scenario's, or --positioning) gets its
+odometry from its localizer's estimate (falconry/<uav>/localization), which the simulated flight
+controller flies on (services/simulator/positioning.py).
 """
 from __future__ import annotations
 
@@ -34,7 +38,7 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
-from services.geometry import heading_quaternion
+from services.geometry import heading_quaternion, yaw_of
 from services.runtime.clock import seconds, to_ns
 from services.runtime.errors import UsageError
 from services.runtime.counted import CountedWarnings
@@ -42,6 +46,7 @@ from services.runtime.lockstep import LockstepGate
 from services.runtime.node import Node
 from services.simulator.core import ImuSamples, Simulation
 from services.simulator.imu import ImuParams
+from services.simulator.positioning import EstimateRelay
 from services.simulator.checks import check_team
 from services.simulator.scenario import load_scenario
 
@@ -80,10 +85,14 @@ class SimulatorNode(Node):
         if self.duration <= 0 or self.rtf <= 0 or self.tick_s <= 0:
             raise UsageError("--duration, --rtf and --tick must be positive")
         check_team(self.scenario, self.uav_names)
+        override = getattr(opts, "positioning", None)
+        self.positioning = {u: self.scenario.positioning(u, override) for u in self.uav_names}
+        self.relay = EstimateRelay()
         self.sim = Simulation(self.scenario, self.uav_names, self.seed, imu=self.params.imu)
         self._alive: set[str] = set()
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
         self._refused_references = 0
+        self._tallies: dict[str, int] = {}
         self._bad_input = CountedWarnings(self.log)
         self._undo_jumps: list[tuple[int, str, np.ndarray]] = []  # (mission ns, uav, offset)
         self._acks: dict[str, StepAck] = {}
@@ -101,6 +110,8 @@ class SimulatorNode(Node):
         self.imu_pubs = {u: self.publisher(keys.uav(u, keys.IMU), ImuBatch) for u in self.uav_names}
         for u in self.uav_names:
             self.subscribe(keys.uav(u, "trajectory"), TrajectoryReference, self.on_trajectory)
+            if self.positioning[u] == "lidar":
+                self.subscribe(keys.uav(u, keys.LOCALIZATION), Odometry, self.on_localization)
         self.subscribe_runtime(keys.ALL_ACKS, StepAck, self._on_ack)
         self.on_liveliness(keys.ALL_ALIVE, self._on_alive, internal=True)
 
@@ -119,6 +130,24 @@ class SimulatorNode(Node):
         parts = key.split("/")
         self._acks[f"{parts[1]}/{parts[3]}"] = ack
 
+    def on_localization(self, msg: Odometry, key: str) -> None:
+        """A localizer's estimate: its error becomes the flight controller's (positioning.py)."""
+        uav = keys.uav_of(key)
+        covariance = None if msg.covariance is None else to_numpy(msg.covariance)
+        if covariance is not None and covariance.size != 36:
+            covariance = None
+        error = self.relay.take_estimate(uav, msg.header.stamp, msg.pose.position, yaw_of(msg.pose.orientation),
+                                         covariance, msg.health)
+        if error is None:
+            self._bad_input.update({"localizer estimates ignored (not finite, or no truth at their stamp)":
+                                    self._tally("ignored estimates")})
+            return
+        self.sim.set_odometry_error(uav, error.position)
+
+    def _tally(self, what: str) -> int:
+        self._tallies[what] = self._tallies.get(what, 0) + 1
+        return self._tallies[what]
+
     def on_trajectory(self, msg: TrajectoryReference, key: str) -> None:
         uav = key.split("/")[1]
         p = msg.profile
@@ -136,7 +165,7 @@ class SimulatorNode(Node):
     # --------------------------------------------------------------- loop
     def expected_services(self) -> set[str]:
         detector = getattr(self.options, "detector", None) or keys.DEFAULT_DETECTOR
-        return {f"{u}/{s}" for u in self.uav_names for s in keys.uav_services(detector)}
+        return {f"{u}/{s}" for u in self.uav_names for s in keys.uav_services(detector, self.positioning[u])}
 
     def serve(self) -> None:
         first_step = self.resume_from_launcher()
@@ -283,6 +312,7 @@ class SimulatorNode(Node):
             min_height=sc.min_height, max_height=sc.max_height, obstacles=self.sim.obstacles(),
             uavs=list(self.uav_names), seed=self.seed, duration=self.duration,
             sensors={u: sc.uav_spec(u).sensor for u in self.uav_names},
+            positioning={u: "lidar" for u in self.uav_names if self.positioning[u] == "lidar"},
             appearance=Appearance(sky=tuple(sc.appearance.sky), ground=tuple(sc.appearance.ground),
                                   obstacle=tuple(sc.appearance.obstacle), sun_elevation=sc.appearance.sun_elevation,
                                   sun_azimuth=sc.appearance.sun_azimuth, ambient=sc.appearance.ambient)))
@@ -293,9 +323,17 @@ class SimulatorNode(Node):
         vehicles = self.sim.vehicles()
         for v in vehicles:
             position, velocity, heading, covariance = self.sim.odometry(v.name)
+            health = ""
+            if self.positioning[v.name] == "lidar":
+                self.relay.record_truth(v.name, now, v.position, v.heading)
+                error = self.relay.errors.get(v.name)
+                if error is not None:  # else the launch pose, known without GNSS
+                    heading = (heading + error.heading + np.pi) % (2 * np.pi) - np.pi
+                    covariance, health = error.covariance, error.health
             self.odometry_pubs[v.name].put(Odometry(
                 header=Header(stamp=now), pose=Pose(position=_vec(position), orientation=heading_quaternion(heading)),
-                velocity=_vec(velocity), covariance=from_numpy(np.asarray(covariance, dtype=np.float64))))
+                velocity=_vec(velocity), covariance=from_numpy(np.asarray(covariance, dtype=np.float64)),
+                health=health))
             self.imu_pubs[v.name].put(imu_batch(self.sim.imu(v.name), now, v.name, self.sim.imu_params.rate_hz))
         self.truth_pub.put(GroundTruth(
             header=Header(stamp=now), step=step,

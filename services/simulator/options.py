@@ -29,5 +29,10 @@ def add_simulator_options(parser: argparse.ArgumentParser, *, positional_scenari
                             "Object Detect for balloons; classifier: the LiDAR perception alone (no camera: "
                             "balloons on poles stay background); oracle: noisy detections made only from LiDAR "
                             "points that really hit a target (evaluation, simulation only)")
+    group.add_argument("--positioning", choices=keys.POSITIONING, default=None,
+                       help="where every UAV's position comes from (default: the scenario's [uav] positioning, "
+                            "gnss unless it says otherwise): gnss = the simulator's odometry; lidar = flying "
+                            "without GNSS, on the onboard localizer's LiDAR-inertial estimate (seed 003), one "
+                            "localizer per UAV")
     group.add_argument("--tick", type=float, default=0.05, metavar="S",
                        help="mission clock tick, seconds (default 0.05 = 20 Hz)")

@@ -113,6 +113,10 @@ Top-level fields
                            airframe never exceeds the larger of the two profiles, limit by limit.
   odometry_position_sigma  float = 0.0   white noise on the odometry position, m (>= 0).
   odometry_attitude_sigma  float = 0.0   white noise on the odometry heading, rad (>= 0).
+  positioning              "gnss" | "lidar" = "gnss"   where the flight controller's position comes
+                           from: gnss = the odometry above; lidar = flying without GNSS, on the
+                           onboard localizer's LiDAR-inertial estimate (the run starts a localizer
+                           per such UAV; `falconry sim --positioning lidar` sets it for every UAV).
   overrides.<uav>          a table with any of the fields above, for one UAV (uav1..uav3).
 
 [[faults]]  the fault schedule, injected at mission times (file order kept)

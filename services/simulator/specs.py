@@ -118,6 +118,12 @@ def _attack() -> ProfileSpec:
     return ProfileSpec(max_speed=8.3, max_acceleration=3.0)
 
 
+# Where a UAV's flight controller takes its position from: "gnss", the simulator's odometry (truth plus
+# odometry_*_sigma noise); "lidar", GNSS-denied: the onboard localizer's LiDAR-inertial estimate, which
+# the vehicle then flies on (services/localizer).
+Positioning = Literal["gnss", "lidar"]
+
+
 class UavSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     """One UAV's configuration (the [uav] table merged with its override)."""
 
@@ -126,6 +132,7 @@ class UavSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     attack: ProfileSpec = msgspec.field(default_factory=_attack)
     odometry_position_sigma: float = 0.0
     odometry_attitude_sigma: float = 0.0
+    positioning: Positioning = "gnss"
 
     def envelope(self) -> ProfileSpec:
         """What the airframe can do at most: the larger of its profiles, limit by limit."""
@@ -142,6 +149,7 @@ class UavOverride(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     attack: ProfileSpec | None = None
     odometry_position_sigma: float | None = None
     odometry_attitude_sigma: float | None = None
+    positioning: Positioning | None = None
 
 
 class UavTable(UavSpec, kw_only=True):
@@ -198,6 +206,11 @@ class Scenario(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     def target_space(self) -> list[Point2]:
         """Where targets may be: the airspace polygon, or the arena when none is given."""
         return self.airspace or self.arena
+
+    def positioning(self, uav: str, override: str | None = None) -> str:
+        """Where the UAV's position comes from: `override` (a run's --positioning, for every UAV) or
+        its [uav] table's positioning."""
+        return override or self.uav_spec(uav).positioning
 
     def uav_spec(self, uav: str) -> UavSpec:
         """The [uav] table with this UAV's override applied."""

@@ -39,6 +39,7 @@ from schemas.messages import (
     FaultCommand,
     GroundTruth,
     Header,
+    ImuBatch,
     LabelSet,
     MissionCommand,
     Obstacle,
@@ -257,6 +258,9 @@ def corpus() -> dict[type, msgspec.Struct]:
     truth = sim.published(GroundTruth, keys.TRUTH)
     odometry = sim.published(Odometry, keys.uav(UAV, "odometry"))
     made: dict[type, msgspec.Struct] = {WorldModel: world, GroundTruth: truth, Odometry: odometry}
+    sim.node.sim.step(0.05)  # a tick's IMU samples (the first batch holds none)
+    sim.node.publish_state(1, 50_000_000)
+    made[ImuBatch] = sim.published(ImuBatch, keys.uav(UAV, keys.IMU))
     made[SimClock] = SimClock(header=Header(sender="sim/simulator", seq=2, stamp=50_000_000), step=1, dt=0.05,
                               lockstep=True, bounds={keys.uav(UAV, "points"): 1}, alive=[f"{UAV}/sensor_driver"])
     made[StepAck] = StepAck(header=Header(sender=f"{UAV}/sensor_driver", seq=1, stamp=50_000_000), step=1,

@@ -1,0 +1,108 @@
+"""Seed 003's Grape localizer as one pipeline (sec. 2.1): an organised LiDAR scan and the IMU's
+samples in, the UAV's pose with its covariance and health out.
+
+Per scan: (a) plane and edge features of the organised scan in the sensor frame (features.py),
+moved into the body frame by the LiDAR's mount; (b) associated with the feature map by k-d tree on
+feature centres plus a normal / direction check (association.py), from the pose the IMU predicts
+for the scan's stamp; (c) and (d) the factor graph's fusion and precision steps (graph.py). The map
+grows by the features that matched nothing, placed from that predicted pose.
+
+Pure: numpy in, numpy out; no clock (every stamp is the caller's, int ns of mission time).
+
+Where Falconry departs from the paper, and why:
+- The map features association compares against stay where they were first placed; the graph
+  refines its landmarks, association does not follow. Their drift since first sighting is what the
+  association tolerances (AssociationParams, 10° and 0.3 m) absorb; a map re-placed from the graph
+  would need the graph's marginalised landmarks back, which it keeps only as priors.
+- The scan is taken as instantaneous at its stamp (no motion compensation within the sweep): the
+  simulated LiDAR casts every ray from the pose at the stamp.
+- The IMU and the LiDAR are taken to share the body's orientation; the LiDAR sits at `lidar_mount`
+  in the body frame (the sensor driver's `mount`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import msgspec
+import numpy as np
+
+from services.localizer.association import AssociationParams, FeatureMap, associate, transform_features
+from services.localizer.features import FeatureParams, Features, extract_features
+from services.localizer.graph import GraphParams, LocalizerGraph, PoseEstimate, observations
+from services.sensor_driver.core import DEFAULT_MOUNT
+
+
+class LocalizerParams(msgspec.Struct, forbid_unknown_fields=True):
+    # m, the LiDAR's position in the body frame (x forward, y left, z up): the sensor driver's `mount`
+    lidar_mount: list[float] = msgspec.field(default_factory=lambda: list(DEFAULT_MOUNT))
+    # s: a scan waits at most this long for the IMU samples up to its stamp, then is dropped (the IMU
+    # stream has stalled; a scan cannot be fused without the motion since the last one)
+    max_imu_wait: float = 0.5
+    features: FeatureParams = msgspec.field(default_factory=FeatureParams)
+    association: AssociationParams = msgspec.field(default_factory=AssociationParams)
+    graph: GraphParams = msgspec.field(default_factory=GraphParams)
+
+    def __post_init__(self) -> None:
+        if len(self.lidar_mount) != 3 or not np.isfinite(self.lidar_mount).all():
+            raise msgspec.ValidationError(f"lidar_mount must be [x, y, z] in metres, got {self.lidar_mount}")
+        if not 0.0 < self.max_imu_wait < 60.0:
+            raise msgspec.ValidationError(f"max_imu_wait must be above 0 and below 60 s, got {self.max_imu_wait}")
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    """What one scan gave: the estimate, and how many features it brought and matched."""
+
+    estimate: PoseEstimate
+    planes: int
+    edges: int
+    associated: int  # features taken for map features
+    new: int  # features added to the map
+
+
+def sensor_frame(points: np.ndarray, sensor_position: np.ndarray, sensor_rotation: np.ndarray) -> np.ndarray:
+    """An organised (H, W, 3) world-frame scan back in the sensor frame it was cast in:
+    Rᵀ (p − position), NaN rows kept NaN (a PointCloud's points are registered by its sensor_pose)."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 3 or points.shape[2] != 3:
+        raise ValueError(f"an organised scan is (rows, columns, 3), got shape {points.shape}")
+    rotation = np.asarray(sensor_rotation, dtype=np.float64).reshape(3, 3)
+    return (points - np.asarray(sensor_position, dtype=np.float64).reshape(3)) @ rotation
+
+
+class Localizer:
+    """start once at the known launch pose, then add_imu as samples come and add_scan per scan."""
+
+    def __init__(self, params: LocalizerParams | None = None) -> None:
+        self.params = params or LocalizerParams()
+        self.graph = LocalizerGraph(self.params.graph)
+        self.map = FeatureMap()
+        self._mount = np.asarray(self.params.lidar_mount, dtype=np.float64)
+        self.start_stamp = 0  # ns, of the start state (valid once started)
+
+    @property
+    def started(self) -> bool:
+        return self.graph.started
+
+    def start(self, stamp_ns: int, rotation: np.ndarray, translation: np.ndarray, velocity: np.ndarray) -> None:
+        """The body's pose (rotation body → world, translation) and world velocity at `stamp_ns`:
+        the map frame's origin (the launch point, known without GNSS)."""
+        self.graph.start(stamp_ns, rotation, translation, velocity)
+        self.start_stamp = int(stamp_ns)
+
+    def add_imu(self, stamps_ns: np.ndarray, accelerometer: np.ndarray, gyroscope: np.ndarray) -> None:
+        self.graph.add_imu(stamps_ns, accelerometer, gyroscope)
+
+    def add_scan(self, stamp_ns: int, sensor_points: np.ndarray) -> ScanResult:
+        """One organised scan (H, W, 3) in the sensor frame, NaN where nothing returned."""
+        body = transform_features(extract_features(sensor_points, self.params.features), np.eye(3), self._mount)
+        return self.add_features(stamp_ns, body)
+
+    def add_features(self, stamp_ns: int, body: Features) -> ScanResult:
+        """A scan's features already in the body frame (what add_scan extracts)."""
+        rotation, translation = self.graph.predicted_pose(stamp_ns)
+        matches = associate(transform_features(body, rotation, translation), self.map, self.params.association)
+        associated = sum(m.map_id is not None for m in matches)
+        ids = self.map.add_unassociated(matches)
+        estimate = self.graph.add_scan(stamp_ns, observations(body, ids))
+        return ScanResult(estimate, len(body.planes), len(body.edges), associated, len(matches) - associated)

@@ -1,0 +1,128 @@
+"""localizer node: LiDAR scans and IMU samples in, the UAV's pose out (seed 003's Grape; see core.py).
+
+Subscribes falconry/<uav>/odometry (Odometry: only the first one, the launch pose, known without
+GNSS, which starts the map frame), falconry/<uav>/imu (ImuBatch, every batch) and
+falconry/<uav>/points (PointCloud: its world-frame points are taken back to the sensor frame by its
+sensor_pose, which is how the driver registered them). Publishes falconry/<uav>/localization
+(Odometry with the covariance and the health, stamped with the scan's stamp) for every scan fused.
+
+A scan is fused once the IMU samples up to its stamp are in (an ImuBatch stamped at or after it);
+lockstep releases a tick's IMU batch first (subscription order), so then at once. A scan that
+waits longer than max_imu_wait is dropped and counted. In a GNSS-denied run the flight controller
+(the simulator) flies on this estimate and publishes it as the UAV's odometry.
+"""
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from schemas import keys
+from schemas.arrays import from_numpy, to_numpy
+from schemas.messages import Header, ImuBatch, Odometry, PointCloud, Pose
+from services.geometry import quaternion, rotation_matrix
+from services.localizer.core import Localizer, LocalizerParams, ScanResult, sensor_frame
+from services.runtime.clock import to_ns
+from services.runtime.counted import CountedWarnings
+from services.runtime.node import Node
+
+
+class LocalizerNode(Node):
+    service = keys.LOCALIZER
+    upstream = ("sensor_driver",)
+    params_type = LocalizerParams
+
+    def setup(self) -> None:
+        self.core = Localizer(self.params)
+        self.pub = self.publisher(self.topic(keys.LOCALIZATION), Odometry)
+        # Lockstep releases a tick's inputs in subscription order: the launch pose, then the IMU
+        # samples up to the tick, then its scan.
+        self.subscribe(self.topic(keys.ODOMETRY), Odometry, self.on_odometry)
+        self.subscribe(self.topic(keys.IMU), ImuBatch, self.on_imu, keep=None)  # every sample counts
+        self.subscribe(self.topic("points"), PointCloud, self.on_points)
+        self._imu_until: int | None = None  # the IMU's samples are in up to (not including) this stamp
+        self._last_sample: int | None = None
+        self._waiting: deque[PointCloud] = deque()
+        self._health = ""
+        self._refused: dict[str, int] = {}
+        self._bad_input = CountedWarnings(self.log)
+
+    def on_odometry(self, msg: Odometry, key: str) -> None:
+        if self.core.started:
+            return  # in a GNSS-denied run, our own estimate relayed by the flight controller
+        rotation = rotation_matrix(msg.pose.orientation)
+        try:
+            self.core.start(msg.header.stamp, rotation, np.asarray(msg.pose.position), np.asarray(msg.velocity))
+        except ValueError as exc:
+            self._refuse("launch poses refused (not finite, or not a rotation)", exc)
+            return
+        self.log.info("map frame started at the launch pose (%.2f, %.2f, %.2f)", *msg.pose.position)
+
+    def on_imu(self, msg: ImuBatch, key: str) -> None:
+        if not self.core.started:
+            return
+        stamps, accelerometer, gyroscope = to_numpy(msg.stamps), to_numpy(msg.accelerometer), to_numpy(msg.gyroscope)
+        if stamps.dtype.kind not in "iu" or accelerometer.size != 3 * stamps.size or gyroscope.size != 3 * stamps.size:
+            self._refuse("IMU batches refused (stamps not integers, or not one (3,) sample of each per stamp)")
+            return
+        stamps = stamps.astype(np.int64).reshape(-1)
+        after = self.core.start_stamp if self._last_sample is None else self._last_sample + 1
+        keep = stamps >= after
+        try:
+            self.core.add_imu(stamps[keep], accelerometer.reshape(-1, 3)[keep], gyroscope.reshape(-1, 3)[keep])
+        except ValueError as exc:
+            self._refuse("IMU batches refused (shapes, or samples not finite)", exc)
+            return
+        if keep.any():
+            self._last_sample = int(stamps[keep][-1])
+        self._imu_until = max(self._imu_until or 0, msg.header.stamp)
+        self._fuse_waiting()
+
+    def on_points(self, msg: PointCloud, key: str) -> None:
+        if not self.core.started or msg.header.stamp < self.core.start_stamp:
+            return
+        self._waiting.append(msg)
+        self._fuse_waiting()
+
+    def _fuse_waiting(self) -> None:
+        wait = to_ns(self.params.max_imu_wait)
+        while self._waiting:
+            scan = self._waiting[0]
+            ready = self._imu_until is not None and self._imu_until >= scan.header.stamp
+            if not ready and self._waiting[-1].header.stamp - scan.header.stamp <= wait:
+                return
+            self._waiting.popleft()
+            if ready:
+                self._fuse(scan)
+            else:
+                self._refuse("scans dropped: no IMU samples up to their stamp within max_imu_wait")
+
+    def _fuse(self, msg: PointCloud) -> None:
+        try:
+            points = sensor_frame(to_numpy(msg.points).reshape(msg.height, msg.width, 3),
+                                  np.asarray(msg.sensor_pose.position), rotation_matrix(msg.sensor_pose.orientation))
+            result = self.core.add_scan(msg.header.stamp, points)
+        except ValueError as exc:
+            self._refuse("scans refused (shape, or stamped before the last one)", exc)
+            return
+        self._publish(result)
+
+    def _publish(self, result: ScanResult) -> None:
+        e = result.estimate
+        if e.health != self._health:
+            say = self.log.info if e.health == "tracking" else self.log.warning
+            say("positioning %s (position sigma %.2f m, %d of %d features matched)", e.health, e.position_sigma,
+                result.associated, result.planes + result.edges)
+            self._health = e.health
+        self.pub.put(Odometry(header=Header(stamp=e.stamp_ns), pose=Pose(
+            position=tuple(float(x) for x in e.translation), orientation=quaternion(e.rotation)),
+            velocity=tuple(float(v) for v in e.velocity), covariance=from_numpy(e.covariance), health=e.health))
+
+    def _refuse(self, what: str, why: Exception | None = None) -> None:
+        count = self._refused[what] = self._refused.get(what, 0) + 1
+        if why is not None and count == 1:
+            self.log.warning("the first of the %s: %s", what, why)
+        self._bad_input.update(self._refused)
+
+
+NODE = LocalizerNode
