@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.job_manager.core import NS, JobManager, JobManagerParams, State
+from services.job_manager.core import MISSION_STATES, NS, JobManager, JobManagerParams, State
 
 ARENA = np.array([[0.0, 0.0], [100.0, 0.0], [100.0, 60.0], [0.0, 60.0]])
 HOME = np.array([20.0, 20.0, 5.0])  # in uav1's half (x < 50)
@@ -30,7 +30,7 @@ class Rig:
         self.decisions = []
 
     def tick(self, t: float, detections=(), position=None, velocity=None, scan: bool = True,
-             odometry: bool = True, ready: bool = True):
+             odometry: bool = True, ready: bool = True, positioning: str = ""):
         self.t = t
         if position is not None:
             self.position = np.asarray(position, dtype=float)
@@ -41,7 +41,8 @@ class Rig:
         if odometry:
             self.odometry_stamp = s(t)
         decision = self.jm.update(s(t), self.position, self.jm.is_airborne(self.position[2]), ready,
-                                  position_stamp_ns=self.odometry_stamp, velocity=self.velocity)
+                                  position_stamp_ns=self.odometry_stamp, velocity=self.velocity,
+                                  positioning=positioning)
         if decision is not None:
             self.decisions.append(decision)
         return decision
@@ -643,3 +644,62 @@ def test_a_mover_passed_close_keeps_its_pursuit_past_t_d_and_one_never_reached_d
 
     assert run(offset=1.5) == []  # alongside it the whole time: still DESTROYING after 9 s
     assert any("state timer 3 s" in reason for reason in run(offset=12.0))  # never close: given up
+
+
+# ------------------------------------------------------------------ flying without GNSS
+def localized_rig() -> Rig:
+    rig = Rig()
+    rig.jm.positioning_by_localizer = True
+    return rig
+
+
+def test_without_gnss_pre_flight_waits_for_the_localizer_to_track():
+    rig = localized_rig()
+    rig.tick(0.0, position=HOME - [0, 0, 5], positioning="")
+    rig.tick(0.1, position=HOME - [0, 0, 5], positioning="degraded")
+    assert rig.jm.state is State.PREFLIGHT
+    rig.tick(0.2, position=HOME - [0, 0, 5], positioning="tracking")
+    assert rig.jm.state is State.TAKING_OFF
+
+
+def test_with_gnss_the_odometry_health_is_not_asked():
+    rig = Rig()
+    rig.tick(0.0, position=HOME - [0, 0, 5], positioning="lost")
+    assert rig.jm.state is State.TAKING_OFF
+    rig.tick(1.0, position=HOME, positioning="lost")
+    assert rig.jm.state is State.IDLE and rig.last.action != "stop"
+
+
+def test_degraded_positioning_flies_every_command_slower_and_tracking_again_restores_it():
+    rig = localized_rig()
+    rig.tick(0.0, position=HOME - [0, 0, 5], positioning="tracking")
+    rig.tick(1.0, position=HOME, positioning="tracking")
+    rig.tick(1.1, positioning="tracking")
+    assert rig.last.action == "scan" and rig.last.profile == "sweeping"
+    rig.tick(1.2, positioning="degraded")
+    assert rig.last.action == "scan" and rig.last.profile == "degraded"
+    assert any("positioning degraded" in note for note in rig.jm.notes)
+    rig.tick(1.3, positioning="tracking")
+    assert rig.last.action == "scan" and rig.last.profile == "sweeping"
+
+
+def test_lost_positioning_holds_then_lands_as_a_silent_lidar_does():
+    rig = localized_rig()
+    rig.tick(0.0, position=HOME - [0, 0, 5], positioning="tracking")
+    rig.tick(1.0, position=HOME, positioning="tracking")
+    rig.tick(1.1, positioning="lost")
+    assert rig.last.action == "stop" and rig.jm.state in MISSION_STATES  # hold
+    rig.run(1.2, 2.0, positioning="lost")  # within sensor_timeout (1 s): still holding
+    assert rig.jm.state in MISSION_STATES and rig.last.action == "stop"
+    rig.tick(2.2, positioning="lost")
+    assert rig.jm.state is State.EMERGENCY_LANDING
+    assert rig.jm.transitions[-1].reason.startswith("positioning lost")
+
+
+def test_positioning_found_again_within_the_timeout_resumes_the_mission():
+    rig = localized_rig()
+    rig.tick(0.0, position=HOME - [0, 0, 5], positioning="tracking")
+    rig.tick(1.0, position=HOME, positioning="tracking")
+    rig.run(1.1, 1.8, positioning="lost")
+    rig.run(1.9, 3.5, positioning="tracking")
+    assert rig.jm.state in MISSION_STATES and rig.last.action == "scan"

@@ -1,0 +1,176 @@
+"""The localizer as one pipeline (services/localizer/core.py) and what GNSS-denied flight adds around
+it: pole features (poles.py) on scans cast by the sensor driver's own caster, the scan registration by
+the estimate (sensor_driver/core.py), the flight controller's relay of the estimate
+(simulator/positioning.py), and whole flights of the simulator's vehicle and IMU through a scenario's
+world, scan by scan, without Zenoh. Fixed seeds: deterministic."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from schemas.messages import Obstacle
+from services.lidar.models import lidar_model
+from services.localizer.core import Localizer, LocalizerParams, sensor_frame
+from services.localizer.features import FeatureParams, extract_features
+from services.sensor_driver.core import DEFAULT_MOUNT, primitives_from_obstacles, reregistered, scan, yaw_rotation
+from services.simulator.core import Simulation
+from services.simulator.positioning import EstimateRelay
+from services.simulator.scenario import load_scenario
+from services.simulator.specs import NS
+
+TICK = 0.05
+MODEL = lidar_model("os0-128", 10.0)
+
+
+def cast(origin, heading: float, obstacles: list[Obstacle], seed: int = 0, frame: int = 0):
+    world = primitives_from_obstacles(obstacles)
+    return scan(np.asarray(origin, dtype=float), heading, MODEL.directions(frame), world, np.random.default_rng(seed),
+                min_range=MODEL.min_range, max_range=MODEL.max_range)
+
+
+# ------------------------------------------------------------------ frames
+def test_sensor_frame_undoes_the_registration_and_keeps_no_returns():
+    rng = np.random.default_rng(1)
+    local = rng.normal(size=(4, 5, 3)) * 10
+    local[1, 2] = np.nan
+    origin, heading = np.array([3.0, -2.0, 5.0]), 0.7
+    world = local @ yaw_rotation(heading).T + origin
+    back = sensor_frame(world, origin, yaw_rotation(heading))
+    np.testing.assert_allclose(back, local, atol=1e-12)
+    assert np.isnan(back[1, 2]).all()
+    with pytest.raises(ValueError, match="organised scan"):
+        sensor_frame(np.zeros((10, 3)), origin, np.eye(3))
+
+
+def test_a_scan_registered_by_a_wrong_pose_keeps_every_point_where_it_is_from_the_sensor():
+    rng = np.random.default_rng(2)
+    origin, heading = np.array([10.0, 5.0, 4.0]), 0.3
+    believed_origin, believed_heading = origin + [0.5, -0.3, 0.1], heading + 0.05
+    points = (origin + rng.normal(size=(3, 7, 3)) * 8).astype(np.float32)
+    points[0, 0] = np.nan
+    moved = reregistered(points, origin, heading, believed_origin, believed_heading)
+    assert moved.dtype == np.float32 and np.isnan(moved[0, 0]).all()
+    seen_from_truth = sensor_frame(points, origin, yaw_rotation(heading))
+    seen_from_belief = sensor_frame(moved, believed_origin, yaw_rotation(believed_heading))
+    np.testing.assert_allclose(seen_from_belief, seen_from_truth, atol=1e-4)
+
+
+def test_the_flight_controller_holds_the_estimates_error_at_its_own_stamp():
+    relay = EstimateRelay()
+    for k in range(5):
+        relay.record_truth("uav1", k * 50, np.array([k, 0.0, 5.0]), 0.1 * k)
+    error = relay.take_estimate("uav1", 100, (2.3, 0.1, 5.0), 0.25, np.eye(6), "degraded")
+    np.testing.assert_allclose(error.position, [0.3, 0.1, 0.0])
+    assert error.heading == pytest.approx(0.05) and error.health == "degraded"
+    assert relay.take_estimate("uav1", 75, (2.0, 0.0, 5.0), 0.0, None, "tracking") is None  # no truth then
+    assert relay.take_estimate("uav1", 50, (1.0, 0.0, 5.0), 0.1, None, "tracking") is None  # older than held
+    assert relay.take_estimate("uav1", 150, (math.nan, 0.0, 5.0), 0.3, None, "tracking") is None
+    assert relay.errors["uav1"].stamp == 100
+    wrapped = relay.take_estimate("uav1", 200, (4.0, 0.0, 5.0), -math.pi + 0.01 + 0.4 - 2 * math.pi, None, "tracking")
+    assert abs(wrapped.heading) < math.pi
+
+
+# ------------------------------------------------------------------ poles
+GROUND = Obstacle(kind="plane", center=(0.0, 0.0, 0.0))
+TRUNK = Obstacle(kind="cylinder", center=(12.0, 5.0, 0.0), radius=1.5, height=7.0)
+POLE = Obstacle(kind="cylinder", center=(-4.0, -6.0, 0.0), radius=0.05, height=4.0)
+CONE = Obstacle(kind="cone", center=(-15.0, 10.0, 0.0), radius=2.0, height=8.0)
+BALLOON = Obstacle(kind="sphere", center=(3.0, 9.0, 5.0), radius=0.3)
+
+
+def axis_offset(edge, obstacle: Obstacle, origin: np.ndarray) -> tuple[float, float]:
+    """Horizontal distance (m) of the feature's line from the obstacle's axis at the feature's height,
+    and the angle (°) between the line and the vertical."""
+    centre = edge.centre + origin  # sensor frame is level and unrotated here
+    return float(np.hypot(*(centre[:2] - np.array(obstacle.center[:2])))), \
+        math.degrees(math.acos(min(1.0, abs(edge.direction[2]))))
+
+
+def test_trunks_poles_and_cones_give_vertical_lines_through_their_axes_and_a_balloon_does_not():
+    origin = np.array([0.0, 0.0, 4.0])
+    cloud = cast(origin, 0.0, [GROUND, TRUNK, POLE, CONE, BALLOON])
+    local = sensor_frame(cloud.points, origin, np.eye(3))
+    poles = [e for e in extract_features(local).edges if e.pole]
+    found = {}
+    for obstacle, name in ((TRUNK, "trunk"), (POLE, "pole"), (CONE, "cone")):
+        offsets = [axis_offset(e, obstacle, origin) for e in poles]
+        distance, tilt = min(offsets)
+        found[name] = (distance, tilt)
+    assert found["trunk"][0] < 0.05 and found["trunk"][1] < 1.0
+    assert found["pole"][0] < 0.06 and found["pole"][1] < 1.0  # the returns' mean: off by up to the radius
+    assert found["cone"][0] < 0.1 and found["cone"][1] < 2.0
+    assert len(poles) == 3  # not the balloon: it spans 0.6 m
+    assert all(axis_offset(e, BALLOON, origin)[0] > 1.0 for e in poles)
+
+
+def test_poles_can_be_turned_off_and_a_wall_is_no_pole():
+    origin = np.array([0.0, 0.0, 4.0])
+    wall = Obstacle(kind="box", center=(10.0, -4.0, 3.0), size=(1.0, 12.0, 6.0))
+    cloud = cast(origin, 0.0, [GROUND, wall, TRUNK])
+    local = sensor_frame(cloud.points, origin, np.eye(3))
+    assert not [e for e in extract_features(local, FeatureParams(poles_per_sector=0)).edges if e.pole]
+    poles = [e for e in extract_features(local).edges if e.pole]
+    assert len(poles) == 1 and axis_offset(poles[0], TRUNK, origin)[0] < 0.05
+
+
+# ------------------------------------------------------------------ whole flights
+def fly(scenario: str, waypoints: list, seconds: float, uav_index: int = 0):
+    """The simulator's vehicle (with its IMU) along waypoints relative to its start, at 3 m/s; a scan
+    every other tick into a Localizer started at the launch pose. Returns per scan: (error m,
+    health, estimate, true position)."""
+    sc = load_scenario(scenario)
+    names = [f"uav{i + 1}" for i in range(sc.uavs)]
+    uav = names[uav_index]
+    sim = Simulation(sc, names, seed=1)
+    world = primitives_from_obstacles(sim.obstacles())
+    rng = np.random.default_rng(0)
+    me = sim.vehicles()[uav_index]
+    start, heading = me.position.copy(), me.heading
+    corners = [start + np.asarray(w, dtype=float) for w in waypoints]
+    path = np.concatenate([a + (b - a) * np.linspace(0, 1, max(2, int(np.linalg.norm(b - a) / 0.3)))[:, None]
+                           for a, b in zip(corners[:-1], corners[1:])])
+    localizer = Localizer(LocalizerParams())
+    localizer.start(0, yaw_rotation(heading), start, np.zeros(3))
+    mount = np.asarray(DEFAULT_MOUNT)
+    results = []
+    for k in range(1, int(round(seconds / TICK)) + 1):
+        if k % 10 == 1:  # a fresh reference, as the planner sends (the flight controller's failsafe)
+            sim.set_reference(uav, 0, 0.1, path, np.full(len(path), heading), 3.0, 1.5, 1.0, 2.0)
+        sim.step(TICK)
+        samples = sim.imu(uav)
+        localizer.add_imu(samples.stamps_ns, samples.accelerometer, samples.gyroscope)
+        if k % 2:
+            continue
+        me = sim.vehicles()[uav_index]
+        origin = me.position + yaw_rotation(me.heading) @ mount
+        cloud = scan(origin, me.heading, MODEL.directions(k // 2), world, rng, min_range=MODEL.min_range,
+                     max_range=MODEL.max_range)
+        result = localizer.add_scan(sim.time_ns, sensor_frame(cloud.points, origin, yaw_rotation(me.heading)))
+        estimate = result.estimate
+        assert estimate.stamp_ns == sim.time_ns
+        results.append((float(np.linalg.norm(estimate.translation - me.position)), estimate.health, estimate,
+                        me.position.copy()))
+    return results
+
+
+def test_a_flight_over_the_mbzirc_field_is_tracked_by_its_building_trees_and_poles():
+    results = fly("mbzirc", [[0, 0, 0], [0, 0, 5], [10, 10, 5], [30, 10, 5]], seconds=12.0)
+    errors = np.array([r[0] for r in results])
+    assert {r[1] for r in results} == {"tracking"}
+    # 0.07 m after 30 m (0.7 m before the level-plane prior: a degree of tilt left by the start)
+    assert errors.max() < 0.2, f"max {errors.max():.2f} m, last {errors[-1]:.2f} m"
+    for error, _, estimate, _ in results[::10]:  # the reported σ covers the error
+        assert error < 4 * max(estimate.position_sigma, 0.05)
+
+
+def test_an_open_field_gives_the_floor_alone_and_positioning_degrades_then_is_lost():
+    results = fly("open", [[0, 0, 0], [0, 0, 5], [30, 0, 5]], seconds=20.0)
+    health = [r[1] for r in results]
+    assert health[0] == "tracking"
+    first_degraded, first_lost = health.index("degraded"), health.index("lost")
+    assert first_degraded < first_lost
+    assert set(health[first_lost:]) == {"lost"}
+    sigmas = [r[2].position_sigma for r in results]
+    assert sigmas[first_lost] > LocalizerParams().graph.lost_position_sigma
