@@ -10,7 +10,7 @@ LOCK := deploy/requirements.lock
 SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1
 CAMPAIGN_ARGS ?= --runs 20 --seed 1
 
-.PHONY: .venv sim test acceptance bench bench-tracking bench-interception campaign schemas lock clean
+.PHONY: .venv sim test acceptance bench bench-tracking bench-interception bench-localization campaign schemas lock clean
 
 .venv: $(STAMP)
 
@@ -49,6 +49,10 @@ bench-tracking: .venv
 # capture time after first detection on agile and intruder, 5 seeds each (about 17 min)
 bench-interception: .venv
 	$(PY) benchmarks/interception.py
+
+# GNSS-denied missions on mbzirc and intruder, 3 seeds each: Table 2 of seed 003 beside KISS-ICP (about 45 min)
+bench-localization: .venv
+	$(PY) benchmarks/localization.py
 
 # 20 seeded runs with a random fault each (about 15 min; `make test` flies a 2-run one)
 campaign: .venv

@@ -25,11 +25,13 @@ BALLOON_GOAL_S = 90.0  # issues 4 and 11: all 5 balloons of mbzirc with 2 UAVs (
 INTRUDER_GOAL_S = 60.0  # issue 4: an intruder at 4 m/s captured within 60 s of first detection
 
 
-def run(scenario: str, uavs: int, seed: int, duration: float, workdir: Path, detector: str) -> dict:
+def run(scenario: str, uavs: int, seed: int, duration: float, workdir: Path, detector: str,
+        extra: tuple[str, ...] = ()) -> dict:
+    """One lockstep `falconry sim` run (`extra`: more of its options); its summary."""
     summary = workdir / f"{scenario}-{uavs}-{seed}.json"
     argv = [sys.executable, "-m", "services.launcher", "sim", scenario, "--uavs", str(uavs), "--seed", str(seed),
             "--lockstep", "--detector", detector, "--duration", str(duration), "--quiet", "--progress", "0",
-            "--summary-json", str(summary)]
+            "--summary-json", str(summary), *extra]
     result = subprocess.run(argv, capture_output=True, text=True)
     if result.returncode != 0:
         raise SystemExit(f"{' '.join(argv[2:])} failed ({result.returncode}):\n{result.stdout[-2000:]}{result.stderr[-2000:]}")

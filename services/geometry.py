@@ -18,10 +18,24 @@ def heading_quaternion(heading: float) -> tuple[float, float, float, float]:
     return (math.cos(heading / 2), 0.0, 0.0, math.sin(heading / 2))
 
 
-def yaw_of(quaternion_wxyz) -> float:
-    """The heading (rad, about world z) of a (w, x, y, z) quaternion, ZYX Euler yaw."""
-    w, x, y, z = quaternion_wxyz
-    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+def heading_quaternions(headings) -> np.ndarray:
+    """(N, 4) quaternions (w, x, y, z) of level bodies turned `headings` rad about z."""
+    half = np.asarray(headings, dtype=np.float64).reshape(-1) / 2
+    return np.stack([np.cos(half), np.zeros_like(half), np.zeros_like(half), np.sin(half)], axis=1)
+
+
+def wrap_angle(angle):
+    """Angles, rad, wrapped to [−π, π) (a scalar stays a numpy scalar)."""
+    return (np.asarray(angle, dtype=np.float64) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def yaw_of(quaternion_wxyz):
+    """The heading (rad, about world z) of a (w, x, y, z) quaternion, ZYX Euler yaw: a float for
+    one quaternion, (N,) for (N, 4)."""
+    q = np.asarray(quaternion_wxyz, dtype=np.float64)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    yaw = np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    return float(yaw) if yaw.ndim == 0 else yaw
 
 
 def rotate_yaw(vectors: np.ndarray, heading) -> np.ndarray:

@@ -18,13 +18,14 @@ PARTNER_TIMEOUT = 15.0  # t_s, the job manager's default
 
 
 def run_mission(tmp_path: Path, port: int, faults: str, *, uavs: int, duration: float, seed: int = 1,
-                lease_ms: int | None = None, lockstep: bool = True, extra: tuple[str, ...] = ()) -> tuple[dict, str]:
-    """mbzirc with `faults` added, on the oracle detector and a light LiDAR (OS0-32 × 512: these tests are
-    about the team's decisions, and the light sensor keeps each run under a minute)."""
+                lease_ms: int | None = None, lockstep: bool = True, extra: tuple[str, ...] = (),
+                base: str = "mbzirc", light_lidar: bool = True) -> tuple[dict, str]:
+    """`base` (mbzirc) with `faults` added, on the oracle detector and a light LiDAR (OS0-32 × 512: these
+    tests are about the team's decisions, and the light sensor keeps each run under a minute)."""
     scenario = tmp_path / "mission.toml"
-    scenario.write_text((SCENARIO_DIR / "mbzirc.toml").read_text() + faults)
+    scenario.write_text((SCENARIO_DIR / f"{base}.toml").read_text() + faults)
     light = tmp_path / "light.toml"
-    light.write_text('[sensor_driver]\nmodel = "os0-32-512"\n')
+    light.write_text('[sensor_driver]\nmodel = "os0-32-512"\n' if light_lidar else "")
     summary = tmp_path / "summary.json"
     argv = ["sim", str(scenario), "--uavs", str(uavs), "--seed", str(seed), "--duration", str(duration),
             "--detector", "oracle", "--port", str(port), "--quiet", "--progress", "0", "--summary-json", str(summary),
@@ -187,4 +188,37 @@ def test_the_team_rides_out_a_router_restart_and_every_service_comes_back(tmp_pa
                              for _, state, reason in uav["decisions"] if state.endswith("LANDING"))
         assert landed_by_rule or uav["final_state"] not in ("EMERGENCY_LANDING", "LANDING", "LANDED"), \
             (name, uav["decisions"])
+    check_separation(summary)
+
+
+@pytest.mark.timeout(600)
+def test_without_gnss_an_open_field_loses_the_position_and_each_uav_holds_then_lands(tmp_path, port):
+    """Flying on the localizer over a field with nothing but the floor: its x and y drift unobserved,
+    the health goes degraded (slower) and lost (hold), and lost for the job manager's sensor_timeout
+    each UAV makes an emergency landing, as on a silent LiDAR (the degraded and held phases, which
+    leave no transition, are tests/test_job_manager_machine.py's)."""
+    summary, output = run_mission(tmp_path, port, "", uavs=2, duration=25, base="open",
+                                  extra=("--positioning", "lidar"))
+    for name, uav in summary["uavs"].items():
+        decisions = [(t, state, reason) for t, state, reason in uav["decisions"]]
+        reasons = {state: (t, reason) for t, state, reason in decisions}
+        assert "IDLE" in reasons and "EMERGENCY_LANDING" in reasons, (name, decisions)  # it flew first
+        assert reasons["EMERGENCY_LANDING"][1].startswith("positioning lost"), (name, decisions)
+        assert uav["final_state"] == "LANDED" and uav["landed_s"] is not None, (name, uav)
+        print(f"{name}: in the air at t={reasons['IDLE'][0]:.1f} s, emergency landing at "
+              f"t={reasons['EMERGENCY_LANDING'][0]:.1f} s ({reasons['EMERGENCY_LANDING'][1]}), landed at "
+              f"t={uav['landed_s']:.1f} s")
+    assert summary["cpu"].get("uav1/localizer") and summary["cpu"].get("uav2/localizer")  # one localizer each
+    check_separation(summary)
+
+
+@pytest.mark.heavy
+@pytest.mark.timeout(900)
+def test_without_gnss_the_team_destroys_every_balloon_of_the_mbzirc_field(tmp_path, port):
+    """issue 14's mission: `falconry sim mbzirc --uavs 2 --lockstep --positioning lidar` (the oracle
+    detector, the scenario's OS0-128): every balloon, the team kept apart, no UAV lost its position."""
+    summary, output = run_mission(tmp_path, port, "", uavs=2, duration=120, light_lidar=False,
+                                  extra=("--positioning", "lidar"))
+    assert len(balloons_destroyed(summary)) == 5, output[-3000:]
+    assert "positioning lost" not in output
     check_separation(summary)

@@ -1,14 +1,18 @@
 """`falconry evaluate`: a recorded simulated run scored against its ground truth.
 
 `falconry evaluate tracking RUN.mcap`: each UAV's confirmed tracks against the true targets, beside
-its raw detections (services/evaluation_tracking.py, which defines every figure). An evaluation is
-a subcommand of the group: `add_parser` lists them.
+its raw detections (services/evaluation_tracking.py, which defines every figure).
+`falconry evaluate localization RUN.mcap`: each UAV's pose estimate against its true pose, beside
+KISS-ICP over its scans (services/evaluation_localization.py, which defines every figure;
+services/recorder/localization_input.py reads the recording). An evaluation is a subcommand of the
+group: `add_parser` lists them.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import math
+import sys
 import typing
 from pathlib import Path
 
@@ -16,10 +20,12 @@ import msgspec
 
 from schemas import keys
 from schemas.messages import TargetTruth
+from services.evaluation_localization import MAX_DIFF_S, LocalizationScore
 from services.evaluation_tracking import (CUTOFF, NS, ORDER, TRACKED_KINDS, TRACKER_SILENCE_NS, DetectionScore,
                                           MatchErrors, TrackingScore, fleet, fleet_detections, score_detections,
                                           score_tracks)
 from services.launcher.common import CliError
+from services.recorder.localization_input import PROGRESS_EVERY, LocalizationEvaluation, evaluate_localization
 from services.recorder.mcap_io import is_mcap
 from services.recorder.tracking_input import TRACKS, TrackingInput, read_tracking_input
 
@@ -67,11 +73,14 @@ least the detections'" read straight off the comparison table."""
 
 
 def add_parser(commands) -> None:
-    p = commands.add_parser("evaluate", help="score a recorded simulated run against its ground truth: tracking",
+    p = commands.add_parser("evaluate", help="score a recorded simulated run against its ground truth: tracking, "
+                                             "localization",
                             description="Evaluations of a recording against the ground truth it holds. "
-                                        "`falconry evaluate tracking --help`.")
+                                        "`falconry evaluate tracking --help`, `falconry evaluate localization "
+                                        "--help`.")
     evaluations = p.add_subparsers(dest="evaluation", metavar="EVALUATION", required=True)
     add_tracking_parser(evaluations)
+    add_localization_parser(evaluations)
 
 
 def add_tracking_parser(evaluations) -> None:
@@ -264,3 +273,124 @@ def _figures(errors: MatchErrors) -> list[str]:
 
 def _comparison_row(cells: list) -> str:
     return " ".join(fmt.format(str(cell)) for cell, (_, fmt) in zip(cells, COMPARISON_COLUMNS)).rstrip()
+
+
+# ============================================================================= localization
+LOCALIZATION_DESCRIPTION = f"""\
+Score each UAV's pose estimate in a recording of a simulated run (`falconry sim ... --record RUN.mcap`)
+against its true pose (falconry/sim/truth: the body's position and heading at every tick), seed 003's
+Table 2 (Grape, LiDAR-inertial SLAM) and the absolute trajectory error, beside a baseline: KISS-ICP
+(Vizzo et al. 2023) over the UAV's own LiDAR scans. One row per UAV and estimate:
+  falconry  the recorded estimate: the localizer's (falconry/<uav>/localization, source "localization");
+            a UAV without one is scored on the simulator's GNSS odometry (falconry/<uav>/odometry, source
+            "odometry", said in a note), so every recording can be evaluated.
+  kiss-icp  KISS-ICP over the UAV's scans (falconry/<uav>/points, source "points") in the sensor frame,
+            deskew off, ranges from the scans; anchored like the localizer at the true pose, at the
+            first scan of the falconry row's window, and turned from the LiDAR's poses into the body's
+            through the LiDAR mount measured at the first scan. The slow part: --no-baseline skips it
+            (progress on stderr every {PROGRESS_EVERY} scans).
+
+Each estimated pose is paired with the truth at its stamp (interpolated between ticks; a pose without a
+truth tick within {MAX_DIFF_S:g} s is left out). Window: from the estimate's first pose to its last (its
+drift on the ground before take-off counts); the kiss-icp row covers the falconry row's window;
+--airborne narrows both to the time the UAV was airborne. Figures:
+  poses       the matched poses; from s, to s: the window, mission time
+  distance m  length of the TRUE path over the window
+  pos err m   start-end position error |(e1 - e0) - (t1 - t0)|, e the estimated and t the true position
+              at the window's first (0) and last (1) pose: where the estimate ends relative to where it
+              started, against the truth (seed 003 measured |e1 - e0| on loops that end where they start);
+              %: of the distance travelled
+  yaw turned  sum of |change of the true heading| between ticks, deg (seed 003 counted 45 deg steps)
+  yaw err     the same start-end error on the yaw, wrapped to +-180 deg; %: of the yaw turned
+  ATE m       RMSE of the 3-D distance between matched estimated and true positions (evo's APE,
+              translation part); not aligned: the map frame is the start frame, so an offset is an error;
+              --align first fits the estimate to the truth by the best rigid SE(3) transform (Umeyama)
+  ms/scan     mean compute time of the baseline per scan, on this machine ("-" for the recording)
+A percentage is "-" without distance (or turn); the ATE is "-" when --align cannot align (a path on one
+line: a note says so). Definitions: services/evaluation_localization.py."""
+
+
+def add_localization_parser(evaluations) -> None:
+    t = evaluations.add_parser(
+        "localization", help="each UAV's pose estimate against its true pose: seed 003's Table 2 (start-end "
+                             "position and yaw error over distance and yaw turned) and the ATE; KISS-ICP beside it",
+        description=LOCALIZATION_DESCRIPTION)
+    t.add_argument("recording", metavar="RECORDING.mcap",
+                   help="an MCAP recording of a simulated run, which holds the ground truth")
+    t.add_argument("--uav", action="append", metavar="UAV",
+                   help="only this UAV (repeatable; default: every UAV with a truth and an estimate)")
+    t.add_argument("--no-baseline", dest="baseline", action="store_false",
+                   help="skip KISS-ICP (which registers every scan: minutes for a two-minute recording)")
+    t.add_argument("--align", action="store_true",
+                   help="align each estimate to the truth by the best rigid (SE(3), Umeyama) transform before "
+                        "the ATE (default: none; the start-end errors never need it)")
+    t.add_argument("--airborne", action="store_true",
+                   help="score only from the UAV's first airborne truth to its last (default: the estimate's "
+                        "whole time)")
+    t.add_argument("--voxel", type=float, metavar="M",
+                   help="KISS-ICP's voxel size, m (default: its own, a hundredth of the LiDAR's range)")
+    t.add_argument("--json", action="store_true", help="print the figures as JSON instead of a table")
+    t.set_defaults(handler=run_localization)
+
+
+def run_localization(args: argparse.Namespace) -> int:
+    path = Path(args.recording)
+    check_recording(path)
+    if args.voxel is not None and not (math.isfinite(args.voxel) and args.voxel > 0):
+        raise CliError(f"--voxel must be a positive size in m, not {args.voxel:g}")
+    evaluation = evaluate_localization(path, args.uav, baseline=args.baseline, align=args.align,
+                                       airborne=args.airborne, voxel_size=args.voxel, progress=_progress)
+    if args.json:
+        print(json.dumps(evaluation.summary(), indent=2))
+    else:
+        print("\n".join(localization_lines(evaluation)))
+    return 0
+
+
+def _progress(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
+LOCALIZATION_COLUMNS = (("UAV", "{:<6}"), ("estimate", "{:<9}"), ("source", "{:<13}"), ("poses", "{:>6}"),
+                        ("from s", "{:>7}"), ("to s", "{:>7}"), ("distance m", "{:>11}"), ("pos err m", "{:>10}"),
+                        ("%", "{:>6}"), ("yaw turned", "{:>11}"), ("yaw err", "{:>8}"), ("%", "{:>6}"),
+                        ("ATE m", "{:>7}"), ("ms/scan", "{:>8}"))
+
+
+def localization_lines(evaluation: LocalizationEvaluation) -> list[str]:
+    lines = [f"localization against ground truth: {evaluation.recording}",
+             f"window: {'the time each UAV was airborne, within ' if evaluation.airborne else ''}each estimate's "
+             f"first to last pose matched to the truth; ATE "
+             + ("after rigid (SE(3)) alignment" if evaluation.align else "without alignment (the map frame is the "
+                                                                          "start frame)")
+             + ("" if evaluation.baseline else "; no baseline (--no-baseline)")]
+    if not evaluation.report.complete:
+        lines.append(f"warning: {evaluation.report.describe(evaluation.recording)}")
+    lines += [f"warning: {count} undecodable payloads on {key} skipped"
+              for key, count in sorted(evaluation.undecodable.items())]
+    lines += [f"note: {note}" for note in evaluation.notes]
+    for uav, rows in evaluation.scores.items():
+        for score in rows:
+            if score.health:
+                total = sum(score.health.values())
+                shares = ", ".join(f"{name} {100 * n / total:.1f} %" for name, n in score.health.items())
+                lines.append(f"note: {uav} localizer health over {total} messages: {shares}")
+    table = [_localization_row([name for name, _ in LOCALIZATION_COLUMNS])]
+    table += [_localization_row([uav, *localization_row(score)])
+              for uav, rows in evaluation.scores.items() for score in rows]
+    if len(table) == 1:
+        table.append("(nothing scored)")
+    return lines + ["", *table]
+
+
+def localization_row(score: LocalizationScore) -> list[str]:
+    def number(value: float | None, digits: int) -> str:
+        return "-" if value is None else f"{value:.{digits}f}"
+    return [score.estimator, score.source, str(score.poses), f"{score.start_ns / NS:.1f}", f"{score.end_ns / NS:.1f}",
+            number(score.distance_m, 2), number(score.position_error_m, 3), number(score.position_error_pct, 2),
+            number(score.yaw_turned_deg, 1), number(score.yaw_error_deg, 2), number(score.yaw_error_pct, 3),
+            number(score.ate.rmse if score.ate else None, 3), number(score.time_per_scan_ms, 1)]
+
+
+def _localization_row(cells: list) -> str:
+    return " ".join(fmt.format(str(cell)) for cell, (_, fmt) in zip(cells, LOCALIZATION_COLUMNS)).rstrip()

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.messages import ConstraintProfile
+from services.geometry import wrap_angle
 
 DT = 0.1
 STOP_ANGLE = 2.0 * np.pi / 3.0
@@ -35,10 +36,6 @@ MAX_DURATION = 3600.0  # s
 _EPS = 1e-9
 
 Path = tuple[np.ndarray, np.ndarray]  # positions (N, 3), headings (N,)
-
-
-def wrap_angle(angle: np.ndarray | float) -> np.ndarray | float:
-    return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def speed_caps(unit: np.ndarray, profile: ConstraintProfile) -> np.ndarray:

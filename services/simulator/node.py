@@ -38,7 +38,7 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
-from services.geometry import heading_quaternion, yaw_of
+from services.geometry import heading_quaternion, wrap_angle, yaw_of
 from services.runtime.clock import seconds, to_ns
 from services.runtime.errors import UsageError
 from services.runtime.counted import CountedWarnings
@@ -328,7 +328,7 @@ class SimulatorNode(Node):
                 self.relay.record_truth(v.name, now, v.position, v.heading)
                 error = self.relay.errors.get(v.name)
                 if error is not None:  # else the launch pose, known without GNSS
-                    heading = (heading + error.heading + np.pi) % (2 * np.pi) - np.pi
+                    heading = float(wrap_angle(heading + error.heading))
                     covariance, health = error.covariance, error.health
             self.odometry_pubs[v.name].put(Odometry(
                 header=Header(stamp=now), pose=Pose(position=_vec(position), orientation=heading_quaternion(heading)),

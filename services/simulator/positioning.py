@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from services.geometry import wrap_angle
+
 HISTORY = 200  # ticks of truth kept to meet a late estimate (10 s at the default 20 Hz)
 
 
@@ -61,7 +63,7 @@ class EstimateRelay:
         if previous is not None and stamp < previous.stamp:
             return None  # an older estimate than the one held
         cov = np.full((6, 6), np.nan) if covariance is None else np.asarray(covariance, dtype=np.float64).reshape(6, 6)
-        turn = (heading - truth[2] + math.pi) % (2 * math.pi) - math.pi
+        turn = wrap_angle(heading - truth[2])
         error = EstimateError(int(stamp), position - truth[1], float(turn), cov, health)
         self.errors[uav] = error
         return error
