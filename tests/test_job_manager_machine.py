@@ -703,3 +703,26 @@ def test_positioning_found_again_within_the_timeout_resumes_the_mission():
     rig.run(1.1, 1.8, positioning="lost")
     rig.run(1.9, 3.5, positioning="tracking")
     assert rig.jm.state in MISSION_STATES and rig.last.action == "scan"
+
+
+def test_the_job_manager_node_takes_a_vanished_localizer_for_lost_positioning():
+    """Its liveliness token gone, a localizer sends nothing, and the flight controller carries its last
+    estimate on unchecked: the node hands the machine "lost" (hold, then land) whatever the odometry says."""
+    from schemas import keys
+    from schemas.messages import Header, WorldModel
+    from tests.tools.fuzz import UAV, encode, wire
+
+    wired = wire("job_manager")
+    world = WorldModel(header=Header(stamp=0), scenario="t", arena=[tuple(p) for p in ARENA], min_height=0.0,
+                       max_height=20.0, uavs=[UAV, "uav2"], duration=300.0, positioning={UAV: "lidar"})
+    wired.deliver(keys.WORLD, encode(world))
+    node = wired.node
+    assert node.core.positioning_by_localizer
+    node.positioning = "tracking"
+    wired.token(keys.alive(UAV, keys.LOCALIZER), True)
+    node.core.state = State.IDLE  # in flight
+    assert node.positioning_health() == "tracking"
+    wired.token(keys.alive(UAV, keys.LOCALIZER), False)
+    assert node.positioning_health() == "lost"
+    node.core.state = State.PREFLIGHT  # on the ground it only waits
+    assert node.positioning_health() == "tracking"

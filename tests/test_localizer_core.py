@@ -174,3 +174,48 @@ def test_an_open_field_gives_the_floor_alone_and_positioning_degrades_then_is_lo
     assert set(health[first_lost:]) == {"lost"}
     sigmas = [r[2].position_sigma for r in results]
     assert sigmas[first_lost] > LocalizerParams().graph.lost_position_sigma
+
+
+# ------------------------------------------------------------------ the node
+def test_the_node_publishes_an_estimate_per_scan_and_lost_for_good_once_the_graph_fails(monkeypatch):
+    """The localizer node on a fake session (tests/tools/fuzz.py's harness): the launch pose from the
+    first odometry, IMU batches, then scans of a hovering UAV over mbzirc each answered on
+    falconry/<uav>/localization; a gtsam failure turns every later answer into "lost" at the last pose."""
+    from schemas import keys
+    from schemas.arrays import from_numpy
+    from schemas.messages import Header, ImuBatch, Odometry, PointCloud, Pose
+    from services.geometry import heading_quaternion
+    from tests.tools.fuzz import UAV, encode, wire
+
+    wired = wire("localizer")
+    sc = load_scenario("mbzirc")
+    sim = Simulation(sc, ["uav1", "uav2"], seed=1)
+    world = primitives_from_obstacles(sim.obstacles())
+    me = sim.vehicles()[0]
+    wired.deliver(keys.uav(UAV, keys.ODOMETRY), encode(Odometry(
+        header=Header(stamp=0), pose=Pose(position=tuple(me.position), orientation=heading_quaternion(me.heading)))))
+    out = keys.uav(UAV, keys.LOCALIZATION)
+    answers = []
+    for k in range(1, 9):
+        sim.step(TICK)
+        samples = sim.imu("uav1")
+        wired.deliver(keys.uav(UAV, keys.IMU), encode(ImuBatch(
+            header=Header(stamp=sim.time_ns), stamps=from_numpy(samples.stamps_ns),
+            accelerometer=from_numpy(samples.accelerometer), gyroscope=from_numpy(samples.gyroscope), rate_hz=200)))
+        if k % 2:
+            continue
+        if k == 6:  # the graph gives up on this scan
+            monkeypatch.setattr(wired.node.core, "add_scan", lambda *a: (_ for _ in ()).throw(RuntimeError("Indeterminate")))
+        origin = me.position + yaw_rotation(me.heading) @ np.asarray(DEFAULT_MOUNT)
+        cloud = scan(origin, me.heading, MODEL.directions(k // 2), world, np.random.default_rng(k),
+                     min_range=MODEL.min_range, max_range=MODEL.max_range)
+        wired.deliver(keys.uav(UAV, "points"), encode(PointCloud(
+            header=Header(stamp=sim.time_ns), width=cloud.points.shape[1], height=cloud.points.shape[0],
+            sensor_pose=Pose(position=tuple(origin), orientation=heading_quaternion(me.heading)),
+            points=from_numpy(cloud.points))))
+        answers.append(wired.published(Odometry, out))
+    assert [a.header.stamp for a in answers] == [k * 50_000_000 for k in (2, 4, 6, 8)]
+    assert [a.health for a in answers] == ["tracking", "tracking", "lost", "lost"]
+    assert np.linalg.norm(np.asarray(answers[1].pose.position) - me.position) < 0.05
+    assert answers[3].pose == answers[1].pose  # the last estimate, held
+    assert wired.node.counters.handler_errors == 0

@@ -25,7 +25,7 @@ from schemas.messages import (
     UavStatus,
     WorldModel,
 )
-from services.job_manager.core import NS, JobManager, MissionDecision
+from services.job_manager.core import NS, JobManager, MissionDecision, State
 from services.job_manager.params import JobManagerParams
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
@@ -148,11 +148,19 @@ class JobManagerNode(Node):
         required = REQUIRED_SERVICES + ((keys.LOCALIZER,) if self.core.positioning_by_localizer else ())
         return all(s in self.alive_services for s in required) and any(d in self.alive_services for d in DETECTORS)
 
+    def positioning_health(self) -> str:
+        """The odometry's health; "lost" once the localizer's token is gone (the flight controller
+        would carry the last estimate on unchecked)."""
+        if self.core.positioning_by_localizer and keys.LOCALIZER not in self.alive_services \
+                and self.core.state is not State.PREFLIGHT:
+            return "lost"
+        return self.positioning
+
     def on_tick(self, now_ns: int) -> None:
         if self.position is not None:
             decision = self.core.update(now_ns, self.position, self.core.is_airborne(self.position[2]),
                                         self.services_ready, position_stamp_ns=self.position_stamp,
-                                        velocity=self.velocity, positioning=self.positioning)
+                                        velocity=self.velocity, positioning=self.positioning_health())
             self.report()
             if decision is not None:
                 self.send_command(now_ns, decision)

@@ -6,6 +6,9 @@ falconry/<uav>/points (PointCloud: its world-frame points are taken back to the 
 sensor_pose, which is how the driver registered them). Publishes falconry/<uav>/localization
 (Odometry with the covariance and the health, stamped with the scan's stamp) for every scan fused.
 
+Should gtsam give up on the graph (an indeterminate system), every later scan is answered with the
+last estimate and health "lost" (the job manager then lands), until the service restarts.
+
 A scan is fused once the IMU samples up to its stamp are in (an ImuBatch stamped at or after it);
 lockstep releases a tick's IMU batch first (subscription order), so then at once. A scan that
 waits longer than max_imu_wait is dropped and counted. In a GNSS-denied run the flight controller
@@ -15,6 +18,7 @@ from __future__ import annotations
 
 from collections import deque
 
+import msgspec
 import numpy as np
 
 from schemas import keys
@@ -44,6 +48,8 @@ class LocalizerNode(Node):
         self._last_sample: int | None = None
         self._waiting: deque[PointCloud] = deque()
         self._health = ""
+        self._last: Odometry | None = None  # the latest estimate published
+        self._failed: Odometry | None = None  # once the graph failed: the last estimate, health "lost"
         self._refused: dict[str, int] = {}
         self._bad_input = CountedWarnings(self.log)
 
@@ -98,12 +104,23 @@ class LocalizerNode(Node):
                 self._refuse("scans dropped: no IMU samples up to their stamp within max_imu_wait")
 
     def _fuse(self, msg: PointCloud) -> None:
+        if self._failed is not None:  # the graph cannot go on: say so with every scan
+            self.pub.put(msgspec.structs.replace(self._failed, header=Header(stamp=msg.header.stamp)))
+            return
         try:
             points = sensor_frame(to_numpy(msg.points).reshape(msg.height, msg.width, 3),
                                   np.asarray(msg.sensor_pose.position), rotation_matrix(msg.sensor_pose.orientation))
             result = self.core.add_scan(msg.header.stamp, points)
         except ValueError as exc:
             self._refuse("scans refused (shape, or stamped before the last one)", exc)
+            return
+        except RuntimeError as exc:  # gtsam gave up on the system (e.g. indeterminate): no estimate from here on
+            self.log.error("the factor graph failed, positioning lost until the localizer restarts: %s",
+                           str(exc).strip().splitlines()[0])
+            last = self._last or Odometry(header=Header(stamp=msg.header.stamp), pose=Pose(
+                position=(0.0, 0.0, 0.0), orientation=(1.0, 0.0, 0.0, 0.0)))
+            self._failed = msgspec.structs.replace(last, health="lost")
+            self.pub.put(msgspec.structs.replace(self._failed, header=Header(stamp=msg.header.stamp)))
             return
         self._publish(result)
 
@@ -114,9 +131,10 @@ class LocalizerNode(Node):
             say("positioning %s (position sigma %.2f m, %d of %d features matched)", e.health, e.position_sigma,
                 result.associated, result.planes + result.edges)
             self._health = e.health
-        self.pub.put(Odometry(header=Header(stamp=e.stamp_ns), pose=Pose(
+        self._last = Odometry(header=Header(stamp=e.stamp_ns), pose=Pose(
             position=tuple(float(x) for x in e.translation), orientation=quaternion(e.rotation)),
-            velocity=tuple(float(v) for v in e.velocity), covariance=from_numpy(e.covariance), health=e.health))
+            velocity=tuple(float(v) for v in e.velocity), covariance=from_numpy(e.covariance), health=e.health)
+        self.pub.put(self._last)
 
     def _refuse(self, what: str, why: Exception | None = None) -> None:
         count = self._refused[what] = self._refused.get(what, 0) + 1
