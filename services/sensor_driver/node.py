@@ -42,7 +42,6 @@ from services.sensor_driver.core import (
     scan,
     yaw_rotation,
 )
-
 from services.sensor_driver.faults import LIDAR_FAULTS, LidarFaults, faulty_scan
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
@@ -183,8 +182,8 @@ class SensorDriverNode(Node):
             targets=[t.id for t in self.truth.targets],
         ))
 
-
-    def _registered(self, points: np.ndarray, origin: np.ndarray, heading: float) -> tuple[np.ndarray, np.ndarray, float]:
+    def _registered(self, points: np.ndarray, origin: np.ndarray,
+                    heading: float) -> tuple[np.ndarray, np.ndarray, float]:
         """The scan, the sensor's origin and heading as the vehicle registers them: by the true pose,
         or by its odometry when it flies without GNSS (then by the truth until the first odometry)."""
         odometry = self.odometry
@@ -193,7 +192,8 @@ class SensorDriverNode(Node):
         believed_heading = yaw_of(odometry.pose.orientation)
         believed_origin = np.asarray(odometry.pose.position, dtype=float) + \
             yaw_rotation(believed_heading) @ np.asarray(self.params.mount)
-        return reregistered(points, origin, heading, believed_origin, believed_heading), believed_origin, believed_heading
+        moved = reregistered(points, origin, heading, believed_origin, believed_heading)
+        return moved, believed_origin, believed_heading
 
 
 NODE = SensorDriverNode
