@@ -191,12 +191,15 @@ def test_the_team_rides_out_a_router_restart_and_every_service_comes_back(tmp_pa
     check_separation(summary)
 
 
+@pytest.mark.heavy
 @pytest.mark.timeout(600)
 def test_without_gnss_an_open_field_loses_the_position_and_each_uav_holds_then_lands(tmp_path, port):
     """Flying on the localizer over a field with nothing but the floor: its x and y drift unobserved,
     the health goes degraded (slower) and lost (hold), and lost for the job manager's sensor_timeout
     each UAV makes an emergency landing, as on a silent LiDAR (the degraded and held phases, which
-    leave no transition, are tests/test_job_manager_machine.py's)."""
+    leave no transition, are tests/test_job_manager_machine.py's). Heavy (17 s: `make acceptance`):
+    make test holds the same chain in parts, the localizer on an open field going degraded then lost
+    (tests/test_localizer_core.py), its node answering lost, and the job manager holding then landing."""
     summary, output = run_mission(tmp_path, port, "", uavs=2, duration=25, base="open",
                                   extra=("--positioning", "lidar"))
     for name, uav in summary["uavs"].items():

@@ -248,7 +248,7 @@ def test_bad_faults_name_the_field(tmp_path):
 def test_the_delivery_clock_and_router_faults_take_their_own_fields_only(tmp_path):
     from services.simulator.scenario import check_team
     assert error_of(tmp_path, fault(time=1.0, kind="duplicate", uav="uav1")).startswith(
-        "t.toml: faults[0].topic: a duplicate fault needs one of the UAV's topics (odometry, imu, points, ")
+        "t.toml: faults[0].topic: a duplicate fault needs one of the UAV's topics (odometry, imu, localization, points, ")
     assert error_of(tmp_path, fault(time=1.0, kind="reorder", uav="uav1", topic="radio")).endswith(", not 'radio'")
     assert error_of(tmp_path, fault(time=1.0, kind="kill", uav="uav1", topic="points")) == (
         "t.toml: faults[0].topic: only duplicate and reorder faults take a topic")
