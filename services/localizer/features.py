@@ -17,6 +17,12 @@ azimuth order, NaN where a ray returned nothing. Three steps, none needing a nei
    in each the `per_sector` planes and edges of lowest RMSE are kept, among those with enough ROI
    points and an RMSE below the maximum.
 
+Departures by default (FeatureParams; the seed's selection is per_sector = 1,
+min_angle_between_deg = 0, poles_per_sector = 0): two planes and two edges per sector, the second
+at least `min_angle_between_deg` (45°) from the first, since by RMSE alone every plane of an open
+field is the floor; and up to `poles_per_sector` pole axes per sector (poles.py), returned among the
+edges (`EdgeFeature.pole`).
+
 What the paper leaves open, and where Falconry departs from it, and why:
 - c leaves out the component of Σ_j (p_j − p_i) along the chord p_{i+w} − p_{i−w}. The beams of
   a column fan out, so a plane is sampled along a column at uneven spacing: its points are
