@@ -26,7 +26,7 @@ from services.evaluation_tracking import (CUTOFF, NS, ORDER, TRACKED_KINDS, TRAC
                                           score_tracks)
 from services.launcher.common import CliError
 from services.recorder.localization_input import PROGRESS_EVERY, LocalizationEvaluation, evaluate_localization
-from services.recorder.mcap_io import is_mcap
+from services.recorder.mcap_io import check_recording
 from services.recorder.tracking_input import TRACKS, TrackingInput, read_tracking_input
 
 TARGET_KINDS = next(typing.get_args(f.type) for f in msgspec.structs.fields(TargetTruth) if f.name == "kind")
@@ -108,13 +108,6 @@ def parse_kinds(text: str) -> tuple[str, ...]:
     if not kinds or unknown:
         raise CliError(f"--kinds takes {' or '.join(TARGET_KINDS)}, comma-separated, not {text!r}")
     return kinds
-
-
-def check_recording(path: Path) -> None:
-    if not path.is_file():
-        raise CliError(f"no such recording: {path}")
-    if not is_mcap(path):
-        raise CliError(f"{path} is not an MCAP file")
 
 
 def check_options(args: argparse.Namespace) -> tuple[str, ...]:

@@ -27,7 +27,7 @@ from services.evaluation_localization import (CannotScore, KissIcpOdometry, Loca
                                               anchored_baseline, mount_transform, pose_matrix, score_localization,
                                               sensor_frame_points)
 from services.lidar.models import lidar_model
-from services.recorder.mcap_io import ReadReport, is_mcap, read_recording
+from services.recorder.mcap_io import ReadReport, check_recording, read_recording
 from services.recorder.selection import KeyFilter
 from services.runtime.errors import UsageError
 
@@ -229,13 +229,6 @@ class LocalizationEvaluation:
                 "window": "airborne" if self.airborne else "estimate", "baseline": self.baseline,
                 "undecodable": self.undecodable, "notes": self.notes,
                 "uavs": {uav: {s.estimator: s.summary() for s in rows} for uav, rows in self.scores.items()}}
-
-
-def check_recording(path: str | Path) -> None:
-    if not Path(path).is_file():
-        raise UsageError(f"no such recording: {path}")
-    if not is_mcap(path):
-        raise UsageError(f"{path} is not an MCAP file")
 
 
 def evaluate_localization(path: str | Path, uavs: Iterable[str] | None = None, *, baseline: bool = True,

@@ -178,6 +178,14 @@ def is_mcap(path: str | Path) -> bool:
         return False
 
 
+def check_recording(path: str | Path) -> None:
+    """A recording to read: an existing MCAP file, else a one-line UsageError."""
+    if not Path(path).is_file():
+        raise UsageError(f"no such recording: {path}")
+    if not is_mcap(path):
+        raise UsageError(f"{path} is not an MCAP file")
+
+
 def read_recording(path: str, wanted: Callable[[str], bool] | None = None,
                    report: ReadReport | None = None) -> Iterator[RecordedMessage]:
     """Every message of the file in file order (only keys `wanted` says yes to), chunk by chunk.
