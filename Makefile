@@ -46,7 +46,7 @@ bench: .venv
 bench-tracking: .venv
 	$(PY) benchmarks/tracking_comparison.py
 
-# capture time after first detection on agile and intruder, 5 seeds each (about 17 min)
+# capture time after first detection on agile and intruder, 5 seeds each (about 14 min)
 bench-interception: .venv
 	$(PY) benchmarks/interception.py
 

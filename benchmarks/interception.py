@@ -7,7 +7,7 @@ runner) and prints, per scenario and seed, each drone's capture time after its f
 then per scenario the median and the worst. Goals: every drone within 60 s of its first
 detection on every seed, median at most 30 s.
 
-    .venv/bin/python benchmarks/interception.py                      # 5 seeds x 2 scenarios: ~17 min
+    .venv/bin/python benchmarks/interception.py                      # 5 seeds x 2 scenarios: ~14 min
     .venv/bin/python benchmarks/interception.py --seeds 1 2 --scenarios agile
 """
 from __future__ import annotations

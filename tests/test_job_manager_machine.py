@@ -646,6 +646,33 @@ def test_a_mover_passed_close_keeps_its_pursuit_past_t_d_and_one_never_reached_d
     assert any("state timer 3 s" in reason for reason in run(offset=12.0))  # never close: given up
 
 
+def test_a_descending_mover_lost_for_a_moment_is_not_down_but_one_seen_low_is():
+    """"Moving target down" (a captured drone drops) needs the last sighting near the lowest
+    target height, not only the prediction below it: a drone last seen descending at 1 m/s at
+    2.5 m and then unseen for 2 s is predicted in the ground, yet it is still chased; one last
+    seen at 1.5 m is down."""
+    def run(last_seen_height: float):
+        rig = Rig(filter_switch_distance=20.0).airborne()
+        mover = lambda t: drone_at(t - 1.1, start=(25.0, 25.0, last_seen_height + 1.0),  # noqa: E731
+                                   velocity=(1.5, 0.0, -1.0))
+        t = 1.1
+        while t < 2.15:  # seen for 1 s, down to last_seen_height
+            rig.tick(round(t, 3), detections=[mover(t)], position=mover(t) + [3.0, 0, 0])
+            t += 0.1
+        assert rig.jm.state is State.DESTROYING and rig.jm.engagement.moving
+        while t < 4.15:  # unseen for 2 s (t_m is 3 s)
+            rig.tick(round(t, 3), position=mover(t) + [3.0, 0, 0])
+            t += 0.1
+        return rig
+
+    chased = run(last_seen_height=2.5)
+    assert chased.jm.engagement.position(s(chased.t))[2] < 1.0  # the prediction is in the ground
+    assert chased.jm.state is State.DESTROYING and chased.last.action == "intercept"
+    dropped = run(last_seen_height=1.5)
+    assert ("DESTROYING", "IDLE") in states(dropped)
+    assert any(x.reason == "moving target down" for x in dropped.jm.transitions)
+
+
 # ------------------------------------------------------------------ flying without GNSS
 def localized_rig() -> Rig:
     rig = Rig()

@@ -391,19 +391,20 @@ PURSUITS = [  # UAV position, UAV velocity, target position, target velocity
 def test_pursuit_closes_onto_the_predicted_track_within_the_profile(uav, velocity, target, target_velocity):
     from services.planner.core import pursuit
     uav, velocity, target, target_velocity = map(np.array, (uav, velocity, target, target_velocity))
+    # the closing speed plans to brake at BRAKING·a_max (0.59 m/s²): the farthest start, 22 m, takes 10.6 s
     positions, headings = pursuit(uav, target, target_velocity, profile=ATTACK, start_velocity=velocity,
-                                  start_heading=0.0, horizon=12.0)
+                                  start_heading=0.0, horizon=16.0)
     check_profile(positions, headings, ATTACK)
     np.testing.assert_allclose(positions[0], uav)
     np.testing.assert_allclose((positions[1] - positions[0]) / DT, velocity, atol=ATTACK.max_acceleration * DT)
-    horizon = int(round(12.0 / DT))
+    horizon = int(round(16.0 / DT))
     predicted = target + target_velocity * np.arange(horizon + 1)[:, None] * DT
     gap = np.linalg.norm(positions[:horizon + 1] - predicted, axis=1)
     reached = int(np.argmax(gap < 0.1))
-    assert gap[reached] < 0.1 and reached * DT < 10.0, f"never on the track: closest {gap.min():.2f} m"
+    assert gap[reached] < 0.1 and reached * DT < 13.0, f"never on the track: closest {gap.min():.2f} m"
     assert gap[reached:].max() < 0.2  # no more than a small overshoot once there
     settled = horizon + 1 - int(np.argmax(gap[::-1] >= 0.05))
-    assert settled * DT < 10.0
+    assert settled * DT < 13.0
     velocities = np.diff(positions[settled + 10:horizon + 1], axis=0) / DT  # a second later: at its velocity
     np.testing.assert_allclose(velocities, np.tile(target_velocity, (len(velocities), 1)), atol=0.15)
     assert_ends_at_rest(positions, positions[-1], ATTACK)

@@ -66,6 +66,7 @@ _WATCHED = (State.TAKING_OFF, *MISSION_STATES)  # the abort system and the missi
 _DESCENDING = (State.LANDING, State.EMERGENCY_LANDING)
 REPLAN_LOOKAHEAD = 1.0  # s over which a mover's new prediction is compared with the one sent
 TRACK_SEEN_WITHIN = 0.15  # s: a track corrected this recently (a scan period and a half) sees its target
+DOWN_MARGIN = 1.0  # m above the lowest target height: a mover last seen lower and predicted below it is down
 FLEET_SEEN_WITHIN = 0.5  # s: a partner's track corrected this recently is a sighting (its link and tick add lag)
 _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "going_timeout",
           State.DESTROYING: "destroying_timeout"}
@@ -567,11 +568,17 @@ class JobManager:
         return max(self.state_since, e.close_pass_at)
 
     def _destroying(self, now: int, position: np.ndarray, velocity: np.ndarray) -> tuple[State, str]:
+        """A mover is "down" (captured: it drops, and detections below the lowest target height
+        are no targets) when its prediction is below that height and it was last seen within
+        DOWN_MARGIN of it. The prediction alone carries a descent on while the target is unseen:
+        agile seed 4's drone, lost behind a tree for 2 s while descending at 3 m, was given up
+        as down."""
         p, e = self.params, self.engagement
         if e.moving:
             if now - e.last_seen() > int(p.target_time * NS):
                 return State.IDLE, f"moving target gone for {p.target_time:g} s (captured or lost)"
-            if e.position(now)[2] < self.ground_z + p.min_target_height:
+            floor = self.ground_z + p.min_target_height
+            if e.position(now)[2] < floor and e.filter.last_position[2] < floor + DOWN_MARGIN:
                 return State.IDLE, "moving target down"
             left = self._left_to_partner(now, position) or self._static_in_view(now, position)
             return (State.IDLE, left) if left else (self.state, "")

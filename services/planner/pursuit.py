@@ -9,15 +9,26 @@ the command carries one, else the constant-velocity line p + v·t. It demands th
 predicted velocity plus a closing velocity towards the predicted target of at most √(2·b·gap)
 (b = BRAKING·a_max, so it can always brake onto the track without overshooting), and reaches
 that demand at up to a_max; speed stays within the profile's total and vertical limits. So
-every sample is within the profile by construction, the gap closes as fast as the limits allow,
-and the reference then lies on the predicted track.
+every sample is within the profile by construction, the gap closes as fast as the braking budget
+allows, and the reference then lies on the predicted track.
 After `horizon` it brakes to rest, in case no newer prediction comes.
 
-Close in, the closing speed is at most TERMINAL_GAIN·gap (below 2b/k², 2.0 m at the attack
+BRAKING is 0.2, not the whole a_max: the braking budget is planned as if the target kept its
+velocity, and agile's drones do not — they brake or turn towards the UAV at up to 4 m/s² where
+the UAV brakes at 3, so the budget must leave room for it. With 0.5 (b = 1.5 m/s²) the UAV
+closed at 5-7 m/s from 10 m and went through the random drone at 6-7 m/s relative whenever it
+turned back (agile seeds 3 and 4 took 78 and 77 s from first detection to capture); with 0.2
+(0.59 m/s²: 3.4 m/s from 10 m, 1.9 m/s from 3 m) 13 and 9 s. With 0.15 the UAV trailed the
+figure-eight for 80 s on seed 2, arriving at each pass as the drone turned away. Closing from
+far takes longer (22 m from rest: 11 s instead of 9 s); the UAV is still faster than any
+target it may catch.
+
+Close in, the closing speed is at most TERMINAL_GAIN·gap (below 2b/k², 0.8 m at the attack
 profile). The net takes a drone at a relative speed of at most 2 m/s within 1 m, and the
-square-root law alone arrives there at up to 1.7 m/s plus the control lag: against agile seed
-5's random manoeuvrer, which flies into the waiting UAV, it gave misses within 0.4-1.3 m at
-3-4 m/s relative. The linear law closes the last metres at 1.2 m/s per metre, still onto the track.
+square-root law alone arrives there with the control lag on top: against agile seed 5's random
+manoeuvrer, which flies into the waiting UAV, a law reaching the 1 m radius at 1.7 m/s gave
+misses within 0.4-1.3 m at 3-4 m/s relative. The linear law closes the last part at 1.2 m/s per
+metre, still onto the track.
 
 Nothing is pursued below `floor` (world z): where the prediction goes lower, the reference holds
 the floor's height under it. A constant-acceleration prediction of a target diving to brake, or
@@ -38,7 +49,7 @@ from schemas.messages import ConstraintProfile
 from services.planner.timing import DT, Path, check_duration, steer
 from services.tracker.view import PredictedPath
 
-BRAKING = 0.5  # share of max_acceleration the closing speed plans to brake with
+BRAKING = 0.2  # share of max_acceleration the closing speed plans to brake with (see above)
 GAIN = 4.0  # 1/s: how fast the velocity demand is taken up (then capped by max_acceleration)
 TERMINAL_GAIN = 1.2  # 1/s: the closing speed close in is at most this × the gap (a capture's relative speed)
 _MARGIN = 0.98  # of each limit, so differences of the samples stay inside it too
