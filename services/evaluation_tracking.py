@@ -60,7 +60,10 @@ the rest go through the same GOSPA assignment (one-to-one, only pairs closer tha
 nearest within c", which would let the two halves of a split cluster both match a drone, and one
 detection match two drones flying close). Each stream's figures are over its own steps: detections
 over scans (10 Hz), tracks over ticks (20 Hz); a recall is a share of time either way, so the two
-compare.
+compare. Their errors compare only in part that way: a track's error includes the ticks it coasts
+between scans and through missed ones, where no detection is scored. So the errors are also set
+side by side like for like (`alike`): over the (scan, target) pairs that both a detection and a
+confirmed track matched, each one's error — what tracking does to the position it is given.
 """
 from __future__ import annotations
 
@@ -280,6 +283,13 @@ class MatchErrors:
         self.error_sum += float(np.linalg.norm(errors, axis=1).sum())
         self.squared_error = self.squared_error + (errors ** 2).sum(axis=0)
 
+    def add_errors(self, errors: np.ndarray) -> None:
+        """Matched pairs given by their (K, 3) errors (estimate − truth): no recall is kept."""
+        errors = _points(errors)
+        self.matched += len(errors)
+        self.error_sum += float(np.linalg.norm(errors, axis=1).sum())
+        self.squared_error = self.squared_error + (errors ** 2).sum(axis=0)
+
     def __add__(self, other: MatchErrors) -> MatchErrors:
         return MatchErrors(self.counted + other.counted, self.matched + other.matched,
                            self.error_sum + other.error_sum, self.squared_error + other.squared_error)
@@ -474,13 +484,19 @@ class DetectionScore:
     left_out: int = 0  # (detection, scan) left out as following a target that does not count
     without_truth: int = 0  # Detections messages with no truth at their stamp: not steps
     detectors: set[str] = field(default_factory=set)  # the messages' detector names
+    paired: dict[tuple[int, str], np.ndarray] = field(default_factory=dict)  # (stamp ns, target) -> error (3,)
 
-    def add(self, step: TrackingStep) -> Gospa:
+    def add(self, step: TrackingStep, stamp: int | None = None) -> Gospa:
+        """One scan's step; with its `stamp`, each matched pair's error is kept for `alike`."""
         keep, score = assign(step, self.c, self.p)
         self.steps += 1
         self.detections += len(keep)
         self.left_out += int((~keep).sum())
-        self.errors.add(_points(step.tracks)[keep], step.truths, score.pairs)
+        kept = _points(step.tracks)[keep]
+        self.errors.add(kept, step.truths, score.pairs)
+        if stamp is not None:
+            for i, j in score.pairs:
+                self.paired[(stamp, step.truth_ids[j])] = kept[i] - step.truths[j]
         return score
 
     def summary(self) -> dict:
@@ -502,8 +518,52 @@ def score_detections(messages: Iterable[ScanDetections], truth: TruthTimeline, u
             continue
         positions = _points(message.positions)
         score.add(tracking_step(message.stamp / NS, np.arange(len(positions)), positions, at, uav, sensor_range,
-                                kinds))
+                                kinds), message.stamp)
     return score
+
+
+@dataclass(frozen=True)
+class Alike:
+    """Detections' and confirmed tracks' errors over the same (scan, target) pairs: those both matched."""
+
+    detections: MatchErrors
+    tracks: MatchErrors
+
+    def summary(self) -> dict:
+        def errors(e: MatchErrors) -> dict:
+            rmse = e.rmse()
+            return {"mean_error_m": _rounded(e.mean_error()), "rmse_3d_m": None if rmse is None else _rounded(rmse["3d"])}
+        return {"pairs": self.tracks.matched, "detections": errors(self.detections), "tracks": errors(self.tracks)}
+
+
+def alike(messages: Iterable[ConfirmedTracks], truth: TruthTimeline, uav: str, detections: DetectionScore,
+          sensor_range: float = float("inf"), kinds: Sequence[str] = TRACKED_KINDS,
+          c: float = CUTOFF, p: float = ORDER) -> Alike:
+    """At the stamps of the scans whose detections matched a target (`detections`, scored with their
+    stamps), the UAV's confirmed tracks then, matched by the same rules; the pairs both matched."""
+    found, given = MatchErrors(), MatchErrors()
+    stamps = sorted({stamp for stamp, _ in detections.paired})
+    for stamp, tracks in tracks_at_ticks(sorted(messages, key=lambda m: m.stamp), stamps):
+        at = truth.at(stamp)
+        if tracks is None or at is None:
+            continue
+        step = tracking_step(stamp / NS, tracks.ids, tracks.positions, at, uav, sensor_range, kinds)
+        keep, score = assign(step, c, p)
+        kept = _points(step.tracks)[keep]
+        for i, j in score.pairs:
+            detected = detections.paired.get((stamp, step.truth_ids[j]))
+            if detected is not None:
+                found.add_errors((kept[i] - step.truths[j])[None])
+                given.add_errors(detected[None])
+    return Alike(given, found)
+
+
+def fleet_alike(parts: dict[str, Alike]) -> Alike:
+    """Every UAV's like-for-like pairs together."""
+    detections, tracks = MatchErrors(), MatchErrors()
+    for part in parts.values():
+        detections, tracks = detections + part.detections, tracks + part.tracks
+    return Alike(detections, tracks)
 
 
 def fleet_detections(scores: dict[str, DetectionScore]) -> DetectionScore:

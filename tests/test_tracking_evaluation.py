@@ -22,8 +22,8 @@ from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, GroundTruth, Header, TargetTruth, Track, Tracks, VehicleTruth, WorldModel
 from services.evaluation_tracking import (ConfirmedTracks, ScanDetections, TrackingScore, TrackingStep, TruthSnapshot,
-                                          TruthTimeline, fleet, fleet_detections, gospa, left_out, score_detections,
-                                          score_tracks, tracking_step)
+                                          TruthTimeline, alike, fleet, fleet_alike, fleet_detections, gospa, left_out,
+                                          score_detections, score_tracks, tracking_step)
 from services.launcher.cli import main
 from services.recorder.mcap_io import McapRecordWriter
 from tests.conftest import REPO, falconry_argv
@@ -286,6 +286,27 @@ def test_the_fleet_baseline_pools_every_uavs_scans():
     assert total["mean_error_m"] == pytest.approx(0.2) and total["detectors"] == ["classifier", "oracle"]
 
 
+def test_alike_sets_detections_against_tracks_over_the_pairs_both_matched():
+    """Scans at ticks 0, 2 and 4; tracks at every tick. Tick 0: both match drone a (detection 0.3 m
+    off, track 0.1 m); tick 2: only the detection matches (the track is beyond the cut-off); tick 4:
+    both (0.2 m, 0.1 m); tick 1 has no scan: the track's error there is no pair."""
+    a = {"a": (10.0, 0.0, 5.0)}
+    timeline = TruthTimeline([snapshot(k * TICK, a) for k in range(5)])
+    scans = [ScanDetections(0, "classifier", np.array([[10.3, 0.0, 5.0]])),
+             ScanDetections(2 * TICK, "classifier", np.array([[10.0, 0.4, 5.0]])),
+             ScanDetections(4 * TICK, "classifier", np.array([[10.0, 0.0, 5.2]]))]
+    tracks = [ConfirmedTracks(k * TICK, np.array([1]), np.array([offset]))
+              for k, offset in enumerate([(10.1, 0.0, 5.0), (15.0, 0.0, 5.0), (20.0, 0.0, 5.0), (10.0, 0.0, 5.0),
+                                          (10.0, 0.1, 5.0)])]
+    detected = score_detections(scans, timeline, "uav1")
+    both = alike(tracks, timeline, "uav1", detected)
+    assert both.summary() == {"pairs": 2, "detections": {"mean_error_m": 0.25, "rmse_3d_m": round(np.sqrt(0.065), 4)},
+                              "tracks": {"mean_error_m": 0.1, "rmse_3d_m": 0.1}}
+    assert alike([], timeline, "uav1", detected).summary()["pairs"] == 0
+    pooled = fleet_alike({"uav1": both, "uav2": alike(tracks, timeline, "uav1", detected)})
+    assert pooled.summary()["pairs"] == 4 and pooled.summary()["tracks"]["mean_error_m"] == 0.1
+
+
 # --------------------------------------------------------------------------- the command on synthetic recordings
 def truth_message(stamp: int, drone=(10.0, 0.0, 5.0), destroyed: bool = False) -> GroundTruth:
     return GroundTruth(header=Header(stamp=stamp), step=stamp // TICK,
@@ -393,6 +414,8 @@ def test_the_command_scores_a_synthetic_recording(tmp_path, capsys):
         "tracks": {"steps": 4, "mean_error_m": uav1["mean_error_m"], "rmse_3d_m": uav1["rmse_m"]["3d"],
                    "recall": 0.75}}
     assert result["comparison"]["fleet"]["detections"]["recall"] == 0.5  # uav2 has no scans to pool
+    assert result["alike"]["uav1"] == {"pairs": 1, "detections": {"mean_error_m": 0.1, "rmse_3d_m": 0.1},
+                                       "tracks": {"mean_error_m": 0.3, "rmse_3d_m": 0.3}}
 
 
 def test_the_table_names_every_figure(tmp_path, capsys):
@@ -410,14 +433,32 @@ def test_the_table_names_every_figure(tmp_path, capsys):
     assert any(line.split()[:2] == ["uav1", "drone1"] for line in out.splitlines())
 
 
+def table_rows(lines: list[str], start: int) -> dict[str, list[str]]:
+    """The rows after the header at `start`, by their first cell, up to a blank line."""
+    rows = {}
+    for line in lines[start + 1:]:
+        if not line.strip():
+            break
+        rows[line.split()[0]] = line.split()
+    return rows
+
+
 def comparison_rows(out: str) -> dict[str, list[str]]:
-    """The comparison table's rows by their first cell (it is the last table)."""
+    """The comparison table's rows by their first cell."""
     lines = out.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("UAV") and "recall" in line)
     assert lines[start].split() == ["UAV", "scans", "mean", "err", "RMSE", "recall", "|", "ticks", "mean", "err",
                                     "RMSE", "recall"]
     assert "detections, per scan" in lines[start - 1] and "tracks, per truth tick" in lines[start - 1]
-    return {line.split()[0]: line.split() for line in lines[start + 1:] if line.strip()}
+    return table_rows(lines, start)
+
+
+def alike_rows(out: str) -> dict[str, list[str]]:
+    """The like-for-like table's rows by their first cell (it is the last table)."""
+    lines = out.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith("UAV") and "pairs" in line and "|" in line)
+    assert "like for like" in lines[start - 1]
+    return table_rows(lines, start)
 
 
 def test_the_comparison_table_sets_detections_against_tracks(tmp_path, capsys):
@@ -429,6 +470,10 @@ def test_the_comparison_table_sets_detections_against_tracks(tmp_path, capsys):
                             "0.750"]
     assert rows["uav2"][1:6] == ["0", "-", "-", "-", "|"] and rows["uav2"][6:] == ["4", "-", "-", "0.000"]
     assert rows["fleet"][1] == "2" and rows["fleet"][6] == "8"
+    # the one scan that matched drone1 (0.1 m off) against track 1 then (0.3 m off)
+    assert alike_rows(out) == {"uav1": ["uav1", "1", "0.100", "0.100", "|", "0.300", "0.300"],
+                               "uav2": ["uav2", "0", "-", "-", "|", "-", "-"],
+                               "fleet": ["fleet", "1", "0.100", "0.100", "|", "0.300", "0.300"]}
 
 
 def test_the_command_samples_tracks_at_every_truth_tick(tmp_path, capsys):
