@@ -277,11 +277,8 @@ class MatchErrors:
 
     def add(self, estimates: np.ndarray, truths: np.ndarray, pairs: np.ndarray) -> None:
         """One step: the (N, 3) estimates, the (M, 3) truths that counted, the GOSPA's (K, 2) pairs."""
-        errors = _points(estimates)[pairs[:, 0]] - _points(truths)[pairs[:, 1]]
         self.counted += len(_points(truths))
-        self.matched += len(errors)
-        self.error_sum += float(np.linalg.norm(errors, axis=1).sum())
-        self.squared_error = self.squared_error + (errors ** 2).sum(axis=0)
+        self.add_errors(_points(estimates)[pairs[:, 0]] - _points(truths)[pairs[:, 1]])
 
     def add_errors(self, errors: np.ndarray) -> None:
         """Matched pairs given by their (K, 3) errors (estimate − truth): no recall is kept."""
@@ -532,7 +529,8 @@ class Alike:
     def summary(self) -> dict:
         def errors(e: MatchErrors) -> dict:
             rmse = e.rmse()
-            return {"mean_error_m": _rounded(e.mean_error()), "rmse_3d_m": None if rmse is None else _rounded(rmse["3d"])}
+            return {"mean_error_m": _rounded(e.mean_error()),
+                    "rmse_3d_m": None if rmse is None else _rounded(rmse["3d"])}
         return {"pairs": self.tracks.matched, "detections": errors(self.detections), "tracks": errors(self.tracks)}
 
 

@@ -173,8 +173,9 @@ def alike_lines(alikes: dict[str, Alike], with_fleet: bool) -> list[str]:
     for name, a in alikes.items():
         if name == "fleet" and not with_fleet:
             continue
-        d, t = a.summary()["detections"], a.summary()["tracks"]
-        cells = [_metres(d["mean_error_m"]), _metres(d["rmse_3d_m"]), _metres(t["mean_error_m"]), _metres(t["rmse_3d_m"])]
+        summary = a.summary()
+        cells = [_metres(summary[side][figure]) for side in ("detections", "tracks")
+                 for figure in ("mean_error_m", "rmse_3d_m")]
         lines.append(f"{name:<6} {a.tracks.matched:>6} {cells[0]:>20} {cells[1]:>7} | {cells[2]:>16} {cells[3]:>7}")
     return lines
 
