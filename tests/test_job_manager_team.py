@@ -46,10 +46,17 @@ def test_revenge_mode_takes_over_the_whole_arena(why, event, delay):
     rig.run(10.0 + delay + 0.1, 10.0 + delay + 0.2)
     assert x_range(rig.jm.working_area) == (0.0, 100.0)
     assert rig.jm.team.fallen == ["uav2"]
-    assert rig.last.action == "scan" and x_range(np.array(rig.last.area)) == (0.0, 100.0)  # re-planned
+    # re-planned: the partner's half first, for one sweep of it (3000 m² / (20 m · 5 m/s) · 1.5 = 45 s)
+    assert rig.last.action == "scan" and x_range(np.array(rig.last.area)) == (50.0, 100.0)
     assert any(n.startswith("partner uav2 fell") for n in rig.jm.notes)
+    assert any(n.startswith("sweeping the part taken over first (x 50.0..100.0, 45 s)") for n in rig.jm.notes)
+    fell = rig.t
     rig.tick(rig.t + 0.1, detections=[[80.0, 30.0, 4.0]])  # the partner's half counts now
     assert rig.jm.state is State.CHECKING_TARGET
+    rig.run(rig.t + 0.1, fell + 44.8)  # nothing more in view: back to the sweep of the part taken over
+    assert rig.jm.state is State.GOING_AROUND and x_range(np.array(rig.last.area)) == (50.0, 100.0)
+    rig.run(fell + 45.0, fell + 45.2)
+    assert rig.last.action == "scan" and x_range(np.array(rig.last.area)) == (0.0, 100.0)  # then the whole arena
 
 
 @pytest.mark.parametrize("fall", ["token gone", "silent for t_s"])
@@ -83,11 +90,16 @@ def test_a_partner_never_heard_falls_t_s_after_take_off():
     assert rig.jm.team.fallen == ["uav2"] and "never heard" in rig.jm.team.partners["uav2"].fallen_reason
 
 
-@pytest.mark.parametrize("fallen,expected", [("uav1", {"uav2": (0.0, 50.0), "uav3": (50.0, 100.0)}),
-                                             ("uav2", {"uav1": (0.0, 50.0), "uav3": (50.0, 100.0)}),
-                                             ("uav3", {"uav1": (0.0, 50.0), "uav2": (50.0, 100.0)})])
+THIRD = 100.0 / 3
+FALLS = [  # the fallen UAV; each survivor's new area, and the part of it it sweeps first (its growth)
+    ("uav1", {"uav2": ((0.0, 50.0), (0.0, THIRD)), "uav3": ((50.0, 100.0), (50.0, 2 * THIRD))}),
+    ("uav2", {"uav1": ((0.0, 50.0), (THIRD, 50.0)), "uav3": ((50.0, 100.0), (50.0, 2 * THIRD))}),
+    ("uav3", {"uav1": ((0.0, 50.0), (THIRD, 50.0)), "uav2": ((50.0, 100.0), (2 * THIRD, 100.0))})]
+
+
+@pytest.mark.parametrize("fallen,expected", FALLS)
 def test_three_uavs_survivors_share_the_fallen_area(fallen, expected):
-    for me, area in expected.items():
+    for me, (area, first) in expected.items():
         rig = Rig(uav=me, team=("uav1", "uav2", "uav3")).airborne()
         jm = rig.jm
         before = x_range(jm.working_area)
@@ -98,6 +110,7 @@ def test_three_uavs_survivors_share_the_fallen_area(fallen, expected):
         rig.tick(2.0)
         assert x_range(jm.working_area) == area
         assert polygon_area(jm.working_area) == pytest.approx(3000.0, rel=1e-3)
+        assert rig.last.action == "scan" and x_range(np.array(rig.last.area)) == pytest.approx(first, abs=1e-3)
 
 
 def test_a_target_claimed_by_a_partner_is_left_to_it_unless_i_am_closer():

@@ -91,3 +91,14 @@ def split_area(polygon: np.ndarray, parts: int) -> list[np.ndarray]:
         remainder = clip_x(remainder, cut, keep_left=False)
     pieces.append(counter_clockwise(remainder))
     return pieces
+
+
+def grown_part(before: np.ndarray, after: np.ndarray, min_area: float = 1.0) -> np.ndarray | None:
+    """The largest piece of the working area `after` beyond the x-range of `before` (working areas
+    are x-strips of one arena: split_area), or None when it did not grow by at least `min_area` m²:
+    the part a UAV took over from a fallen partner."""
+    before, after = as_polygon(before), as_polygon(after)
+    low, high = float(before[:, 0].min()), float(before[:, 0].max())
+    pieces = [clip_x(after, low, keep_left=True), clip_x(after, high, keep_left=False)]
+    pieces = [counter_clockwise(piece) for piece in pieces if len(piece) >= 3 and polygon_area(piece) >= min_area]
+    return max(pieces, key=polygon_area) if pieces else None

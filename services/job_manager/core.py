@@ -40,7 +40,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from services.job_manager.areas import split_area
+from services.geometry import polygon_area
+from services.job_manager.areas import grown_part, split_area
 from services.job_manager.params import JobManagerParams
 from services.job_manager.sightings import ConfirmedTracks, Sightings
 from services.job_manager.targets import NS, ForbiddenZones, TargetFilter, usable_detections
@@ -66,6 +67,7 @@ _WATCHED = (State.TAKING_OFF, *MISSION_STATES)  # the abort system and the missi
 _DESCENDING = (State.LANDING, State.EMERGENCY_LANDING)
 REPLAN_LOOKAHEAD = 1.0  # s over which a mover's new prediction is compared with the one sent
 TRACK_SEEN_WITHIN = 0.15  # s: a track corrected this recently (a scan period and a half) sees its target
+TAKEOVER_SWEEP_MARGIN = 1.5  # × the sweep's straight-line time: turns, and the transfer into the part taken over
 DOWN_MARGIN = 1.0  # m above the lowest target height: a mover last seen lower and predicted below it is down
 FLEET_SEEN_WITHIN = 0.5  # s: a partner's track corrected this recently is a sighting (its link and tick add lag)
 _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "going_timeout",
@@ -177,6 +179,7 @@ class JobManager:
         self.positioning_by_localizer = False  # flying without GNSS: the odometry's health counts
         self.positioning = ""  # the latest odometry's health ("" when no localizer says any)
         self._positioning_lost_since: int | None = None
+        self._sweep_first: tuple[np.ndarray, int] | None = None  # (the part taken over, until ns): _note_taken_over
 
     # ----------------------------------------------------------------- inputs
     def set_world(self, arena: np.ndarray, uavs: list[str], duration_s: float, ground_z: float = 0.0) -> bool:
@@ -322,7 +325,9 @@ class JobManager:
             for change in changes:
                 self.notes.append(f"partner {change.partner} {'fell' if change.fallen else 'is back'}: {change.reason}")
             if changes:
+                before = self.working_area
                 self._split()
+                self._note_taken_over(before, now_ns)
                 self.notes.append(f"working area now {len(self.team.active)}-way split "
                                   f"(active: {', '.join(self.team.active)}): x {self.working_area[:, 0].min():.1f}"
                                   f"..{self.working_area[:, 0].max():.1f}")
@@ -335,6 +340,26 @@ class JobManager:
             return None
         self._decision = decision
         return decision
+
+    def _note_taken_over(self, before: np.ndarray | None, now: int) -> None:
+        """Revenge mode: a working area that grew is swept first where it grew, the fallen partner's
+        part, for as long as one sweep of it takes (its area / (spacing · sweeping speed) times
+        TAKEOVER_SWEEP_MARGIN for the turns), then whole. Sweeping the whole area at once started
+        from the UAV's own part: on mbzirc, uav1 taking over at 75 s swept its own half again and
+        reached a balloon in its partner's only after the mission timer."""
+        grown = None if before is None else grown_part(before, self.working_area)
+        self._sweep_first = None
+        if grown is not None:
+            p = self.params
+            seconds = TAKEOVER_SWEEP_MARGIN * polygon_area(grown) / (p.scan_spacing * p.sweeping_speed)
+            self._sweep_first = (grown, now + int(seconds * NS))
+            self.notes.append(f"sweeping the part taken over first (x {grown[:, 0].min():.1f}.."
+                              f"{grown[:, 0].max():.1f}, {seconds:.0f} s)")
+
+    def _sweep_area(self, now: int) -> np.ndarray:
+        if self._sweep_first is not None and now < self._sweep_first[1]:
+            return self._sweep_first[0]
+        return self.working_area
 
     def _note_positioning(self, health: str, now: int) -> None:
         if not self.positioning_by_localizer:
@@ -689,7 +714,7 @@ class JobManager:
             if not self._climbed and position[2] < p.search_height - p.height_tolerance:
                 return MissionDecision("takeoff", height=p.search_height, spacing=p.scan_spacing)
             self._climbed = True
-            area = tuple((float(x), float(y)) for x, y in self.working_area)
+            area = tuple((float(x), float(y)) for x, y in self._sweep_area(now))
             return MissionDecision("scan", area=area, height=self._sweep_height(now), spacing=p.scan_spacing)
         if state in (State.GOING_TO_TARGET, State.DESTROYING):
             return self._engage(now)
