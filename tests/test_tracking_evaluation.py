@@ -373,16 +373,20 @@ def synthetic_run(path: Path) -> Path:
     return write(path, messages)
 
 
-def uav_rows(out: str) -> dict[str, list[str]]:
-    """The per-UAV table's rows by their first cell (the table ends at the first blank line after its header)."""
-    lines = out.splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith("UAV") and "GOSPA" in line)
+def table_rows(lines: list[str], start: int) -> dict[str, list[str]]:
+    """The rows after the header at `start`, by their first cell, up to a blank line."""
     rows = {}
     for line in lines[start + 1:]:
         if not line.strip():
             break
         rows[line.split()[0]] = line.split()
     return rows
+
+
+def uav_rows(out: str) -> dict[str, list[str]]:
+    """The per-UAV table's rows by their first cell."""
+    lines = out.splitlines()
+    return table_rows(lines, next(i for i, line in enumerate(lines) if line.startswith("UAV") and "GOSPA" in line))
 
 
 def run_json(capsys, *args: str) -> dict:
@@ -431,16 +435,6 @@ def test_the_table_names_every_figure(tmp_path, capsys):
     assert "note: the recording names no LiDAR model of uav2" in out
     assert "note: the recording holds no detections of uav2 (falconry/uav2/detections)" in out
     assert any(line.split()[:2] == ["uav1", "drone1"] for line in out.splitlines())
-
-
-def table_rows(lines: list[str], start: int) -> dict[str, list[str]]:
-    """The rows after the header at `start`, by their first cell, up to a blank line."""
-    rows = {}
-    for line in lines[start + 1:]:
-        if not line.strip():
-            break
-        rows[line.split()[0]] = line.split()
-    return rows
 
 
 def comparison_rows(out: str) -> dict[str, list[str]]:

@@ -41,8 +41,12 @@ ORIENTATION_STEP = 1e-9  # of each quaternion component
 COVARIANCE_STEP = 1e-12  # m², rad², m·rad
 
 
+def _on_grid(values, step: float) -> np.ndarray:
+    return np.round(np.asarray(values, dtype=np.float64) / step) * step
+
+
 def _reproducible(values, step: float) -> tuple[float, ...]:
-    return tuple(float(v) for v in np.round(np.asarray(values, dtype=np.float64) / step) * step)
+    return tuple(_on_grid(values, step).tolist())
 
 
 class LocalizerNode(Node):
@@ -149,7 +153,7 @@ class LocalizerNode(Node):
             position=_reproducible(e.translation, POSITION_STEP),
             orientation=_reproducible(quaternion(e.rotation), ORIENTATION_STEP)),
             velocity=_reproducible(e.velocity, POSITION_STEP),
-            covariance=from_numpy(np.round(e.covariance / COVARIANCE_STEP) * COVARIANCE_STEP), health=e.health)
+            covariance=from_numpy(_on_grid(e.covariance, COVARIANCE_STEP)), health=e.health)
         self.pub.put(self._last)
 
     def _refuse(self, what: str, why: Exception | None = None) -> None:
