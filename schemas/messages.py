@@ -215,6 +215,7 @@ class Track(msgspec.Struct, kw_only=True):
     primary: bool = False  # the confirmed track with the most detections (seed 000 sec. III-F1)
     source: str = ""  # the UAV whose tracker keeps it ("" in older recordings)
     last_correction: int = 0  # stamp, ns, of its last correction by a scan or a detection (0: none known)
+    half_width: float = 0.0  # m, the target's half-width across the line of sight as its keeper learnt it (0: not known)
 
 
 class Tracks(msgspec.Struct, kw_only=True):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from schemas.voxels import STATE_OCCUPIED
+from services.classifier.core import half_width_across, surface_offset
 from services.tracker.core import OccupiedVoxels, TrackerCore, TrackerParams
 from services.tracker.filters.models import manoeuvre_path, manoeuvre_state
 from services.tracker.kernels import points_near
@@ -90,6 +91,50 @@ def test_a_cloud_correction_moves_the_returns_centroid_to_the_targets_centre():
             tracker.new_point_cloud(stamp(k), cloud(near_side), sensor if known else None)
         errors[known] = abs(tracker.estimates(stamp(9))[0].position[0] - centre[0])
     assert errors[True] < 0.06 < 0.12 < errors[False]
+
+
+def front_of_a_sphere(centre: np.ndarray, radius: float, rays: int, rng: np.random.Generator) -> np.ndarray:
+    """The returns of `rays` rays spread evenly over a sphere's disc as a sensor far down -x sees
+    it: each lands on the near side, sqrt(r² - ρ²) in front of the centre."""
+    across = radius * np.sqrt(rng.uniform(0.0, 1.0, rays))
+    angle = rng.uniform(0.0, 2 * np.pi, rays)
+    depth = np.sqrt(radius ** 2 - across ** 2)
+    return (centre + np.stack([-depth, across * np.cos(angle), across * np.sin(angle)], axis=1)).astype(np.float32)
+
+
+def test_a_track_corrects_sparse_scans_by_the_half_width_it_learnt_from_close_ones():
+    """A scan of few returns under-measures the target's width (its rays miss the rim), so the
+    classifier's surface offset, from that scan alone, leaves a detection short of the centre; the
+    track takes the widest the target's returns ever were and lands on the centre on average."""
+    rng = np.random.default_rng(5)
+    centre, sensor, radius = np.array([15.0, 0.0, 6.0]), np.array([0.0, 0.0, 6.0]), 0.325
+    tracker = TrackerCore(TrackerParams(cloud_noise=1e-3))
+    tracker.new_detections(stamp(0), centre[None])
+    for k in range(1, 4):  # close: hundreds of returns
+        tracker.new_point_cloud(stamp(k), cloud(front_of_a_sphere(centre, radius, 300, rng)), sensor)
+    scan_short, track_short = [], []
+    for k in range(4, 64):  # far: four returns a scan
+        returns = front_of_a_sphere(centre, radius, 4, rng)
+        tracker.new_point_cloud(stamp(k), cloud(returns), sensor)
+        centroid = returns.mean(axis=0).astype(np.float64)
+        one_scan = centroid + surface_offset(centroid, sensor, 0.667, half_width_across(returns, centroid, sensor))
+        scan_short.append(centre[0] - one_scan[0])
+        track_short.append(centre[0] - tracker.estimates(stamp(k))[0].position[0])
+    [estimate] = tracker.estimates(stamp(63))
+    assert 0.3 < estimate.half_width <= radius
+    assert np.mean(scan_short) > 0.05 and abs(np.mean(track_short)) < 0.02
+
+
+def test_a_cluster_merged_with_something_wide_makes_the_target_no_wider_than_max_half_width():
+    rng = np.random.default_rng(6)
+    sensor = np.array([0.0, 0.0, 6.0])
+    tracker = TrackerCore(TrackerParams(max_half_width=0.5))
+    tracker.new_detections(stamp(0), np.array([[15.0, 0.0, 6.0]]))
+    wall = np.stack([np.full(60, 15.0), np.linspace(-3.0, 3.0, 60), np.full(60, 6.0)], axis=1)  # unmapped, 0.1 m apart
+    tracker.new_point_cloud(stamp(1), cloud(wall.astype(np.float32)), sensor)
+    assert tracker.estimates(stamp(1))[0].half_width == 0.5
+    tracker.new_point_cloud(stamp(2), cloud(front_of_a_sphere(np.array([15.0, 0.0, 6.0]), 0.325, 300, rng)), sensor)
+    assert tracker.estimates(stamp(2))[0].half_width == 0.5
 
 
 def test_a_late_detection_replayed_through_the_buffer_equals_in_order_processing():

@@ -16,7 +16,7 @@
    takes the most cautious one: flying object over unknown over background.
 4. A detection per flying object: the centroid of its returns (eq. 19) moved away from the sensor
    along the line of sight by `surface_bias` × the cluster's half-width across that line (see
-   `surface_offset`); a covariance made of the
+   `surface_offset`, `half_width_across`); a covariance made of the
    returns' spread (which stands for the one-sided sampling bias, up to the target's radius,
    sec. V-A), the pose and range uncertainty of sec. IV-A at the centroid (J·Σ_w·Jᵀ, eq. 41–42)
    and a floor; the number of returns, the largest dimension, and a confidence: p_hit of the
@@ -209,7 +209,8 @@ class ClassifierCore:
         for k, c in enumerate(flying):
             members = xyz[cluster == c]
             centroid = members.mean(axis=0)  # eq. 19
-            centroid = centroid + surface_offset(members, centroid, pose.position, p.surface_bias)
+            centroid = centroid + surface_offset(centroid, pose.position, p.surface_bias,
+                                                 half_width_across(members, centroid, pose.position))
             spread = np.cov(members.T, ddof=1) if len(members) > 1 else np.zeros((3, 3))
             measurement = point_covariance(centroid, pose.position, pose.rotation, pose.covariance,
                                            p.range_noise / np.sqrt(len(members)))
@@ -223,23 +224,32 @@ class ClassifierCore:
         return positions, covariances, point_counts, extents, confidences
 
 
-def surface_offset(members: np.ndarray, centroid: np.ndarray, sensor: np.ndarray, bias: float) -> np.ndarray:
-    """The shift from the returns' centroid to the target's centre estimate: `bias` × the cluster's
-    half-width across the line of sight, away from the sensor (module docstring). The half-width is
-    the larger of the cluster's extents along the two directions across the line of sight; few
-    returns under-measure it, so a far target is moved less, never more."""
-    line = centroid - np.asarray(sensor, dtype=np.float64)
-    distance = float(np.linalg.norm(line))
-    if bias == 0.0 or distance == 0.0 or len(members) < 2:
-        return np.zeros(3)
-    line /= distance
+def half_width_across(members: np.ndarray, centroid: np.ndarray, sensor: np.ndarray) -> float:
+    """Half the cluster's extent across the line of sight from `sensor` to `centroid`: the larger
+    of its extents along the two directions across that line. Few returns under-measure it (the
+    outermost rays miss the rim), never over-measure it. 0 for a single return."""
+    line = _line_of_sight(centroid, sensor)
+    if line is None or len(members) < 2:
+        return 0.0
     across = np.cross(line, [0.0, 0.0, 1.0])
     if np.linalg.norm(across) < 1e-6:  # looking straight up or down
         across = np.array([1.0, 0.0, 0.0])
     across /= np.linalg.norm(across)
     offsets = members - centroid
-    half_width = 0.5 * max(float(np.ptp(offsets @ across)), float(np.ptp(offsets @ np.cross(line, across))))
-    return bias * half_width * line
+    return 0.5 * max(float(np.ptp(offsets @ across)), float(np.ptp(offsets @ np.cross(line, across))))
+
+
+def surface_offset(centroid: np.ndarray, sensor: np.ndarray, bias: float, half_width: float) -> np.ndarray:
+    """The shift from the returns' centroid to the target's centre estimate: `bias` × the target's
+    half-width across the line of sight, away from the sensor (module docstring)."""
+    line = _line_of_sight(centroid, sensor)
+    return np.zeros(3) if line is None else bias * half_width * line
+
+
+def _line_of_sight(centroid: np.ndarray, sensor: np.ndarray) -> np.ndarray | None:
+    line = np.asarray(centroid, dtype=np.float64) - np.asarray(sensor, dtype=np.float64)
+    distance = float(np.linalg.norm(line))
+    return None if distance == 0.0 else line / distance
 
 
 def _empty_scan() -> ClassifiedScan:

@@ -167,6 +167,7 @@ class TrackerNode(Node):
             primary=own.primary if own is not None else False,
             source=track.source,
             last_correction=track.last_correction,
+            half_width=own.half_width if own is not None else 0.0,
         )
 
 
