@@ -247,12 +247,12 @@ def test_detections_tracks_and_lag_from_one_scan():
     cov = np.eye(9) * 0.25
     tracks = Tracks(header=Header(stamp=cloud_stamp), tracks=[
         Track(id=7, state=from_numpy(state), covariance=from_numpy(cov), detections=4, confirmed=True,
-              uncertainty_radius=2.5, last_detection=cloud_stamp),
+              uncertainty_radius=2.5, last_detection=cloud_stamp, half_width=0.325),
         Track(id=8, state=from_numpy(state + 3), covariance=from_numpy(cov), detections=1, confirmed=False,
               uncertainty_radius=2.5, last_detection=cloud_stamp)])
     logs = entities(scene.feed("falconry/uav1/tracks", encode(tracks)))
-    assert logs["uav1/tracks/confirmed"][0].item.labels[0].startswith("#7")
-    assert len(logs["uav1/tracks/tentative"][0].item.centers) == 1
+    assert logs["uav1/tracks/confirmed"][0].item.labels == ["#7 r=2.5 m, 4 det, 0.65 m wide"]
+    assert logs["uav1/tracks/tentative"][0].item.labels == ["#8 r=2.5 m, 1 det"]  # no width learnt yet
     (path,) = logs["uav1/tracks/predicted"][0].item.strips
     assert np.allclose(path[-1], [8.0, 5.0, 5.0])  # 3 s at 1 m/s
     assert logs["plots/track_uncertainty/uav1/7"][0].item.value == 2.5

@@ -44,6 +44,7 @@ from schemas.messages import (
     ServiceHealth,
     SimClock,
     SimEvent,
+    Track,
     Tracks,
     TrajectoryReference,
     UavStatus,
@@ -469,7 +470,7 @@ class SceneBuilder:
             color = uav.color if confirmed else (200, 200, 200, 200)
             self._log(f"{name}/tracks/{kind}", draw.Ellipsoids(
                 track_positions(chosen), half, rotations, color,
-                [f"#{t.id} r={t.uncertainty_radius:.1f} m, {t.detections} det" for t in chosen]))
+                [_track_label(t) for t in chosen]))
             if confirmed:
                 paths = [predicted_path(t, p.prediction_horizon) for t in chosen]
                 self._log(f"{name}/tracks/predicted", draw.Lines(paths, uav.color, 0.04, [f"#{t.id}" for t in chosen]))
@@ -512,6 +513,12 @@ class SceneBuilder:
             None, (255, 60, 60, 90),
             [f"forbidden r={z.radius:g} m, {max(z.expires - status.header.stamp, 0) / NS:.0f} s left ({z.reason})"
              for z in zones]))
+
+
+def _track_label(track: Track) -> str:
+    """A track's label: identity, uncertainty, detections and, once its keeper learnt it, the target's width."""
+    width = f", {2 * track.half_width:.2f} m wide" if track.half_width > 0 else ""
+    return f"#{track.id} r={track.uncertainty_radius:.1f} m, {track.detections} det{width}"
 
 
 def status_markdown(name: str, status: UavStatus) -> str:
