@@ -48,7 +48,10 @@ Where Falconry departs from the seed, and why:
   no better: on intruder its detections lie 0.05 m (uav1) and 0.07 m (uav2) short of the centre
   along the line of sight on average, 0.10 m beyond 20 m, most of their error. The track's
   half-width reaches the drone's 0.3 m within a second of close scans, and the like-for-like
-  error of the tracks falls below the detections' (`falconry evaluate tracking`; benchmarks/README.md).
+  error of the tracks falls below the detections' (`falconry evaluate tracking`). What is left
+  along the line of sight, 0.02-0.04 m short, is the shape: the simulated drones are upright
+  discs, whose visible side lies πa/4 deep seen edge-on, not the sphere's 2a/3 that
+  `surface_bias` assumes (the smaller of the two, classifier/core.py).
 - Clouds arriving out of stamp order are inserted in order; a track never predicts backwards,
   so a cloud older than a track's estimate does not update it.
 
