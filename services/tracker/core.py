@@ -90,8 +90,9 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     # classifier's detection error (benchmarks/detection_quality.py); replaying intruder runs, larger values
     # lag behind a manoeuvring drone more than they smooth. Smaller ones fit the corrected centroids
     # better (0.0025, σ 0.05 m per axis: 0.058 / 0.066 m at the scans against 0.064 / 0.071, uav1 /
-    # uav2) but shake a new track's velocity: a standing target then shows 0.68 m/s at
-    # confirmation (median; 0.35 with 0.01), above moving_speed, and is taken for a mover
+    # uav2) but shake a new track's velocity: a standing target seen as 12 returns of σ 0.15 m
+    # then shows 0.68 m/s at confirmation (median of 40 draws; 0.35 with 0.01), above
+    # moving_speed, and is taken for a mover
     cloud_noise: float = 0.01
     surface_bias: float = 0.667  # the classifier's: × the target's half-width, away from the sensor
     # m, the widest a track takes its target to be: the classifier's largest flying object
