@@ -227,7 +227,8 @@ class ClassifierCore:
 def half_width_across(members: np.ndarray, centroid: np.ndarray, sensor: np.ndarray) -> float:
     """Half the cluster's extent across the line of sight from `sensor` to `centroid`: the larger
     of its extents along the two directions across that line. Few returns under-measure it (the
-    outermost rays miss the rim), never over-measure it. 0 for a single return."""
+    outermost rays miss the rim); only range noise can add to it, by about a centimetre (intruder:
+    up to 0.333 m for a 0.325 m drone). 0 for a single return."""
     line = _line_of_sight(centroid, sensor)
     if line is None or len(members) < 2:
         return 0.0
