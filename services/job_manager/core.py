@@ -120,6 +120,14 @@ class Engagement:
 
 
 @dataclass(frozen=True)
+class TakeoverSweep:
+    """Revenge mode's first sweep: the part taken over from a fallen partner, until when (_note_taken_over)."""
+
+    area: np.ndarray  # (K, 2) polygon
+    until: int  # ns
+
+
+@dataclass(frozen=True)
 class Candidates:
     """Detections the machine may act on, each with the stamp of its scan or frame and its
     covariance (NaN where the detector gave none)."""
@@ -179,7 +187,7 @@ class JobManager:
         self.positioning_by_localizer = False  # flying without GNSS: the odometry's health counts
         self.positioning = ""  # the latest odometry's health ("" when no localizer says any)
         self._positioning_lost_since: int | None = None
-        self._sweep_first: tuple[np.ndarray, int] | None = None  # (the part taken over, until ns): _note_taken_over
+        self._sweep_first: TakeoverSweep | None = None
 
     # ----------------------------------------------------------------- inputs
     def set_world(self, arena: np.ndarray, uavs: list[str], duration_s: float, ground_z: float = 0.0) -> bool:
@@ -353,13 +361,13 @@ class JobManager:
         if grown is not None:
             p = self.params
             seconds = TAKEOVER_SWEEP_MARGIN * polygon_area(grown) / (p.scan_spacing * p.sweeping_speed)
-            self._sweep_first = (grown, now + int(seconds * NS))
+            self._sweep_first = TakeoverSweep(grown, now + int(seconds * NS))
             self.notes.append(f"sweeping the part taken over first (x {grown[:, 0].min():.1f}.."
                               f"{grown[:, 0].max():.1f}, {seconds:.0f} s)")
 
     def _sweep_area(self, now: int) -> np.ndarray:
-        if self._sweep_first is not None and now < self._sweep_first[1]:
-            return self._sweep_first[0]
+        if self._sweep_first is not None and now < self._sweep_first.until:
+            return self._sweep_first.area
         return self.working_area
 
     def _note_positioning(self, health: str, now: int) -> None:

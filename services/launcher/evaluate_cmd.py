@@ -174,14 +174,15 @@ def alike_lines(alikes: dict[str, Alike], with_fleet: bool) -> list[str]:
         if name == "fleet" and not with_fleet:
             continue
         summary = a.summary()
-        cells = [_metres(summary[side][figure]) for side in ("detections", "tracks")
+        cells = [_number(summary[side][figure]) for side in ("detections", "tracks")
                  for figure in ("mean_error_m", "rmse_3d_m")]
         lines.append(f"{name:<6} {a.tracks.matched:>6} {cells[0]:>20} {cells[1]:>7} | {cells[2]:>16} {cells[3]:>7}")
     return lines
 
 
-def _metres(value: float | None) -> str:
-    return "-" if value is None else f"{value:.3f}"
+def _number(value: float | None, digits: int = 3) -> str:
+    """A figure of a table, "-" where there is none."""
+    return "-" if value is None else f"{value:.{digits}f}"
 
 
 def comparison(scores: dict[str, TrackingScore], baseline: dict[str, DetectionScore], fleet_score: TrackingScore,
@@ -287,8 +288,7 @@ def comparison_row(detections: DetectionScore, tracks: TrackingScore) -> list:
 
 def _figures(errors: MatchErrors) -> list[str]:
     mean, rmse, recall = errors.mean_error(), errors.rmse(), errors.recall()
-    return ["-" if mean is None else f"{mean:.3f}", "-" if rmse is None else f"{rmse['3d']:.3f}",
-            "-" if recall is None else f"{recall:.3f}"]
+    return [_number(mean), _number(None if rmse is None else rmse["3d"]), _number(recall)]
 
 
 def _comparison_row(cells: list) -> str:
@@ -404,12 +404,10 @@ def localization_lines(evaluation: LocalizationEvaluation) -> list[str]:
 
 
 def localization_row(score: LocalizationScore) -> list[str]:
-    def number(value: float | None, digits: int) -> str:
-        return "-" if value is None else f"{value:.{digits}f}"
     return [score.estimator, score.source, str(score.poses), f"{score.start_ns / NS:.1f}", f"{score.end_ns / NS:.1f}",
-            number(score.distance_m, 2), number(score.position_error_m, 3), number(score.position_error_pct, 2),
-            number(score.yaw_turned_deg, 1), number(score.yaw_error_deg, 2), number(score.yaw_error_pct, 3),
-            number(score.ate.rmse if score.ate else None, 3), number(score.time_per_scan_ms, 1)]
+            _number(score.distance_m, 2), _number(score.position_error_m, 3), _number(score.position_error_pct, 2),
+            _number(score.yaw_turned_deg, 1), _number(score.yaw_error_deg, 2), _number(score.yaw_error_pct, 3),
+            _number(score.ate.rmse if score.ate else None, 3), _number(score.time_per_scan_ms, 1)]
 
 
 def _localization_row(cells: list) -> str:
