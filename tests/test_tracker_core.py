@@ -7,7 +7,7 @@ import pytest
 
 from schemas.voxels import STATE_OCCUPIED
 from services.classifier.core import half_width_across, surface_offset
-from services.tracker.core import OccupiedVoxels, TrackerCore, TrackerParams
+from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams
 from services.tracker.filters.models import manoeuvre_path, manoeuvre_state
 from services.tracker.kernels import points_near
 
@@ -405,6 +405,45 @@ def test_no_identity_is_taken_out_of_reach_across_motions_or_after_stitch_time()
     assert newcomer_id(moving, lambda k: moving(k) + [0.0, 30.0, 0.0], 4) == 2
     assert newcomer_id(moving, lambda k: moving(k) + [0.0, 6.0, 0.0], 100, stitch_time=5.0) == 2
     assert newcomer_id(moving, lambda k: moving(k) + [0.0, 6.0, 0.0], 100) == 1
+
+
+def test_a_tentative_track_a_partner_corroborates_is_confirmed_at_once_under_its_own_identity():
+    rng = np.random.default_rng(14)
+    tracker = TrackerCore()
+    tracker.new_point_cloud(stamp(0), cloud(blob(moving(0), rng)))
+    [first] = tracker.new_detections(stamp(0), moving(0)[None])
+    assert not tracker.estimates(stamp(0))[0].confirmed
+    assert tracker.corroborate({first + 7: np.zeros(3)}) == {}  # no such track: nothing happens
+    assert tracker.corroborate({first: np.array([3.0, 0.0, 0.0])}) == {}
+    [now] = tracker.estimates(stamp(0))
+    assert now.id == first and now.confirmed and now.detections == 1 and now.primary
+    for k in (1, 2, 3):  # confirmed for good, whatever its own detections then say
+        tracker.new_point_cloud(stamp(k), cloud(blob(moving(k), rng)))
+    assert [(e.id, e.confirmed, e.detections) for e in tracker.estimates(stamp(3))] == [(first, True, 1)]
+
+    off = TrackerCore(TrackerParams(confirm_detections=3))
+    off.new_point_cloud(stamp(0), cloud(blob(moving(0), rng)))
+    off.new_detections(stamp(0), moving(0)[None])
+    assert not off.estimates(stamp(0))[0].confirmed  # uncorroborated, one detection stays tentative
+
+
+def test_a_corroborated_newcomer_takes_a_lost_movers_identity_by_the_partners_velocity():
+    """One detection leaves a new track's own speed near 0; the partner's track knows it moves."""
+    rng = np.random.default_rng(15)
+
+    def newcomer(velocity) -> TrackEstimate:
+        tracker = TrackerCore()
+        back = seen_then_lost(tracker, moving, rng) + 50
+        elsewhere = lambda k: moving(k) + [-6.0, 4.0, 0.0]
+        [new] = seen_again(tracker, elsewhere, back, rng, scans=1)
+        renamed = tracker.corroborate({new.id: velocity})
+        [after] = tracker.estimates(stamp(back))
+        assert after.confirmed and renamed.get(new.id, new.id) == after.id
+        return after
+
+    assert newcomer(np.array([3.0, 0.0, 0.0])).id == 1  # a mover back: its identity and detections
+    assert newcomer(np.array([3.0, 0.0, 0.0])).detections == 21
+    assert newcomer(np.zeros(3)).id == 2  # standing by the partner's account: not the lost mover
 
 
 def test_of_two_lost_movers_the_one_nearest_for_its_reach_is_taken():

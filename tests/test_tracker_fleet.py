@@ -1,13 +1,21 @@
 """The fleet picture: own tracks joined with the partners' by covariance intersection (services/tracker/fleet.py)."""
 from __future__ import annotations
 
+import queue
+import time
+
+import msgspec
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from schemas import keys
+from schemas.arrays import from_numpy
+from schemas.messages import Detections, Header, Track, Tracks
 from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
                                     covariance_intersection, sound_partner_track)
+from tests.tools.health import wait_healthy
 
 NS = 1_000_000_000
 PARAMS = FusionParams(radius_min=2.5, radius_confidence=1.5, process_rates=(0.01, 0.8, 0.05), stale_after=1.0)
@@ -72,7 +80,8 @@ def test_a_target_both_see_is_one_fused_track_and_one_only_a_partner_sees_is_add
 
 def test_a_tentative_own_track_is_fused_under_the_partners_identity_until_we_confirm_it():
     """Our tracker has not confirmed the target yet (nor given it its identity, perhaps a lost
-    track's): the fused track is the partner's, not a confirmed own track with a passing number."""
+    track's; the node confirms it first unless `partner_confirms` is off): the fused track is the
+    partner's, not a confirmed own track with a passing number."""
     fleet = FleetPicture(PARAMS)
     fleet.partner_tracks("uav2", 0, [theirs(4, [10.3, 0.0, 5.0])])
     [fused] = fleet.fuse([own(7, [10.0, 0.0, 5.0], confirmed=False)], 0)
@@ -80,6 +89,17 @@ def test_a_tentative_own_track_is_fused_under_the_partners_identity_until_we_con
     assert fused.fused_with == ("uav2",) and 10.0 < fused.mean[0] < 10.3
     [alone] = fleet.fuse([own(7, [30.0, 0.0, 5.0], confirmed=False)], 0)[:1]
     assert alone.id == 7 and alone.source == "uav1" and not alone.confirmed
+
+
+def test_own_tentative_tracks_a_partners_confirmed_track_matches_are_corroborated_with_its_velocity():
+    fleet = FleetPicture(PARAMS)
+    fleet.partner_tracks("uav2", 0, [theirs(4, [10.3, 0.0, 5.0]), theirs(5, [20.2, 0.0, 5.0])])
+    mine = [own(7, [10.0, 0.0, 5.0], confirmed=False),  # tentative, where uav2 keeps a target
+            own(8, [20.0, 0.0, 5.0], confirmed=True),  # confirmed already
+            own(9, [40.0, 0.0, 5.0], confirmed=False)]  # nowhere near a partner's
+    corroborated = fleet.corroborating(mine, NS // 2)
+    assert list(corroborated) == [7] and np.allclose(corroborated[7], [1.0, 0.0, 0.0])
+    assert fleet.corroborating(mine, 2 * NS) == {}  # uav2 silent for over stale_after
 
 
 def test_partner_tracks_are_carried_to_now_and_dropped_when_the_partner_falls_silent():
@@ -109,3 +129,45 @@ def test_two_partners_seeing_a_target_we_do_not_give_one_track():
 ])
 def test_only_finite_positive_definite_ca_states_are_fused(mean, covariance, sound):
     assert sound_partner_track(mean, covariance) is sound
+
+
+def test_a_tracker_node_confirms_its_first_detection_of_a_target_its_partner_keeps(hub, processes):
+    """Real processes over Zenoh: uav1's tracker hears uav2 keep a confirmed track, then detects
+    the target once; it publishes its own confirmed track (its identity, 1 detection), fused."""
+    session, endpoint = hub
+    encoder, decoder = msgspec.msgpack.Encoder(), msgspec.msgpack.Decoder(Tracks)
+    heard: queue.SimpleQueue = queue.SimpleQueue()
+    sub = session.declare_subscriber(keys.uav("uav1", "tracks"), lambda s: heard.put(s.payload.to_bytes()))
+    partner, detections = session.declare_publisher(keys.uav("uav2", "tracks")), \
+        session.declare_publisher(keys.uav("uav1", "detections"))
+    target = np.array([20.0, 5.0, 6.0])
+    try:
+        processes.start("run", "tracker", "--uav", "uav1", "--clock", "wall", "--connect", endpoint)
+        wait_healthy(session, [("uav1", "tracker")])
+        deadline, own = time.monotonic() + 10.0, []
+        detected = False
+        while not own and time.monotonic() < deadline:
+            mean = np.concatenate([target, [1.0, 0.0, 0.0], np.zeros(3)])
+            partner.put(encoder.encode(Tracks(header=Header(stamp=time.time_ns()), tracks=[Track(
+                id=4, state=from_numpy(mean), covariance=from_numpy(np.eye(9) * 0.1), detections=9, confirmed=True,
+                uncertainty_radius=2.5, last_detection=0, source="uav2")])))
+            if not detected:
+                time.sleep(0.3)  # heard first: the detection arrives to a partner's confirmed target
+                detections.put(encoder.encode(Detections(
+                    header=Header(stamp=time.time_ns()), detector="classifier",
+                    positions=from_numpy(target[None] + 0.1), covariances=from_numpy(np.eye(3)[None] * 0.01),
+                    point_counts=from_numpy(np.array([12], dtype=np.int32)),
+                    extents=from_numpy(np.array([0.6], dtype=np.float32)))))
+                detected = True
+            time.sleep(0.1)
+            while not heard.empty():
+                message = decoder.decode(heard.get())
+                own += [t for t in message.tracks if t.source == "uav1"]
+        assert own, "no own track published within 10 s"
+        first = own[0]
+        assert first.confirmed and first.detections == 9 and first.id < FLEET_ID_BASE  # fused: the partner's count
+        assert first.filter == "kf" and first.uncertainty_radius > 0
+    finally:
+        sub.undeclare()
+        partner.undeclare()
+        detections.undeclare()

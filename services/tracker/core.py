@@ -52,6 +52,11 @@ Where Falconry departs from the seed, and why:
   along the line of sight, 0.02-0.04 m short, is the shape: the simulated drones are upright
   discs, whose visible side lies πa/4 deep seen edge-on, not the sphere's 2a/3 that
   `surface_bias` assumes (the smaller of the two, classifier/core.py).
+- Seed 000 confirms by n_det alone. A tentative track is also confirmed when a partner's confirmed
+  track of the same target corroborates it (`corroborate`, handed in by the node from the fleet
+  picture, fleet.py): a second UAV acquiring a target the first follows would otherwise hold it
+  unconfirmed for `confirm_detections` - 1 scans, and confirmation only guards against sporadic
+  false detections, which a partner's confirmed target is not.
 - Clouds arriving out of stamp order are inserted in order; a track never predicts backwards,
   so a cloud older than a track's estimate does not update it.
 
@@ -100,6 +105,10 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     # something unmapped must not push every later correction that far back
     max_half_width: float = 1.5
     confirm_detections: int = 3  # n_det at which a track is confirmed (sporadic false positives stay below)
+    # A tentative track the fleet picture matches with a partner's confirmed track is confirmed at
+    # once (`corroborate`): the partner's detections of the target are independent evidence, and a
+    # sporadic false detection is not where a partner keeps a confirmed target. Takes effect with `fleet`
+    partner_confirms: bool = True
     # s a confirmed track dropped as too uncertain is remembered: a new track starting within
     # radius_max of where it would be by then takes its identity and its detections back
     # (the target went out of sight and came back; Alg. 2 alone would give it a new identity)
@@ -166,6 +175,7 @@ class _Track:
     statistics: InnovationStatistics = field(default_factory=InnovationStatistics)
     half_width: float = 0.0  # m, the target's size: the widest its returns were across the line of sight
     stitch_checked: bool = False  # a lost identity was looked for when it was confirmed (or it took one at birth)
+    corroborated: bool = False  # confirmed by a partner's confirmed track before its own detections did
 
 
 @dataclass(frozen=True)
@@ -501,6 +511,7 @@ class TrackerCore:
                 continue
             twin.detections += track.detections
             twin.half_width = max(twin.half_width, track.half_width)
+            twin.corroborated = twin.corroborated or track.corroborated
             twin.last_detection = max(twin.last_detection, track.last_detection)
             self.counters.merged_tracks += 1
         self._tracks = kept
@@ -515,7 +526,7 @@ class TrackerCore:
     def _remove(self, ids: list[int], now: int) -> None:
         """Drop tracks; the confirmed ones are remembered for re-identification."""
         for track in self._tracks:
-            if track.id in ids and track.detections >= self.params.confirm_detections:
+            if track.id in ids and self._confirmed(track):
                 self._lost.append(LostTrack(track.id, track.corrected, track.detections, now, track.half_width))
         self._tracks = [t for t in self._tracks if t.id not in ids]
         limit = int(max(self.params.reidentify_time, self.params.stitch_time) * NS)
@@ -539,15 +550,30 @@ class TrackerCore:
             self._lost.remove(best)
         return best
 
-    def _stitch_confirmed(self) -> dict[int, int]:
-        """Tracks confirmed since the last look take the identity of a lost track they move like
-        and are within reach of (stitch_time); returns new id by old id."""
-        renamed = {}
+    def _confirmed(self, track: _Track) -> bool:
+        return track.detections >= self.params.confirm_detections or track.corroborated
+
+    def corroborate(self, velocities: dict[int, np.ndarray]) -> dict[int, int]:
+        """Confirm the tentative tracks a partner's confirmed track corroborates (track id → the
+        partner's velocity of the target); unknown ids and confirmed tracks are left alone. Each
+        newly confirmed track looks for a lost identity as at its own confirmation, judging whether
+        it moves by the partner's velocity: its own is still near 0 after one or two detections
+        (moving_speed). Returns new id by old id."""
         for track in self._tracks:
-            if track.stitch_checked or track.detections < self.params.confirm_detections:
+            if track.id in velocities and not self._confirmed(track):
+                track.corroborated = True
+        return self._stitch_confirmed(velocities)
+
+    def _stitch_confirmed(self, velocities: dict[int, np.ndarray] | None = None) -> dict[int, int]:
+        """Tracks confirmed since the last look take the identity of a lost track they move like
+        and are within reach of (stitch_time); `velocities` replaces some tracks' own velocity in
+        that judgement. Returns new id by old id."""
+        renamed, velocities = {}, velocities or {}
+        for track in self._tracks:
+            if track.stitch_checked or not self._confirmed(track):
                 continue
             track.stitch_checked = True
-            lost = self._stitched_identity(track.estimate)
+            lost = self._stitched_identity(track.estimate, velocities.get(track.id, track.estimate.mean[3:6]))
             if lost is not None:
                 renamed[track.id] = lost.id
                 track.id, track.detections = lost.id, track.detections + lost.detections
@@ -555,11 +581,11 @@ class TrackerCore:
                 self.counters.stitched += 1
         return renamed
 
-    def _stitched_identity(self, estimate: Estimate) -> LostTrack | None:
-        """The lost track, remembered within stitch_time, that `estimate` moves like and is nearest
-        to relative to its reach; taken out of the memory. None when there is none."""
+    def _stitched_identity(self, estimate: Estimate, velocity: np.ndarray) -> LostTrack | None:
+        """The lost track, remembered within stitch_time, that `estimate` moving at `velocity` moves
+        like and is nearest to relative to its reach; taken out of the memory. None when there is none."""
         p = self.params
-        moving = float(np.linalg.norm(estimate.mean[3:6])) > p.moving_speed
+        moving = float(np.linalg.norm(velocity)) > p.moving_speed
         best, best_share = None, 1.0
         for lost in self._lost:
             elapsed = (estimate.stamp - lost.corrected.stamp) / NS
@@ -592,7 +618,7 @@ class TrackerCore:
                 state=state,
                 covariance=np.asarray(now.covariance, dtype=np.float64),
                 detections=track.detections,
-                confirmed=track.detections >= p.confirm_detections,
+                confirmed=self._confirmed(track),
                 uncertainty_radius=self.radius(now),
                 last_detection=track.last_detection,
                 trajectory=self._trajectory(state) if trajectory else np.zeros((0, 3)),

@@ -9,10 +9,12 @@ Each tracker publishes its tracks; each also listens to its partners' and publis
   whatever the correlation between the two estimates, which is unknown here: the two trackers
   saw the same target, often in the same scans' time, and each may already hold the other's
   information from an earlier exchange. A Kalman-style fusion would count it twice and grow
-  overconfident. An own track not yet confirmed is fused too, but published under the
-  partner's fleet id and `source` (below) until our own tracker confirms it: only then does
-  our tracker give it its identity (possibly a lost track's, core.py), and a tentative number
-  published as a confirmed own track would be one identity too many;
+  overconfident. An own track not yet confirmed is fused too. The node first hands such
+  tracks to its tracker as corroborated (`corroborating`; the partner's detections confirm the
+  target, core.py), which confirms them and gives them their identity (possibly a lost
+  track's). With that off (`partner_confirms`) one is published under the partner's fleet id
+  and `source` (below) until our own detections confirm it: a tentative number published as a
+  confirmed own track would be one identity too many;
 - a partner's track no own track matches is published as a track of ours with `source` set to
   the partner, under a fleet id: 1,000,000 × the partner's number + its id (stable while the
   partner keeps its id, never equal to an own id), so a UAV can go for a target only a partner sees.
@@ -135,6 +137,18 @@ class FleetPicture:
                     out.append(FleetTrack(self.fleet_id(partner, track.id), track.mean, track.covariance,
                                           track.detections, True, partner, last_correction=track.last_correction))
         return out
+
+    def corroborating(self, own: list[FleetTrack], now: int) -> dict[int, np.ndarray]:
+        """The own tentative tracks `fuse` would join with a fresh partner's confirmed track (the
+        same similarity rule, per partner), by id, with that partner's velocity of the target:
+        the tracks a partner's detections confirm (core.py, `corroborate`)."""
+        velocities: dict[int, np.ndarray] = {}
+        for tracks in self.partners(now).values():
+            carried = [self._carried(t, now) for t in tracks]
+            for k, i in self._matches(own, carried).items():
+                if not own[i].confirmed:
+                    velocities.setdefault(own[i].id, carried[k].mean[3:6].copy())
+        return velocities
 
     @staticmethod
     def fleet_id(partner: str, track_id: int) -> int:

@@ -12,6 +12,8 @@ subscribers know the tracker is alive.
 The fleet picture (fleet.py): it also subscribes every partner's falconry/<partner>/tracks and
 publishes its own tracks fused (covariance intersection) with the partners' tracks of the same
 targets, plus the partners' other confirmed tracks under fleet ids with `source` = the partner.
+Before that, own tentative tracks a partner's confirmed track matches are handed to the core as
+corroborated (`partner_confirms`), which confirms them.
 """
 from __future__ import annotations
 
@@ -132,9 +134,12 @@ class TrackerNode(Node):
     def on_tick(self, now_ns: int) -> None:
         for track_id in self.core.prune(now_ns):
             self.log.debug("track %d lost", track_id)
-        estimates = {e.id: e for e in self.core.estimates(now_ns)}
-        own = [FleetTrack(e.id, e.state, e.covariance, e.detections, e.confirmed, self.uav,
-                          last_correction=e.last_correction) for e in estimates.values()]
+        estimates, own = self._own_tracks(now_ns)
+        if self.params.fleet and self.params.partner_confirms:
+            corroborated = self.fleet.corroborating(own, now_ns)
+            if corroborated:
+                self.core.corroborate(corroborated)
+                estimates, own = self._own_tracks(now_ns)
         fleet = self.fleet.fuse(own, now_ns) if self.params.fleet else own
         quiet = self._last_published_ns is None or now_ns - self._last_published_ns >= self._alive_period_ns
         if not fleet and not quiet:
@@ -142,6 +147,11 @@ class TrackerNode(Node):
         self._last_published_ns = now_ns
         self.tracks_pub.put(Tracks(header=Header(stamp=now_ns),
                                    tracks=[self._track(f, estimates.get(f.id)) for f in fleet]))
+
+    def _own_tracks(self, now_ns: int) -> tuple[dict[int, TrackEstimate], list[FleetTrack]]:
+        estimates = {e.id: e for e in self.core.estimates(now_ns)}
+        return estimates, [FleetTrack(e.id, e.state, e.covariance, e.detections, e.confirmed, self.uav,
+                                      last_correction=e.last_correction) for e in estimates.values()]
 
     def _track(self, track: FleetTrack, own: TrackEstimate | None) -> Track:
         """A fleet track as sent; an own track unfused keeps its trajectory (from its own state) and statistics."""
