@@ -10,7 +10,7 @@ LOCK := deploy/requirements.lock
 SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1
 CAMPAIGN_ARGS ?= --runs 20 --seed 1
 
-.PHONY: .venv sim test acceptance bench bench-tracking bench-interception bench-localization campaign schemas lock clean
+.PHONY: .venv sim test acceptance bench bench-tracking bench-tracking-intruder bench-interception bench-localization campaign schemas lock clean
 
 .venv: $(STAMP)
 
@@ -45,6 +45,10 @@ bench: .venv
 # seed 002's filter comparison on sparse and the tracker's time per update (about 3 min)
 bench-tracking: .venv
 	$(PY) benchmarks/tracking_comparison.py
+
+# tracks against raw detections (recall, like-for-like error) on intruder, 5 seeds (about 7 min)
+bench-tracking-intruder: .venv
+	$(PY) benchmarks/tracking_intruder.py
 
 # capture time after first detection on agile and intruder, 5 seeds each (about 14 min)
 bench-interception: .venv
