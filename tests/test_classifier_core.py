@@ -7,7 +7,10 @@ import numpy as np
 import pytest
 
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
-from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose
+from services.classifier import kernels as classifier_kernels
+from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose, warm_up
+from services.voxels import kernels as voxel_kernels
+from tests.tools.compiled import newly_compiled
 
 ORIGIN, SHAPE, VOXEL = (0.0, 0.0, 0.0), (80, 60, 30), 0.5  # 40 × 30 × 15 m
 PARAMS = ClassifierParams(map_origin=ORIGIN, map_shape=SHAPE)
@@ -193,3 +196,15 @@ def test_maps_it_could_not_hold_or_downsample_are_refused_before_anything_change
             core.apply_map(True, origin, shape, voxel, -740.0, np.zeros(0, np.int64), np.zeros(0, np.float32))
     assert core.map.shape == SHAPE and core.map.voxel_size == VOXEL and core.map.snapshots == 1
     assert len(core.classify(ball(), SENSOR).points) == 60
+
+
+def test_warm_up_leaves_no_kernel_for_a_real_scan_to_compile():
+    """The node warms up before its liveliness token: a real scan, detections and p_hit included,
+    must then find every kernel compiled for its types (a cold compile takes seconds)."""
+    modules = (classifier_kernels, voxel_kernels)
+    newly_compiled(modules, lambda: warm_up(PARAMS))
+    covariance = SensorPose(SENSOR.position, SENSOR.rotation, np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4]))
+    scan = []
+    assert newly_compiled(modules, lambda: scan.append(classifier(free=FREE_AROUND_BALL).classify(
+        np.concatenate([ball(), np.full((3, 3), np.nan)]).reshape(1, -1, 3), covariance))) == []
+    assert len(scan[0].positions) == 1

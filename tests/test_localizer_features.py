@@ -10,8 +10,12 @@ import numpy as np
 import pytest
 
 from services.lidar.models import beam_directions
+from services.localizer import features as feature_kernels
+from services.localizer import poles
 from services.localizer.association import AssociationParams, FeatureMap, associate, transform_features
+from services.localizer.core import LocalizerParams, warm_up
 from services.localizer.features import EdgeFeature, FeatureParams, Features, PlaneFeature, extract_features, sector_of
+from tests.tools.compiled import newly_compiled
 
 SENSOR_HEIGHT = 2.0  # m above the ground
 WALL_TOP = 1.5  # m above the sensor: the sky (no return) above
@@ -270,3 +274,14 @@ def test_an_empty_map_associates_nothing(features):
     assert len(associations) == len(features.planes) + len(features.edges)
     assert all(a.map_id is None for a in associations)
     assert associate(Features((), ()), FeatureMap(), AssociationParams()) == []
+
+
+def test_warm_up_leaves_no_kernel_for_a_real_scan_to_compile(scan):
+    """The localizer node warms up before its liveliness token (a cold compile takes seconds)."""
+    modules = (feature_kernels, poles)
+    found = []
+    newly_compiled(modules, lambda: found.append(warm_up(LocalizerParams())))
+    assert found[0] >= 1
+    extracted = []
+    assert newly_compiled(modules, lambda: extracted.append(extract_features(scan))) == []
+    assert extracted[0].planes and extracted[0].edges

@@ -9,7 +9,10 @@ import pytest
 from schemas import voxels
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.lidar.rays import ScanRays
-from services.mapper.core import MapperCore, MapperParams, exponential_update
+from services.mapper import update as mapper_kernels
+from services.mapper.core import MapperCore, MapperParams, exponential_update, warm_up
+from services.voxels import traversal
+from tests.tools.compiled import newly_compiled
 
 SMALL = MapperParams(origin=(0.0, 0.0, 0.0), shape=(40, 20, 20), separation_period=1e9)  # 20 × 10 × 10 m
 NO_LABELS = (np.zeros((0, 3), np.int32), np.zeros(0, np.uint8), np.zeros(0, np.float32))
@@ -219,3 +222,21 @@ def test_many_rays_are_deterministic():
         core.integrate(0, rays(sensor, ends), *NO_LABELS)
         results.append(core.grid.copy())
     assert np.array_equal(results[0], results[1])
+
+
+def test_warm_up_leaves_no_kernel_for_a_real_scan_to_compile():
+    """The node warms up before its liveliness token: real scans (beams, masked rays, label sets,
+    the separate-cluster reset) must then find every kernel compiled for their types."""
+    modules = (mapper_kernels, traversal)
+    changed = []
+    newly_compiled(modules, lambda: changed.append(warm_up(SMALL)))
+    assert changed[0] > 0  # its rays cleared voxels
+    core = MapperCore(MapperParams(origin=(0.0, 0.0, 0.0), shape=(40, 20, 20), separation_period=0.0))
+    beams = np.tile([[1.0, 0.0, 0.0]], (3, 1))
+    scan = rays([2.0, 5.0, 5.0], [[8.0, 5.0, 5.0], [np.nan] * 3, [6.0, 5.0, 5.0]], beams, np.array([False, False, True]))
+
+    def two_scans():
+        for stamp in (0, 1):
+            core.integrate(stamp, scan, *labels(((16, 10, 10), BACKGROUND, 2.0), ((12, 10, 10), FLYING, 1.0)))
+    assert newly_compiled(modules, two_scans) == []
+    assert core.counters.scans == 2

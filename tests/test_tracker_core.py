@@ -7,7 +7,10 @@ import pytest
 
 from schemas.voxels import STATE_OCCUPIED
 from services.classifier.core import half_width_across, surface_offset
-from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams
+from services.tracker import kernels as tracker_kernels
+from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, warm_up
+from services.voxels import kernels as voxel_kernels
+from tests.tools.compiled import newly_compiled
 from services.tracker.filters.models import manoeuvre_path, manoeuvre_state
 from services.tracker.kernels import points_near
 
@@ -488,3 +491,25 @@ def test_the_manoeuvre_state_is_the_derivative_of_the_manoeuvre_path():
         np.testing.assert_allclose(state[:3], here)
         np.testing.assert_allclose(state[3:6], (ahead - here) / 1e-6, atol=1e-4)
         np.testing.assert_allclose(manoeuvre_state(state, 0.7, tau), manoeuvre_state(mean, 2.0, tau), atol=1e-9)
+
+
+def test_warm_up_confirms_a_track_and_leaves_no_kernel_for_real_scans_to_compile():
+    """The node warms up before its liveliness token: real scans must then find every kernel
+    compiled for their types (a cold compile takes seconds)."""
+    modules = (tracker_kernels, voxel_kernels)
+    confirmed = []
+    newly_compiled(modules, lambda: confirmed.append(warm_up(TrackerParams())))
+    assert confirmed == [1]
+    rng = np.random.default_rng(16)
+    tracker = TrackerCore()
+    states = np.zeros(40 * 40 * 20, dtype=np.uint8)
+    states[np.ravel_multi_index((30, 30, 2), (40, 40, 20))] = STATE_OCCUPIED
+    tracker.set_occupied(OccupiedVoxels(states, np.array([-10.0, -10.0, -1.0]), 0.5, np.array([40, 40, 20])))
+
+    def scans():
+        for k in range(4):
+            tracker.new_point_cloud(stamp(k), cloud(blob(moving(k), rng)), np.zeros(3))
+            tracker.new_detections(stamp(k), moving(k)[None])
+        tracker.prune(stamp(4))
+    assert newly_compiled(modules, scans) == []
+    assert [e.confirmed for e in tracker.estimates(stamp(4))] == [True]

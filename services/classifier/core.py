@@ -224,6 +224,22 @@ class ClassifierCore:
         return positions, covariances, point_counts, extents, confidences
 
 
+def warm_up(params: ClassifierParams) -> int:
+    """Classify one small synthetic scan on a throwaway core, so that the scan path's compiled
+    kernels (numba, cached on disk after a machine's first run) are ready before the first real
+    scan: compiling them takes seconds, which would stall a lockstep tick past its upstream's
+    timeout (the run then depends on the machine) and blind a flying UAV for its first scans. A
+    ground patch and a small object in the map's unknown space run every kernel, the flood fill
+    of rule B included; the object is not walled off by free space, so no detection is made and
+    p_hit's scipy, which the node imports beside start-up, is not waited for here. Returns the
+    returns labelled."""
+    core = ClassifierCore(params)
+    ground = np.stack(np.meshgrid(np.arange(-4.0, 4.0, 0.25), np.arange(-4.0, 4.0, 0.25), [0.0]), -1).reshape(-1, 3)
+    target = np.array([3.0, 2.0, 4.0]) + 0.1 * np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [0]), -1).reshape(-1, 3)
+    points = np.concatenate([ground, target, np.full((2, 3), np.nan)]).astype(np.float32)
+    return len(core.classify(points, SensorPose(np.array([0.0, 0.0, 2.0]), np.eye(3))).point_labels)
+
+
 def half_width_across(members: np.ndarray, centroid: np.ndarray, sensor: np.ndarray) -> float:
     """Half the cluster's extent across the line of sight from `sensor` to `centroid`: the larger
     of its extents along the two directions across that line. Few returns under-measure it (the

@@ -13,7 +13,7 @@ import numpy as np
 
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, VoxelMap
-from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose
+from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose, warm_up
 from services.geometry import rotation_matrix
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
@@ -27,6 +27,7 @@ class ClassifierNode(Node):
 
     def setup(self) -> None:
         preload("scipy.stats")  # p_hit's Gaussian CDF, beside start-up
+        warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.core = ClassifierCore(self.params)
         self.detections_pub = self.publisher(self.topic("detections"), Detections)
         self.labels_pub = self.publisher(self.topic("labels"), LabelSet)

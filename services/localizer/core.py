@@ -106,3 +106,21 @@ class Localizer:
         ids = self.map.add_unassociated(matches)
         estimate = self.graph.add_scan(stamp_ns, observations(body, ids))
         return ScanResult(estimate, len(body.planes), len(body.edges), associated, len(matches) - associated)
+
+
+def warm_up(params: LocalizerParams) -> int:
+    """Extract the features of one small synthetic organised scan, so that the extraction's
+    compiled kernels (numba, cached on disk after a machine's first run) are ready before the
+    first real scan (see classifier/core.py, `warm_up`, for why): 16 rows by 256 columns inside a
+    box room with a pole. Returns the planes and edges found."""
+    elevation = np.radians(np.linspace(-15.0, 15.0, 16))[:, None]
+    azimuth = np.linspace(-np.pi, np.pi, 256, endpoint=False)[None, :]
+    beams = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                                         np.sin(elevation)), axis=-1)
+    with np.errstate(divide="ignore"):
+        reach = np.abs(np.array([8.0, 6.0, 3.0]) / beams).min(axis=-1)  # the nearest of the room's walls
+    grid = beams * reach[..., None]
+    pole = np.abs(np.arctan2(grid[..., 1], grid[..., 0]) - np.arctan2(2.0, 4.0)) < 0.02
+    grid[pole] = beams[pole] * np.hypot(4.0, 2.0)  # a thin pole at (4, 2) in front of the wall
+    features = extract_features(grid, params.features)
+    return len(features.planes) + len(features.edges)

@@ -25,7 +25,7 @@ from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Header, ImuBatch, Odometry, PointCloud, Pose
 from services.geometry import quaternion, rotation_matrix
-from services.localizer.core import Localizer, LocalizerParams, ScanResult, sensor_frame
+from services.localizer.core import Localizer, LocalizerParams, ScanResult, sensor_frame, warm_up
 from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
@@ -55,6 +55,7 @@ class LocalizerNode(Node):
     params_type = LocalizerParams
 
     def setup(self) -> None:
+        warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.core = Localizer(self.params)
         self.pub = self.publisher(self.topic(keys.LOCALIZATION), Odometry)
         # Lockstep releases a tick's inputs in subscription order: the launch pose, then the IMU

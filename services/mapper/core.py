@@ -252,6 +252,28 @@ class MapperCore:
         return MapDelta(changed.astype(np.int32), self._flat[changed].copy())
 
 
+def warm_up(params: MapperParams) -> int:
+    """Integrate two small synthetic scans on a throwaway core, a separation period apart, so that
+    the update's compiled kernels (numba, cached on disk after a machine's first run) are ready
+    before the first real scan (see classifier/core.py, `warm_up`, for why). Rays with and without
+    returns from the map's centre, label sets of both kinds; the second scan is due for the
+    separate-cluster reset. Returns the voxels the scans changed."""
+    core = MapperCore(params)
+    geometry = core.geometry
+    centre = np.asarray(geometry.corner) + 0.5 * np.asarray(geometry.shape) * geometry.voxel_size
+    beams = np.random.default_rng(0).normal(size=(64, 3))
+    beams /= np.linalg.norm(beams, axis=1, keepdims=True)
+    points = (centre + 4.0 * beams).astype(np.float32)
+    points[::8] = np.nan  # no return
+    voxels_of_points = np.floor((points[1:3] - geometry.corner) / geometry.voxel_size).astype(np.int32)
+    changed = 0
+    for stamp in (0, int(params.separation_period * 1e9) + 1):
+        delta = core.integrate(stamp, ScanRays(centre, np.eye(3), points, beams, None), voxels_of_points,
+                               np.array([BACKGROUND, UNKNOWN], dtype=np.uint8), np.ones(2, dtype=np.float32))
+        changed += len(delta.indices)
+    return changed
+
+
 def _forward_neighbours(reach_voxels: float) -> np.ndarray:
     """(K, 3) offsets of the neighbours whose centres are within `reach_voxels` voxel edges (at
     least the 6 face neighbours, at most the 26 of the 3×3×3 cube), those after (0, 0, 0) in C

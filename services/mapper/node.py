@@ -13,7 +13,7 @@ from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Header, LabelSet, PointCloud, VoxelMap, WorldModel
 from services.lidar.rays import ScanRays, scan_rays
-from services.mapper.core import MapDelta, MapperCore, MapperParams
+from services.mapper.core import MapDelta, MapperCore, MapperParams, warm_up
 from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.errors import UsageError
@@ -29,6 +29,7 @@ class MapperNode(Node):
     params_type = MapperParams
 
     def setup(self) -> None:
+        warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.core = MapperCore(self.params)
         self.map_pub = self.publisher(self.topic("map"), VoxelMap)
         self.subscribe(self.topic("points"), PointCloud, self.on_points)

@@ -55,7 +55,10 @@ ACK_TIMEOUT_S = 10.0
 
 
 class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
-    startup_timeout: float = 60.0  # s of wall time to wait for every service before starting anyway
+    # s of wall time to wait for every service before starting anyway. A machine's first run
+    # compiles every service's kernels before its token (each core's warm_up): 3 UAVs took 53 s to
+    # come up on a 2-core machine, and a run started before then gives up waiting at tick 0
+    startup_timeout: float = 120.0
     startup_settle: float = 1.0  # s of wall time between the last service coming up and the first tick
     world_period: float = 1.0  # s of mission time between WorldModel re-publications
     # Every UAV's IMU, a Pixhawk-class one by default: services/simulator/imu.py documents each field

@@ -71,6 +71,7 @@ from dataclasses import dataclass, field, replace
 import msgspec
 import numpy as np
 
+from schemas.voxels import STATE_OCCUPIED
 from services.classifier.core import half_width_across, surface_offset
 from services.geometry import is_covariance
 from services.tracker.filters import FILTERS, FilterParams, make_filter
@@ -638,3 +639,22 @@ class TrackerCore:
         p = self.params
         return manoeuvre_path(state, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step),
                               p.manoeuvre_time)
+
+
+def warm_up(params: TrackerParams) -> int:
+    """Track a small synthetic target through three scans on a throwaway core, beside a mapped
+    voxel, so that the cloud update's compiled kernels (numba, cached on disk after a machine's
+    first run) are ready before the first real scan (see classifier/core.py, `warm_up`, for why).
+    Returns the tracks confirmed (one)."""
+    core = TrackerCore(params)
+    states = np.zeros(20 * 20 * 10, dtype=np.uint8)
+    states[0] = STATE_OCCUPIED  # the map check runs on something
+    core.set_occupied(OccupiedVoxels(states, np.array([-5.0, -5.0, -1.0]), 0.5, np.array([20, 20, 10])))
+    offsets = 0.15 * np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [0]), -1).reshape(-1, 3)
+    for scan in range(3):
+        target = np.array([3.0 + 0.3 * scan, 2.0, 4.0])
+        stamp = scan * 100_000_000
+        core.new_point_cloud(stamp, (target + offsets).astype(np.float32), np.zeros(3))
+        core.new_detections(stamp, target[None], 0.01 * np.eye(3)[None])
+    core.prune(300_000_000)
+    return sum(e.confirmed for e in core.estimates(300_000_000))

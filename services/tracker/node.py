@@ -25,7 +25,7 @@ from schemas.messages import Detections, Header, PointCloud, Track, Tracks, Voxe
 from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
-from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams
+from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, warm_up
 from services.tracker.filters.models import manoeuvre_path
 from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
                                     partner_number, sound_partner_track)
@@ -41,6 +41,7 @@ class TrackerNode(Node):
     params_type = TrackerParams
 
     def setup(self) -> None:
+        warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.core = TrackerCore(self.params)
         self.replica: MapReplica | None = None
         self.tracks_pub = self.publisher(self.topic("tracks"), Tracks)
