@@ -8,7 +8,7 @@ scan) against the confirmed tracks' (per truth tick), and the like-for-like mean
 counted (target, step) pairs, mean errors weighted by their pairs. Goals: tracks' recall at least
 the detections', tracks' mean error below the detections'.
 
-    .venv/bin/python benchmarks/tracking_intruder.py                 # seeds 1-5: about 12 min
+    .venv/bin/python benchmarks/tracking_intruder.py                 # seeds 1-5: about 7 min
     .venv/bin/python benchmarks/tracking_intruder.py --seeds 2
 """
 from __future__ import annotations

@@ -10,7 +10,7 @@ from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.classifier import kernels as classifier_kernels
 from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose, warm_up
 from services.voxels import kernels as voxel_kernels
-from tests.tools.compiled import newly_compiled
+from tests.tools.compiled import in_fresh_interpreter, newly_compiled
 
 ORIGIN, SHAPE, VOXEL = (0.0, 0.0, 0.0), (80, 60, 30), 0.5  # 40 × 30 × 15 m
 PARAMS = ClassifierParams(map_origin=ORIGIN, map_shape=SHAPE)
@@ -198,13 +198,22 @@ def test_maps_it_could_not_hold_or_downsample_are_refused_before_anything_change
     assert len(core.classify(ball(), SENSOR).points) == 60
 
 
-def test_warm_up_leaves_no_kernel_for_a_real_scan_to_compile():
-    """The node warms up before its liveliness token: a real scan, detections and p_hit included,
-    must then find every kernel compiled for its types (a cold compile takes seconds)."""
+def compiled_by_a_real_scan_after_warm_up() -> dict:
+    """In a fresh interpreter (tests/tools/compiled.py): what warm_up labels, then the kernels a
+    real scan (detections and p_hit included) still compiles or loads after it."""
     modules = (classifier_kernels, voxel_kernels)
-    newly_compiled(modules, lambda: warm_up(PARAMS))
-    covariance = SensorPose(SENSOR.position, SENSOR.rotation, np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4]))
-    scan = []
-    assert newly_compiled(modules, lambda: scan.append(classifier(free=FREE_AROUND_BALL).classify(
-        np.concatenate([ball(), np.full((3, 3), np.nan)]).reshape(1, -1, 3), covariance))) == []
-    assert len(scan[0].positions) == 1
+    labelled = []
+    warmed = newly_compiled(modules, lambda: labelled.append(warm_up(PARAMS)))
+    pose = SensorPose(SENSOR.position, SENSOR.rotation, np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4]))
+    scans = []
+    left = newly_compiled(modules, lambda: scans.append(classifier(free=FREE_AROUND_BALL).classify(
+        np.concatenate([ball(), np.full((3, 3), np.nan)]).reshape(1, -1, 3), pose)))
+    return {"labelled": labelled[0], "warmed": warmed, "left": left, "detections": len(scans[0].positions)}
+
+
+def test_warm_up_leaves_no_kernel_for_a_real_scan_to_compile():
+    """The node warms up before its liveliness token: a real scan must then find every kernel
+    compiled for its types (a cold compile takes seconds)."""
+    result = in_fresh_interpreter(compiled_by_a_real_scan_after_warm_up)
+    assert result["labelled"] > 0 and result["warmed"] and result["detections"] == 1
+    assert result["left"] == []

@@ -11,11 +11,11 @@ import pytest
 
 from services.lidar.models import beam_directions
 from services.localizer import features as feature_kernels
-from services.localizer import poles
+from services.localizer import graph, poles
 from services.localizer.association import AssociationParams, FeatureMap, associate, transform_features
 from services.localizer.core import LocalizerParams, warm_up
 from services.localizer.features import EdgeFeature, FeatureParams, Features, PlaneFeature, extract_features, sector_of
-from tests.tools.compiled import newly_compiled
+from tests.tools.compiled import in_fresh_interpreter, newly_compiled
 
 SENSOR_HEIGHT = 2.0  # m above the ground
 WALL_TOP = 1.5  # m above the sensor: the sky (no return) above
@@ -276,12 +276,26 @@ def test_an_empty_map_associates_nothing(features):
     assert associate(Features((), ()), FeatureMap(), AssociationParams()) == []
 
 
-def test_warm_up_leaves_no_kernel_for_a_real_scan_to_compile(scan):
-    """The localizer node warms up before its liveliness token (a cold compile takes seconds)."""
-    modules = (feature_kernels, poles)
+def compiled_by_a_real_scan_after_warm_up() -> dict:
+    """In a fresh interpreter (tests/tools/compiled.py): what warm_up found, then the kernels a
+    real scan's features and a line factor's linearisation still compile or load after it."""
+    modules = (feature_kernels, poles, graph)
     found = []
-    newly_compiled(modules, lambda: found.append(warm_up(LocalizerParams())))
-    assert found[0] >= 1
+    warmed = newly_compiled(modules, lambda: found.append(warm_up(LocalizerParams())))
     extracted = []
-    assert newly_compiled(modules, lambda: extracted.append(extract_features(scan))) == []
-    assert extracted[0].planes and extracted[0].edges
+    direction = np.array([[0.0, 0.0, 1.0]])
+
+    def real():
+        extracted.append(extract_features(cast_scan()))
+        graph.line_residuals(np.ones((1, 3)), direction, np.eye(3)[None], np.zeros((1, 3)), direction,
+                             np.array([[1.0, 2.0, 0.0]]), graph.tangent_basis(direction))
+    left = newly_compiled(modules, real)
+    return {"found": found[0], "warmed": warmed, "left": left,
+            "planes": len(extracted[0].planes), "edges": len(extracted[0].edges)}
+
+
+def test_warm_up_leaves_no_kernel_for_a_real_scan_to_compile():
+    """The localizer node warms up before its liveliness token (a cold compile takes seconds)."""
+    result = in_fresh_interpreter(compiled_by_a_real_scan_after_warm_up)
+    assert result["found"] >= 1 and result["warmed"] and result["planes"] and result["edges"]
+    assert result["left"] == []

@@ -91,7 +91,7 @@ def test_a_tentative_own_track_is_fused_under_the_partners_identity_until_we_con
     assert alone.id == 7 and alone.source == "uav1" and not alone.confirmed
 
 
-def test_own_tentative_tracks_a_partners_confirmed_track_matches_are_corroborated_with_its_velocity():
+def test_own_tentative_tracks_a_partners_confirmed_track_corroborates_are_named_with_its_velocity():
     fleet = FleetPicture(PARAMS)
     fleet.partner_tracks("uav2", 0, [theirs(4, [10.3, 0.0, 5.0]), theirs(5, [20.2, 0.0, 5.0])])
     mine = [own(7, [10.0, 0.0, 5.0], confirmed=False),  # tentative, where uav2 keeps a target
@@ -100,6 +100,17 @@ def test_own_tentative_tracks_a_partners_confirmed_track_matches_are_corroborate
     corroborated = fleet.corroborating(mine, NS // 2)
     assert list(corroborated) == [7] and np.allclose(corroborated[7], [1.0, 0.0, 0.0])
     assert fleet.corroborating(mine, 2 * NS) == {}  # uav2 silent for over stale_after
+
+
+def test_a_track_beside_a_partners_target_is_fused_with_it_but_not_corroborated():
+    """3 m apart with σ 0.45 m each: within the sum of the uncertainty radii (fusion's rule), far
+    outside the χ² gate: a sporadic false detection beside a partner's target stays tentative."""
+    fleet = FleetPicture(PARAMS)
+    fleet.partner_tracks("uav2", 0, [theirs(4, [13.0, 0.0, 5.0])])
+    beside = [own(7, [10.0, 0.0, 5.0], confirmed=False)]
+    assert fleet.corroborating(beside, 0) == {}
+    [fused] = fleet.fuse(beside, 0)
+    assert fused.fused_with == ("uav2",) and fused.source == "uav2"  # the partner's, until ours is confirmed
 
 
 def test_partner_tracks_are_carried_to_now_and_dropped_when_the_partner_falls_silent():
@@ -133,7 +144,8 @@ def test_only_finite_positive_definite_ca_states_are_fused(mean, covariance, sou
 
 def test_a_tracker_node_confirms_its_first_detection_of_a_target_its_partner_keeps(hub, processes):
     """Real processes over Zenoh: uav1's tracker hears uav2 keep a confirmed track, then detects
-    the target once; it publishes its own confirmed track (its identity, 1 detection), fused."""
+    the target once; it publishes the target as its own confirmed track (its own identity), fused
+    with the partner's (whose detection count it then shows)."""
     session, endpoint = hub
     encoder, decoder = msgspec.msgpack.Encoder(), msgspec.msgpack.Decoder(Tracks)
     heard: queue.SimpleQueue = queue.SimpleQueue()

@@ -28,7 +28,8 @@ import numpy as np
 
 from services.localizer.association import AssociationParams, FeatureMap, associate, transform_features
 from services.localizer.features import FeatureParams, Features, extract_features
-from services.localizer.graph import GraphParams, LocalizerGraph, PoseEstimate, observations
+from services.localizer.graph import (GraphParams, LocalizerGraph, PoseEstimate, line_residuals, observations,
+                                      tangent_basis)
 from services.sensor_driver.core import DEFAULT_MOUNT
 
 
@@ -112,7 +113,8 @@ def warm_up(params: LocalizerParams) -> int:
     """Extract the features of one small synthetic organised scan, so that the extraction's
     compiled kernels (numba, cached on disk after a machine's first run) are ready before the
     first real scan (see classifier/core.py, `warm_up`, for why): 16 rows by 256 columns inside a
-    box room with a pole. Returns the planes and edges found."""
+    box room with a pole; and linearise one line factor (graph.py), which the first scan's edges
+    add. Returns the planes and edges found."""
     elevation = np.radians(np.linspace(-15.0, 15.0, 16))[:, None]
     azimuth = np.linspace(-np.pi, np.pi, 256, endpoint=False)[None, :]
     beams = np.stack(np.broadcast_arrays(np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
@@ -123,4 +125,7 @@ def warm_up(params: LocalizerParams) -> int:
     pole = np.abs(np.arctan2(grid[..., 1], grid[..., 0]) - np.arctan2(2.0, 4.0)) < 0.02
     grid[pole] = beams[pole] * np.hypot(4.0, 2.0)  # a thin pole at (4, 2) in front of the wall
     features = extract_features(grid, params.features)
+    direction = np.array([[0.0, 0.0, 1.0]])  # the pole's line factor, as the smoother linearises it
+    line_residuals(np.array([[4.0, 2.0, 0.0]]), direction, np.eye(3)[None], np.zeros((1, 3)), direction,
+                   np.array([[4.0, 2.0, 1.0]]), tangent_basis(direction))
     return len(features.planes) + len(features.edges)

@@ -52,11 +52,14 @@ Where Falconry departs from the seed, and why:
   along the line of sight, 0.02-0.04 m short, is the shape: the simulated drones are upright
   discs, whose visible side lies πa/4 deep seen edge-on, not the sphere's 2a/3 that
   `surface_bias` assumes (the smaller of the two, classifier/core.py).
-- Seed 000 confirms by n_det alone. A tentative track is also confirmed when a partner's confirmed
+- Seed 000 confirms by n_det alone. A tentative track is also confirmed while a partner's confirmed
   track of the same target corroborates it (`corroborate`, handed in by the node from the fleet
-  picture, fleet.py): a second UAV acquiring a target the first follows would otherwise hold it
-  unconfirmed for `confirm_detections` - 1 scans, and confirmation only guards against sporadic
-  false detections, which a partner's confirmed target is not.
+  picture every tick, fleet.py): a second UAV acquiring a target the first follows would otherwise
+  hold it unconfirmed for `confirm_detections` - 1 scans, and confirmation only guards against
+  sporadic false detections, which a partner's confirmed target is not. Once its own detections
+  reach `confirm_detections` it no longer needs the partner; before that, a partner that stops
+  corroborating it (its track gone, or no longer the same target) leaves it tentative again. A
+  track that took a confirmed lost track's identity back at birth is confirmed too.
 - Clouds arriving out of stamp order are inserted in order; a track never predicts backwards,
   so a cloud older than a track's estimate does not update it.
 
@@ -106,9 +109,10 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     # something unmapped must not push every later correction that far back
     max_half_width: float = 1.5
     confirm_detections: int = 3  # n_det at which a track is confirmed (sporadic false positives stay below)
-    # A tentative track the fleet picture matches with a partner's confirmed track is confirmed at
-    # once (`corroborate`): the partner's detections of the target are independent evidence, and a
-    # sporadic false detection is not where a partner keeps a confirmed target. Takes effect with `fleet`
+    # A tentative track is confirmed while a partner's confirmed track of the same target (within
+    # the χ² gate, fleet.py) corroborates it (`corroborate`): the partner's detections are
+    # independent evidence, and a sporadic false detection is not where a partner keeps a
+    # confirmed target. Takes effect with `fleet`
     partner_confirms: bool = True
     # s a confirmed track dropped as too uncertain is remembered: a new track starting within
     # radius_max of where it would be by then takes its identity and its detections back
@@ -176,7 +180,8 @@ class _Track:
     statistics: InnovationStatistics = field(default_factory=InnovationStatistics)
     half_width: float = 0.0  # m, the target's size: the widest its returns were across the line of sight
     stitch_checked: bool = False  # a lost identity was looked for when it was confirmed (or it took one at birth)
-    corroborated: bool = False  # confirmed by a partner's confirmed track before its own detections did
+    corroborated: bool = False  # a partner's confirmed track of its target matches it now (`corroborate`)
+    reidentified: bool = False  # it took a confirmed lost track's identity back at birth
 
 
 @dataclass(frozen=True)
@@ -449,6 +454,7 @@ class TrackerCore:
         lost = self._lost_identity(tentative.estimate)
         if lost is not None:  # the same target back in sight: its identity and its detections
             track.id, track.detections, track.stitch_checked = lost.id, lost.detections + 1, True
+            track.reidentified = True  # a lost track was confirmed, however it was (a partner's may have)
             track.half_width = max(track.half_width, lost.half_width)
             self.counters.reidentified += 1
         else:
@@ -513,6 +519,7 @@ class TrackerCore:
             twin.detections += track.detections
             twin.half_width = max(twin.half_width, track.half_width)
             twin.corroborated = twin.corroborated or track.corroborated
+            twin.reidentified = twin.reidentified or track.reidentified
             twin.last_detection = max(twin.last_detection, track.last_detection)
             self.counters.merged_tracks += 1
         self._tracks = kept
@@ -552,18 +559,23 @@ class TrackerCore:
         return best
 
     def _confirmed(self, track: _Track) -> bool:
-        return track.detections >= self.params.confirm_detections or track.corroborated
+        return track.detections >= self.params.confirm_detections or track.corroborated or track.reidentified
 
-    def corroborate(self, velocities: dict[int, np.ndarray]) -> dict[int, int]:
-        """Confirm the tentative tracks a partner's confirmed track corroborates (track id → the
-        partner's velocity of the target); unknown ids and confirmed tracks are left alone. Each
-        newly confirmed track looks for a lost identity as at its own confirmation, judging whether
-        it moves by the partner's velocity: its own is still near 0 after one or two detections
-        (moving_speed). Returns new id by old id."""
+    def corroborate(self, velocities: dict[int, np.ndarray]) -> bool:
+        """The tracks a partner's confirmed track of the same target matches now, by id, with the
+        partner's velocity of it (every other track is not corroborated any more); unknown ids are
+        left alone. A track that becomes confirmed so looks for a lost identity as at its own
+        confirmation, judging whether it moves by the partner's velocity: its own is still near 0
+        after one or two detections (moving_speed). Returns whether any track's confirmation or
+        identity changed."""
+        changed = False
         for track in self._tracks:
-            if track.id in velocities and not self._confirmed(track):
-                track.corroborated = True
-        return self._stitch_confirmed(velocities)
+            corroborated = track.id in velocities
+            if corroborated != track.corroborated:
+                before = self._confirmed(track)
+                track.corroborated = corroborated
+                changed |= self._confirmed(track) != before
+        return bool(self._stitch_confirmed(velocities)) or changed
 
     def _stitch_confirmed(self, velocities: dict[int, np.ndarray] | None = None) -> dict[int, int]:
         """Tracks confirmed since the last look take the identity of a lost track they move like

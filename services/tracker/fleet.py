@@ -9,19 +9,25 @@ Each tracker publishes its tracks; each also listens to its partners' and publis
   whatever the correlation between the two estimates, which is unknown here: the two trackers
   saw the same target, often in the same scans' time, and each may already hold the other's
   information from an earlier exchange. A Kalman-style fusion would count it twice and grow
-  overconfident. An own track not yet confirmed is fused too. The node first hands such
-  tracks to its tracker as corroborated (`corroborating`; the partner's detections confirm the
-  target, core.py), which confirms them and gives them their identity (possibly a lost
-  track's). With that off (`partner_confirms`) one is published under the partner's fleet id
-  and `source` (below) until our own detections confirm it: a tentative number published as a
-  confirmed own track would be one identity too many;
+  overconfident. An own track not yet confirmed is fused too, but published under the
+  partner's fleet id and `source` (below) until our tracker confirms it: a tentative number
+  published as a confirmed own track would be one identity too many. The node first hands
+  its tracker the tentative tracks that a partner's confirmed track of the same target
+  corroborates (`corroborating`), which confirms them and gives them their identity (possibly
+  a lost track's; core.py, `partner_confirms`). Being the same target is judged more strictly
+  there than for fusion: the positions' difference within the χ² gate (`gate_probability`, 3
+  degrees of freedom) of the sum of their covariances, the correlation between the two
+  estimates being unknown (it can only widen the gate), not merely within the sum of their
+  uncertainty radii, which is at least 2 r_min = 5 m: a sporadic false detection beside a
+  partner's target must not be confirmed by it;
 - a partner's track no own track matches is published as a track of ours with `source` set to
   the partner, under a fleet id: 1,000,000 × the partner's number + its id (stable while the
   partner keeps its id, never equal to an own id), so a UAV can go for a target only a partner sees.
 
 Only a partner's own tracks are taken (`source` = that partner): the fleet tracks it publishes
 came from someone else, who is heard directly. The fusion is on output only: own filters never
-take partner data, so a partner's error cannot feed back into our tracks. Partner tracks are
+take partner data, so a partner's error cannot feed back into our estimates; a partner's track
+only confirms a tentative one of ours while it corroborates it. Partner tracks are
 carried to the output's stamp by the constant-acceleration model (eq. 27) and dropped once
 older than `stale_after`: a cut link or a fallen partner only removes its contribution.
 
@@ -35,6 +41,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from services.tracker.filters.base import NS
+from services.tracker.filters.gating import MahalanobisGater
 from services.tracker.filters.kalman import predicted_moments
 from services.tracker.filters.models import process_noise, uncertainty_radius
 
@@ -72,6 +79,7 @@ class FusionParams:
     radius_confidence: float
     process_rates: tuple[float, float, float]  # per-second variances of position, velocity, acceleration
     stale_after: float = 1.0  # s without news from a partner before its tracks are left out
+    gate_probability: float = 0.99  # χ² mass of the gate within which a partner's track corroborates ours
 
 
 def covariance_intersection(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.ndarray,
@@ -110,6 +118,7 @@ class FleetPicture:
     def __init__(self, params: FusionParams) -> None:
         self.params = params
         self._partners: dict[str, tuple[int, list[PartnerTrack]]] = {}  # name → (when heard, tracks)
+        self._gater = MahalanobisGater(params.gate_probability)
 
     def partner_tracks(self, partner: str, heard: int, tracks: list[PartnerTrack]) -> None:
         """A partner's latest confirmed own tracks (replacing what it said before)."""
@@ -139,15 +148,22 @@ class FleetPicture:
         return out
 
     def corroborating(self, own: list[FleetTrack], now: int) -> dict[int, np.ndarray]:
-        """The own tentative tracks `fuse` would join with a fresh partner's confirmed track (the
-        same similarity rule, per partner), by id, with that partner's velocity of the target:
-        the tracks a partner's detections confirm (core.py, `corroborate`)."""
+        """The own tentative tracks a fresh partner's confirmed track corroborates, by id, with that
+        partner's velocity of the target: the two positions' difference within the χ² gate of
+        their summed covariances (the nearest such partner track by d², over every partner)."""
         velocities: dict[int, np.ndarray] = {}
-        for tracks in self.partners(now).values():
-            carried = [self._carried(t, now) for t in tracks]
-            for k, i in self._matches(own, carried).items():
-                if not own[i].confirmed:
-                    velocities.setdefault(own[i].id, carried[k].mean[3:6].copy())
+        carried = [self._carried(t, now) for tracks in self.partners(now).values() for t in tracks]
+        if not carried:
+            return velocities
+        positions = np.array([t.mean[:3] for t in carried])
+        for mine in own:
+            if mine.confirmed:
+                continue
+            gaps = [self._gater.squared_distances(mine.mean[:3], mine.covariance[:3, :3] + t.covariance[:3, :3],
+                                                  position)[0] for t, position in zip(carried, positions)]
+            best = int(np.argmin(gaps))
+            if gaps[best] <= self._gater.threshold:
+                velocities[mine.id] = carried[best].mean[3:6].copy()
         return velocities
 
     @staticmethod

@@ -12,8 +12,8 @@ subscribers know the tracker is alive.
 The fleet picture (fleet.py): it also subscribes every partner's falconry/<partner>/tracks and
 publishes its own tracks fused (covariance intersection) with the partners' tracks of the same
 targets, plus the partners' other confirmed tracks under fleet ids with `source` = the partner.
-Before that, own tentative tracks a partner's confirmed track matches are handed to the core as
-corroborated (`partner_confirms`), which confirms them.
+Before that, every tick, the own tentative tracks a partner's confirmed track of the same target
+corroborates are handed to the core (`partner_confirms`), which confirms them while it does.
 """
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ class TrackerNode(Node):
         p = self.params
         self.fleet = FleetPicture(FusionParams(p.radius_min, p.radius_confidence,
                                                (p.noise.q_position, p.noise.q_velocity, p.noise.q_acceleration),
-                                               p.partner_timeout))
+                                               p.partner_timeout, p.noise.gate_probability))
         self._refused: dict[str, int] = {}  # what was refused → how many
         self._alive_period_ns = to_ns(self.params.alive_period)
         self._last_published_ns: int | None = None
@@ -137,9 +137,7 @@ class TrackerNode(Node):
             self.log.debug("track %d lost", track_id)
         estimates, own = self._own_tracks(now_ns)
         if self.params.fleet and self.params.partner_confirms:
-            corroborated = self.fleet.corroborating(own, now_ns)
-            if corroborated:
-                self.core.corroborate(corroborated)
+            if self.core.corroborate(self.fleet.corroborating(own, now_ns)):
                 estimates, own = self._own_tracks(now_ns)
         fleet = self.fleet.fuse(own, now_ns) if self.params.fleet else own
         quiet = self._last_published_ns is None or now_ns - self._last_published_ns >= self._alive_period_ns
