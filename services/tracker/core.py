@@ -52,14 +52,15 @@ Where Falconry departs from the seed, and why:
   along the line of sight, 0.02-0.04 m short, is the shape: the simulated drones are upright
   discs, whose visible side lies πa/4 deep seen edge-on, not the sphere's 2a/3 that
   `surface_bias` assumes (the smaller of the two, classifier/core.py).
-- Seed 000 confirms by n_det alone. A tentative track is also confirmed while a partner's confirmed
+- Seed 000 confirms by n_det alone. A tentative track is also confirmed when a partner's confirmed
   track of the same target corroborates it (`corroborate`, handed in by the node from the fleet
   picture every tick, fleet.py): a second UAV acquiring a target the first follows would otherwise
   hold it unconfirmed for `confirm_detections` - 1 scans, and confirmation only guards against
-  sporadic false detections, which a partner's confirmed target is not. Once its own detections
-  reach `confirm_detections` it no longer needs the partner; before that, a partner that stops
-  corroborating it (its track gone, or no longer the same target) leaves it tentative again. A
-  track that took a confirmed lost track's identity back at birth is confirmed too.
+  sporadic false detections, which a partner's confirmed target is not. Like a count of
+  detections, this confirmation stands: a confirmation withdrawn when the partner's track next
+  fell outside the gate (a one-detection track coasting between scans, on intruder) made the
+  confirmed track flicker and counted fragments. A track that took a confirmed lost track's
+  identity back at birth is confirmed too.
 - Clouds arriving out of stamp order are inserted in order; a track never predicts backwards,
   so a cloud older than a track's estimate does not update it.
 
@@ -109,7 +110,7 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     # something unmapped must not push every later correction that far back
     max_half_width: float = 1.5
     confirm_detections: int = 3  # n_det at which a track is confirmed (sporadic false positives stay below)
-    # A tentative track is confirmed while a partner's confirmed track of the same target (within
+    # A tentative track is confirmed when a partner's confirmed track of the same target (within
     # the χ² gate, fleet.py) corroborates it (`corroborate`): the partner's detections are
     # independent evidence, and a sporadic false detection is not where a partner keeps a
     # confirmed target. Takes effect with `fleet`
@@ -180,7 +181,7 @@ class _Track:
     statistics: InnovationStatistics = field(default_factory=InnovationStatistics)
     half_width: float = 0.0  # m, the target's size: the widest its returns were across the line of sight
     stitch_checked: bool = False  # a lost identity was looked for when it was confirmed (or it took one at birth)
-    corroborated: bool = False  # a partner's confirmed track of its target matches it now (`corroborate`)
+    corroborated: bool = False  # a partner's confirmed track of its target confirmed it (`corroborate`)
     reidentified: bool = False  # it took a confirmed lost track's identity back at birth
 
 
@@ -562,19 +563,15 @@ class TrackerCore:
         return track.detections >= self.params.confirm_detections or track.corroborated or track.reidentified
 
     def corroborate(self, velocities: dict[int, np.ndarray]) -> bool:
-        """The tracks a partner's confirmed track of the same target matches now, by id, with the
-        partner's velocity of it (every other track is not corroborated any more); unknown ids are
-        left alone. A track that becomes confirmed so looks for a lost identity as at its own
-        confirmation, judging whether it moves by the partner's velocity: its own is still near 0
-        after one or two detections (moving_speed). Returns whether any track's confirmation or
-        identity changed."""
+        """Confirm the tracks a partner's confirmed track of the same target corroborates, by id,
+        with the partner's velocity of it; unknown ids are left alone. A track that becomes
+        confirmed so looks for a lost identity as at its own confirmation, judging whether it
+        moves by the partner's velocity: its own is still near 0 after one or two detections
+        (moving_speed). Returns whether any track's confirmation or identity changed."""
         changed = False
         for track in self._tracks:
-            corroborated = track.id in velocities
-            if corroborated != track.corroborated:
-                before = self._confirmed(track)
-                track.corroborated = corroborated
-                changed |= self._confirmed(track) != before
+            if track.id in velocities and not self._confirmed(track):
+                track.corroborated = changed = True
         return bool(self._stitch_confirmed(velocities)) or changed
 
     def _stitch_confirmed(self, velocities: dict[int, np.ndarray] | None = None) -> dict[int, int]:

@@ -27,7 +27,7 @@ Each tracker publishes its tracks; each also listens to its partners' and publis
 Only a partner's own tracks are taken (`source` = that partner): the fleet tracks it publishes
 came from someone else, who is heard directly. The fusion is on output only: own filters never
 take partner data, so a partner's error cannot feed back into our estimates; a partner's track
-only confirms a tentative one of ours while it corroborates it. Partner tracks are
+can only confirm a tentative one of ours that it corroborates. Partner tracks are
 carried to the output's stamp by the constant-acceleration model (eq. 27) and dropped once
 older than `stale_after`: a cut link or a fallen partner only removes its contribution.
 

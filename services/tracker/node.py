@@ -13,7 +13,7 @@ The fleet picture (fleet.py): it also subscribes every partner's falconry/<partn
 publishes its own tracks fused (covariance intersection) with the partners' tracks of the same
 targets, plus the partners' other confirmed tracks under fleet ids with `source` = the partner.
 Before that, every tick, the own tentative tracks a partner's confirmed track of the same target
-corroborates are handed to the core (`partner_confirms`), which confirms them while it does.
+corroborates are handed to the core (`partner_confirms`), which confirms them.
 """
 from __future__ import annotations
 
