@@ -16,8 +16,9 @@ Each tracker publishes its tracks; each also listens to its partners' and publis
   corroborates (`corroborating`), which confirms them and gives them their identity (possibly
   a lost track's; core.py, `partner_confirms`). Being the same target is judged more strictly
   there than for fusion: the positions' difference within the χ² gate (`gate_probability`, 3
-  degrees of freedom) of the sum of their covariances, the correlation between the two
-  estimates being unknown (it can only widen the gate), not merely within the sum of their
+  degrees of freedom) of the sum of their covariances (leaving out the unknown correlation of
+  the two estimates, which shared process noise makes positive, widens the gate), not merely
+  within the sum of their
   uncertainty radii, which is at least 2 r_min = 5 m: a sporadic false detection beside a
   partner's target must not be confirmed by it;
 - a partner's track no own track matches is published as a track of ours with `source` set to
@@ -29,7 +30,8 @@ came from someone else, who is heard directly. The fusion is on output only: own
 take partner data, so a partner's error cannot feed back into our estimates; a partner's track
 can only confirm a tentative one of ours that it corroborates. Partner tracks are
 carried to the output's stamp by the constant-acceleration model (eq. 27) and dropped once
-older than `stale_after`: a cut link or a fallen partner only removes its contribution.
+older than `stale_after`: a cut link or a fallen partner only removes its contribution (a
+confirmation it gave stands, like a count of detections).
 
 Pure: stamps are int ns handed in by the node.
 """
