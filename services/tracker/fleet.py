@@ -18,9 +18,8 @@ Each tracker publishes its tracks; each also listens to its partners' and publis
   there than for fusion: the positions' difference within the χ² gate (`gate_probability`, 3
   degrees of freedom) of the sum of their covariances (leaving out the unknown correlation of
   the two estimates, which shared process noise makes positive, widens the gate), not merely
-  within the sum of their
-  uncertainty radii, which is at least 2 r_min = 5 m: a sporadic false detection beside a
-  partner's target must not be confirmed by it;
+  within the sum of their uncertainty radii, which is at least 2 r_min = 5 m: a sporadic false
+  detection beside a partner's target must not be confirmed by it;
 - a partner's track no own track matches is published as a track of ours with `source` set to
   the partner, under a fleet id: 1,000,000 × the partner's number + its id (stable while the
   partner keeps its id, never equal to an own id), so a UAV can go for a target only a partner sees.
