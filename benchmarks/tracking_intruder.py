@@ -61,9 +61,9 @@ def tallies(figures: dict) -> dict[str, Tally]:
     """Per UAV and "fleet", from `falconry evaluate tracking --json`."""
     out = {}
     for name in [*figures["uavs"], "fleet"]:
-        tracks = figures["fleet"] if name == "fleet" else figures["uavs"][name]
-        detections = figures["detections"]["fleet" if name == "fleet" else "uavs"]
-        detections = detections if name == "fleet" else detections[name]
+        fleet = name == "fleet"
+        tracks = figures["fleet"] if fleet else figures["uavs"][name]
+        detections = figures["detections"]["fleet"] if fleet else figures["detections"]["uavs"][name]
         alike = figures["alike"].get(name, {"pairs": 0, "detections": {}, "tracks": {}})
         pairs = alike["pairs"]
         out[name] = Tally(detections["matched_pairs"], detections["counted_truth_steps"], tracks["matched_pairs"],

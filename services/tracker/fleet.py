@@ -156,12 +156,11 @@ class FleetPicture:
         carried = [self._carried(t, now) for tracks in self.partners(now).values() for t in tracks]
         if not carried:
             return velocities
-        positions = np.array([t.mean[:3] for t in carried])
         for mine in own:
             if mine.confirmed:
                 continue
             gaps = [self._gater.squared_distances(mine.mean[:3], mine.covariance[:3, :3] + t.covariance[:3, :3],
-                                                  position)[0] for t, position in zip(carried, positions)]
+                                                  t.mean[:3])[0] for t in carried]
             best = int(np.argmin(gaps))
             if gaps[best] <= self._gater.threshold:
                 velocities[mine.id] = carried[best].mean[3:6].copy()
