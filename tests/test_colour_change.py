@@ -10,6 +10,7 @@ from pathlib import Path
 
 import msgspec
 import numpy as np
+import pytest
 
 from schemas.messages import CompressedFrame, GroundTruth
 from services.geometry import rotation_matrix
@@ -88,6 +89,8 @@ def balloon_in_a_frame(recording: Path, uav: str = "uav1", min_radius_px: float 
     raise AssertionError("no recorded frame shows a balloon")
 
 
+@pytest.mark.heavy  # two 30 s missions, ~60 s: make acceptance (make test's 15 minutes; a colour file
+# taken live and the segmentation have light tests: test_camera_nodes.py, test_object_detect.py)
 def test_the_wrong_colour_attacks_nothing_and_a_colour_picked_from_the_recording_destroys_every_balloon(
         tmp_path, port):
     (tmp_path / "green.toml").write_text(SCENARIO)

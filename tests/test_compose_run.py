@@ -150,6 +150,8 @@ def router(endpoint: str) -> zenoh.Session:
     return zenoh.open(config)
 
 
+@pytest.mark.heavy  # a cold numba build and a 30 s real-time mission, ~95 s: make acceptance (make test's
+# 15 minutes; compose.yaml's rendering and every service command it holds are checked in test_compose.py)
 @pytest.mark.timeout(600)  # its own deadlines (warm-up, health, mission) end it first, with their message
 def test_the_compose_stack_flies_a_mission_as_local_processes(tmp_path):
     cli = compose_cli()

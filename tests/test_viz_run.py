@@ -122,6 +122,8 @@ def live_viewer(tmp_path):
         proc.wait()
 
 
+@pytest.mark.heavy  # a 20 s mission drawn three ways, ~60 s: make acceptance (make test's 15 minutes;
+# the scene, the file output and the live viewer each have light tests: test_viz_scene/_output/_live)
 def test_a_lockstep_mission_is_drawn_to_a_file_live_and_from_its_recording(tmp_path, port, live_viewer):
     address, live_rrd, viewer_process = live_viewer
     rrd, mcap, png = tmp_path / "run.rrd", tmp_path / "run.mcap", tmp_path / "run.png"
