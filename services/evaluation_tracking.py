@@ -177,8 +177,9 @@ class TruthTimeline:
 
 # --------------------------------------------------------------------------------- steps
 @dataclass(frozen=True)
-class ConfirmedTracks:
-    """The confirmed tracks of one Tracks message."""
+class TrackSet:
+    """A UAV's tracks of one Tracks message: its confirmed ones (what is scored), or all it keeps,
+    tentative ones too (the recall without the confirmation's wait)."""
 
     stamp: int  # mission time, ns
     ids: np.ndarray  # (N,) int
@@ -194,8 +195,8 @@ class ScanDetections:
     positions: np.ndarray  # (N, 3)
 
 
-def tracks_at_ticks(messages: Sequence[ConfirmedTracks], ticks: Iterable[int],
-                    silence_ns: int = TRACKER_SILENCE_NS) -> Iterator[tuple[int, ConfirmedTracks | None]]:
+def tracks_at_ticks(messages: Sequence[TrackSet], ticks: Iterable[int],
+                    silence_ns: int = TRACKER_SILENCE_NS) -> Iterator[tuple[int, TrackSet | None]]:
     """Per tick, in order: the UAV's confirmed tracks then, from its `messages` (in stamp order): the
     message of that stamp; none (an empty set) when there is no such message and the latest before
     is at most `silence_ns` old; None when the tracker was silent (see the module's text)."""
@@ -208,7 +209,7 @@ def tracks_at_ticks(messages: Sequence[ConfirmedTracks], ticks: Iterable[int],
         elif latest.stamp == tick:
             yield tick, latest
         else:  # the tracker was alive and sent nothing: it held no track, not even a tentative one
-            yield tick, ConfirmedTracks(tick, np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+            yield tick, TrackSet(tick, np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
 
 
 @dataclass(frozen=True)
@@ -432,7 +433,7 @@ class TrackingScore:
         }
 
 
-def score_tracks(messages: Iterable[ConfirmedTracks], truth: TruthTimeline, uav: str,
+def score_tracks(messages: Iterable[TrackSet], truth: TruthTimeline, uav: str,
                  sensor_range: float = float("inf"), kinds: Sequence[str] = TRACKED_KINDS,
                  c: float = CUTOFF, p: float = ORDER) -> TrackingScore:
     """One UAV's tracking at the truth ticks, from its Tracks messages (steps: see the module's text)."""
@@ -534,7 +535,7 @@ class Alike:
         return {"pairs": self.tracks.matched, "detections": errors(self.detections), "tracks": errors(self.tracks)}
 
 
-def alike(messages: Iterable[ConfirmedTracks], truth: TruthTimeline, uav: str, detections: DetectionScore,
+def alike(messages: Iterable[TrackSet], truth: TruthTimeline, uav: str, detections: DetectionScore,
           sensor_range: float = float("inf"), kinds: Sequence[str] = TRACKED_KINDS,
           c: float = CUTOFF, p: float = ORDER) -> Alike:
     """At the stamps of the scans whose detections matched a target (`detections`, scored with their

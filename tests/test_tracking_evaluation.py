@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, GroundTruth, Header, TargetTruth, Track, Tracks, VehicleTruth, WorldModel
-from services.evaluation_tracking import (ConfirmedTracks, ScanDetections, TrackingScore, TrackingStep, TruthSnapshot,
+from services.evaluation_tracking import (TrackSet, ScanDetections, TrackingScore, TrackingStep, TruthSnapshot,
                                           TruthTimeline, alike, fleet, fleet_alike, fleet_detections, gospa, left_out,
                                           score_detections, score_tracks, tracking_step)
 from services.launcher.cli import main
@@ -220,7 +220,7 @@ def test_the_fleet_pools_every_uavs_steps_and_keeps_targets_per_uav():
 
 def test_tracks_messages_at_no_truth_tick_are_not_steps():
     timeline = TruthTimeline([snapshot(NS, {"a": (10.0, 0.0, 5.0)})])
-    messages = [ConfirmedTracks(stamp, np.array([1]), np.array([[10.0, 0.0, 5.0]])) for stamp in (0, NS, NS + TICK)]
+    messages = [TrackSet(stamp, np.array([1]), np.array([[10.0, 0.0, 5.0]])) for stamp in (0, NS, NS + TICK)]
     score = score_tracks(messages, timeline, "uav1", sensor_range=50.0)
     # the steps are the truth ticks: the one at NS; the messages before the first truth and after the last are not
     assert (score.sums.steps, score.without_truth, score.pairs) == (1, 2, 1)
@@ -230,8 +230,8 @@ def test_a_tick_without_a_tracks_message_has_no_tracks_and_a_silent_tracker_is_s
     """Truth every tick 0-59; the tracker sends track 1 on the target at ticks 2-5, an empty message
     at tick 25 (its once-a-second one), then nothing."""
     timeline = TruthTimeline([snapshot(k * TICK, {"a": (10.0, 0.0, 5.0)}) for k in range(60)])
-    on_target = [ConfirmedTracks(k * TICK, np.array([1]), np.array([[10.2, 0.0, 5.0]])) for k in range(2, 6)]
-    quiet = ConfirmedTracks(25 * TICK, np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
+    on_target = [TrackSet(k * TICK, np.array([1]), np.array([[10.2, 0.0, 5.0]])) for k in range(2, 6)]
+    quiet = TrackSet(25 * TICK, np.zeros(0, dtype=np.int64), np.zeros((0, 3)))
     score = score_tracks([quiet, *on_target], timeline, "uav1", sensor_range=50.0)  # any order
     # ticks 0-1 before the first message and 56-59 (more than 1.5 s after tick 25) are silent; tick 55 is
     # 1.5 s after it, still a step; every other tick is a step, tracked at 2-5 only
@@ -295,7 +295,7 @@ def test_alike_sets_detections_against_tracks_over_the_pairs_both_matched():
     scans = [ScanDetections(0, "classifier", np.array([[10.3, 0.0, 5.0]])),
              ScanDetections(2 * TICK, "classifier", np.array([[10.0, 0.4, 5.0]])),
              ScanDetections(4 * TICK, "classifier", np.array([[10.0, 0.0, 5.2]]))]
-    tracks = [ConfirmedTracks(k * TICK, np.array([1]), np.array([offset]))
+    tracks = [TrackSet(k * TICK, np.array([1]), np.array([offset]))
               for k, offset in enumerate([(10.1, 0.0, 5.0), (15.0, 0.0, 5.0), (20.0, 0.0, 5.0), (10.0, 0.0, 5.0),
                                           (10.0, 0.1, 5.0)])]
     detected = score_detections(scans, timeline, "uav1")
@@ -353,7 +353,9 @@ def detections_message(stamp: int, positions: list[tuple], detector: str = "clas
 def synthetic_run(path: Path) -> Path:
     """uav1 tracks drone1 with track 1 (0.3 m off in x, read from its state), loses it for a tick,
     takes it up again with track 2 (0.4 m off in y, read from its position field); a tentative
-    track and a confirmed one on the balloon (which does not count) never weigh; uav2's LiDAR is
+    track and a confirmed one on the balloon (which does not count) never weigh, nor does tentative
+    track 6 on drone1 in the tick no confirmed track follows it (but its recall with tentative
+    tracks counts it); uav2's LiDAR is
     unknown (the world names none), its one track is false. uav1 scans every other tick: drone1
     detected 0.1 m off in z, then not at all; uav2 has no detections."""
     world = WorldModel(header=Header(stamp=0), scenario="test", arena=[], min_height=1.0, max_height=10.0,
@@ -363,8 +365,9 @@ def synthetic_run(path: Path) -> Path:
     for k, tracks in enumerate(sequence):
         stamp = (k + 1) * TICK
         messages.append((keys.TRUTH, truth_message(stamp)))
+        tentative = {5: (30.0, 0.0, 5.0), **({6: (10.2, 0.0, 5.0)} if not tracks else {})}
         messages.append(("falconry/uav1/tracks",
-                         tracks_message(stamp, {**tracks, 9: (0.0, 10.2, 3.0)}, tentative={5: (30.0, 0.0, 5.0)},
+                         tracks_message(stamp, {**tracks, 9: (0.0, 10.2, 3.0)}, tentative=tentative,
                                         own_position=(2,))))
         messages.append(("falconry/uav2/tracks", tracks_message(stamp, {7: (-20.0, 0.0, 5.0)})))
         if k % 2 == 0:  # a scan every other tick
@@ -416,7 +419,11 @@ def test_the_command_scores_a_synthetic_recording(tmp_path, capsys):
     assert result["comparison"]["uav1"] == {
         "detections": {"steps": 2, "mean_error_m": 0.1, "rmse_3d_m": 0.1, "recall": 0.5},
         "tracks": {"steps": 4, "mean_error_m": uav1["mean_error_m"], "rmse_3d_m": uav1["rmse_m"]["3d"],
-                   "recall": 0.75}}
+                   "recall": 0.75},
+        "kept_tracks": {"steps": 4, "matched_pairs": 4, "counted_truth_steps": 4, "recall": 1.0}}  # track 6 at tick 3
+    # uav2's LiDAR is unknown: drone1 counts for it in every tick, and it keeps no track of it
+    assert result["comparison"]["fleet"]["kept_tracks"] == {"steps": 8, "matched_pairs": 4, "counted_truth_steps": 8,
+                                                            "recall": 0.5}
     assert result["comparison"]["fleet"]["detections"]["recall"] == 0.5  # uav2 has no scans to pool
     assert result["alike"]["uav1"] == {"pairs": 1, "detections": {"mean_error_m": 0.1, "rmse_3d_m": 0.1},
                                        "tracks": {"mean_error_m": 0.3, "rmse_3d_m": 0.3}}
@@ -442,8 +449,11 @@ def comparison_rows(out: str) -> dict[str, list[str]]:
     lines = out.splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith("UAV") and "recall" in line)
     assert lines[start].split() == ["UAV", "scans", "mean", "err", "RMSE", "recall", "|", "ticks", "mean", "err",
-                                    "RMSE", "recall"]
-    assert "detections, per scan" in lines[start - 1] and "tracks, per truth tick" in lines[start - 1]
+                                    "RMSE", "recall", "|", "recall"]
+    assert [part.strip() for part in lines[start - 1].split("|")[1:]] == ["tracks, per truth tick", "with tentative"]
+    assert "detections, per scan" in lines[start - 1]
+    bars = [[i for i, c in enumerate(line) if c == "|"] for line in lines[start - 1:start + 1]]
+    assert bars[0] == bars[1]  # the title's parts stand over their columns
     return table_rows(lines, start)
 
 
@@ -461,8 +471,8 @@ def test_the_comparison_table_sets_detections_against_tracks(tmp_path, capsys):
     assert "detections (classifier) against confirmed tracks" in out
     rows = comparison_rows(out)
     assert rows["uav1"] == ["uav1", "2", "0.100", "0.100", "0.500", "|", "4", "0.333", f"{np.sqrt(0.34 / 3):.3f}",
-                            "0.750"]
-    assert rows["uav2"][1:6] == ["0", "-", "-", "-", "|"] and rows["uav2"][6:] == ["4", "-", "-", "0.000"]
+                            "0.750", "|", "1.000"]
+    assert rows["uav2"][1:6] == ["0", "-", "-", "-", "|"] and rows["uav2"][6:] == ["4", "-", "-", "0.000", "|", "0.000"]
     assert rows["fleet"][1] == "2" and rows["fleet"][6] == "8"
     # the one scan that matched drone1 (0.1 m off) against track 1 then (0.3 m off)
     assert alike_rows(out) == {"uav1": ["uav1", "1", "0.100", "0.100", "|", "0.300", "0.300"],

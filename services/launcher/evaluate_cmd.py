@@ -72,7 +72,10 @@ is then a share of time for both, so "tracks' recall at least the detections'" r
 comparison table. Its errors do not compare as plainly: a track's include the ticks it coasts between
 scans and through missed ones. The last table sets them like for like: over the (scan, target) pairs
 that both a detection and a confirmed track matched, each one's mean err and RMSE, so "tracks' mean
-err below the detections'" reads off it."""
+err below the detections'" reads off it. The comparison's last column is the recall of every track a
+UAV keeps, tentative ones too: what its tracking would give without the wait for confirmation (a
+target is confirmed at its third detection, or when a partner's confirmed track corroborates it);
+the gap to the confirmed tracks' recall is that wait's cost."""
 
 
 def add_parser(commands) -> None:
@@ -144,6 +147,9 @@ def run_tracking(args: argparse.Namespace) -> int:
     baseline = {uav: score_detections(run.detections.get(uav, []), run.truth, uav, reach[uav], kinds, args.cutoff,
                                       args.order) for uav in ranges}
     fleet_score, fleet_baseline = fleet(scores), fleet_detections(baseline)
+    kept = {uav: score_tracks(run.kept_tracks.get(uav, []), run.truth, uav, reach[uav], kinds, args.cutoff, args.order)
+            for uav in ranges}
+    kept["fleet"] = fleet(kept)
     alikes = {uav: alike(run.tracks[uav], run.truth, uav, baseline[uav], reach[uav], kinds, args.cutoff, args.order)
               for uav in ranges}
     alikes["fleet"] = fleet_alike(alikes)
@@ -156,11 +162,11 @@ def run_tracking(args: argparse.Namespace) -> int:
             "fleet": fleet_score.summary(),
             "detections": {"uavs": {uav: score.summary() for uav, score in baseline.items()},
                            "fleet": fleet_baseline.summary()},
-            "comparison": comparison(scores, baseline, fleet_score, fleet_baseline),
+            "comparison": comparison(scores, baseline, fleet_score, fleet_baseline, kept),
             "alike": {name: a.summary() for name, a in alikes.items()}}, indent=2))
     else:
         print("\n".join(report_lines(path, run, kinds, ranges, args.cutoff, args.order, scores, fleet_score)
-                        + ["", *comparison_lines(scores, baseline, fleet_score, fleet_baseline),
+                        + ["", *comparison_lines(scores, baseline, fleet_score, fleet_baseline, kept),
                            "", *alike_lines(alikes, len(scores) > 1)]))
     return 0
 
@@ -186,11 +192,19 @@ def _number(value: float | None, digits: int = 3) -> str:
 
 
 def comparison(scores: dict[str, TrackingScore], baseline: dict[str, DetectionScore], fleet_score: TrackingScore,
-               fleet_baseline: DetectionScore) -> dict:
-    """Per UAV and for the fleet, the comparison table's figures: detections' against tracks'."""
+               fleet_baseline: DetectionScore, kept: dict[str, TrackingScore]) -> dict:
+    """Per UAV and for the fleet, the comparison table's figures: detections' against tracks'; and
+    the recall of every track kept, tentative ones too (`kept`, by UAV and "fleet")."""
     sides = {**{uav: (baseline[uav], scores[uav]) for uav in scores}, "fleet": (fleet_baseline, fleet_score)}
-    return {name: {"detections": compared(d.steps, d.errors), "tracks": compared(t.sums.steps, t.errors)}
+    return {name: {"detections": compared(d.steps, d.errors), "tracks": compared(t.sums.steps, t.errors),
+                   "kept_tracks": kept_recall(kept[name])}
             for name, (d, t) in sides.items()}
+
+
+def kept_recall(kept: TrackingScore) -> dict:
+    s = kept.errors.summary()
+    return {"steps": kept.sums.steps, "matched_pairs": s["matched_pairs"],
+            "counted_truth_steps": s["counted_truth_steps"], "recall": s["recall"]}
 
 
 def compared(steps: int, errors: MatchErrors) -> dict:
@@ -264,26 +278,28 @@ def target_table(scores: dict[str, TrackingScore]) -> list[str]:
 
 COMPARISON_COLUMNS = (("UAV", "{:<6}"), ("scans", "{:>6}"), ("mean err", "{:>9}"), ("RMSE", "{:>7}"),
                       ("recall", "{:>7}"), ("|", "{}"), ("ticks", "{:>6}"), ("mean err", "{:>9}"), ("RMSE", "{:>7}"),
-                      ("recall", "{:>7}"))
+                      ("recall", "{:>7}"), ("|", "{}"), ("recall", "{:>7}"))
 
 
 def comparison_lines(scores: dict[str, TrackingScore], baseline: dict[str, DetectionScore],
-                     fleet_score: TrackingScore, fleet_baseline: DetectionScore) -> list[str]:
+                     fleet_score: TrackingScore, fleet_baseline: DetectionScore,
+                     kept: dict[str, TrackingScore]) -> list[str]:
     """Detections against tracks, per UAV (and the fleet), each over its own steps: mean and RMSE 3-D
-    error of the matched, m, and recall."""
+    error of the matched, m, and recall; last, the recall of every track kept, tentative ones too."""
     detectors = ", ".join(sorted(fleet_baseline.detectors)) or "none recorded"
-    rows = [[uav, *comparison_row(baseline[uav], scores[uav])] for uav in scores]
+    rows = [[uav, *comparison_row(baseline[uav], scores[uav], kept[uav])] for uav in scores]
     if len(scores) > 1:
-        rows.append(["fleet", *comparison_row(fleet_baseline, fleet_score)])
+        rows.append(["fleet", *comparison_row(fleet_baseline, fleet_score, kept["fleet"])])
     header = _comparison_row([name for name, _ in COMPARISON_COLUMNS])
-    bar = header.index("|")
+    bar, last_bar = header.index("|"), header.rindex("|")
     return [f"detections ({detectors}) against confirmed tracks, matched alike; each over its own steps",
-            f"{'':<7}{'detections, per scan':<{bar - 7}}| tracks, per truth tick", header,
-            *(_comparison_row(row) for row in rows)]
+            f"{'':<7}{'detections, per scan':<{bar - 7}}| {'tracks, per truth tick':<{last_bar - bar - 2}}"
+            "| with tentative", header, *(_comparison_row(row) for row in rows)]
 
 
-def comparison_row(detections: DetectionScore, tracks: TrackingScore) -> list:
-    return [detections.steps, *_figures(detections.errors), "|", tracks.sums.steps, *_figures(tracks.errors)]
+def comparison_row(detections: DetectionScore, tracks: TrackingScore, kept: TrackingScore) -> list:
+    return [detections.steps, *_figures(detections.errors), "|", tracks.sums.steps, *_figures(tracks.errors),
+            "|", _number(kept.errors.recall())]
 
 
 def _figures(errors: MatchErrors) -> list[str]:

@@ -1,8 +1,8 @@
 """What `falconry evaluate tracking` reads from a recording: the ground truth (falconry/sim/truth),
-each UAV's LiDAR model (falconry/sim/world), each UAV's confirmed tracks (falconry/<uav>/tracks) and
-detections (falconry/<uav>/detections, the baseline), as the numpy records of
-services/evaluation_tracking.py. One pass over the file; a file cut short by a crash is read up to
-its last complete chunk (`ReadReport`)."""
+each UAV's LiDAR model (falconry/sim/world), each UAV's confirmed tracks (falconry/<uav>/tracks;
+beside them, every track it keeps, tentative ones too) and detections (falconry/<uav>/detections,
+the baseline), as the numpy records of services/evaluation_tracking.py. One pass over the file; a
+file cut short by a crash is read up to its last complete chunk (`ReadReport`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -13,7 +13,7 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import Detections, GroundTruth, Tracks, WorldModel
-from services.evaluation_tracking import ConfirmedTracks, ScanDetections, TruthSnapshot, TruthTimeline
+from services.evaluation_tracking import TrackSet, ScanDetections, TruthSnapshot, TruthTimeline
 from services.lidar.models import lidar_model
 from services.recorder.mcap_io import ReadReport, read_recording
 from services.recorder.selection import KeyFilter
@@ -28,11 +28,13 @@ class TrackingInput:
     """Everything the tracking evaluation takes from one recording."""
 
     truth: TruthTimeline
-    tracks: dict[str, list[ConfirmedTracks]]  # UAV -> its Tracks messages, in stamp order
+    tracks: dict[str, list[TrackSet]]  # UAV -> its confirmed tracks per Tracks message, in stamp order
     detections: dict[str, list[ScanDetections]]  # UAV -> its Detections messages, in stamp order
     sensors: dict[str, str]  # UAV -> its LiDAR model (WorldModel.sensors)
     report: ReadReport
     undecodable: dict[str, int] = field(default_factory=dict)  # key -> payloads skipped
+    # UAV -> every track it keeps, tentative ones too, per Tracks message, in stamp order
+    kept_tracks: dict[str, list[TrackSet]] = field(default_factory=dict)
 
     def sensor_range(self, uav: str) -> float | None:
         """The datasheet range of the UAV's LiDAR, m (None: the recording does not say which)."""
@@ -42,13 +44,20 @@ class TrackingInput:
             return None
 
 
-def confirmed_tracks(message: Tracks, uav: str) -> ConfirmedTracks:
+def confirmed_tracks(message: Tracks, uav: str) -> TrackSet:
     """The confirmed tracks `uav`'s tracker keeps itself (fused with a partner's where both see a
     target); the fleet tracks it passes on from partners are scored under the partner that keeps
     them ("" in recordings made before the fleet picture)."""
-    confirmed = [track for track in message.tracks if track.confirmed and track.source in ("", uav)]
-    return ConfirmedTracks(stamp=message.header.stamp, ids=np.array([t.id for t in confirmed], dtype=np.int64),
-                           positions=track_positions(confirmed))
+    return own_tracks(message, uav, confirmed_only=True)
+
+
+def own_tracks(message: Tracks, uav: str, confirmed_only: bool = False) -> TrackSet:
+    """The tracks `uav`'s tracker keeps itself (`confirmed_tracks`), tentative ones too unless
+    `confirmed_only`."""
+    kept = [track for track in message.tracks
+            if (track.confirmed or not confirmed_only) and track.source in ("", uav)]
+    return TrackSet(stamp=message.header.stamp, ids=np.array([t.id for t in kept], dtype=np.int64),
+                    positions=track_positions(kept))
 
 
 def scan_detections(message: Detections) -> ScanDetections:
@@ -72,7 +81,8 @@ def read_tracking_input(path: str) -> TrackingInput:
     decoders = {keys.TRUTH: msgspec.msgpack.Decoder(GroundTruth), keys.WORLD: msgspec.msgpack.Decoder(WorldModel)}
     tracks_decoder, detections_decoder = msgspec.msgpack.Decoder(Tracks), msgspec.msgpack.Decoder(Detections)
     snapshots: list[TruthSnapshot] = []
-    tracks: dict[str, list[ConfirmedTracks]] = {}
+    tracks: dict[str, list[TrackSet]] = {}
+    kept: dict[str, list[TrackSet]] = {}
     detections: dict[str, list[ScanDetections]] = {}
     sensors: dict[str, str] = {}
     report, undecodable = ReadReport(), {}
@@ -83,13 +93,14 @@ def read_tracking_input(path: str) -> TrackingInput:
             elif message.key == keys.WORLD:
                 sensors.update(decoders[keys.WORLD].decode(message.payload).sensors)
             elif message.key.endswith("/tracks"):
-                uav = keys.uav_of(message.key)
-                tracks.setdefault(uav, []).append(confirmed_tracks(tracks_decoder.decode(message.payload), uav))
+                uav, decoded = keys.uav_of(message.key), tracks_decoder.decode(message.payload)
+                tracks.setdefault(uav, []).append(confirmed_tracks(decoded, uav))
+                kept.setdefault(uav, []).append(own_tracks(decoded, uav))
             else:
                 detections.setdefault(keys.uav_of(message.key), []).append(
                     scan_detections(detections_decoder.decode(message.payload)))
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
             undecodable[message.key] = undecodable.get(message.key, 0) + 1
-    for messages in [*tracks.values(), *detections.values()]:
+    for messages in [*tracks.values(), *kept.values(), *detections.values()]:
         messages.sort(key=lambda m: m.stamp)  # file order is receive order
-    return TrackingInput(TruthTimeline(snapshots), tracks, detections, sensors, report, undecodable)
+    return TrackingInput(TruthTimeline(snapshots), tracks, detections, sensors, report, undecodable, kept)
