@@ -46,7 +46,7 @@ bench: .venv
 bench-tracking: .venv
 	$(PY) benchmarks/tracking_comparison.py
 
-# tracks against raw detections (recall, like-for-like error) on intruder, 5 seeds (about 7 min)
+# tracks against raw detections (recall, like-for-like error) on intruder, 5 seeds (about 10 min)
 bench-tracking-intruder: .venv
 	$(PY) benchmarks/tracking_intruder.py
 
