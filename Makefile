@@ -34,7 +34,8 @@ test: .venv
 	$(PY) -m pytest -q --durations=15
 
 # the whole missions beyond make test's budget (link cuts at t = 20 and 60 s on 2 and 3 UAVs, the fleet
-# picture's capture by a blind UAV, flying without GNSS over mbzirc and an open field; about 6 min),
+# picture's capture by a blind UAV, flying without GNSS over mbzirc and an open field, the compose stack
+# flown as local processes, the balloons' colour change, a mission drawn by the viewer; about 10 min),
 # each with the figures it printed (-rP)
 acceptance: .venv
 	$(PY) -m pytest -q -rP -m heavy

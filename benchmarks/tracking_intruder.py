@@ -4,10 +4,10 @@ Flies `falconry sim intruder --uavs 2 --lockstep --detector classifier --seed S 
 per seed (benchmarks/mission.py's runner), scores each recording with `falconry evaluate tracking
 --json` and deletes it (about 3.6 GB each). Prints per seed and UAV the detections' recall (per
 scan) against the confirmed tracks' (per truth tick) and that of every track the UAV keeps,
-tentative ones too (the gap to the confirmed tracks' is the wait for confirmation), and the
-like-for-like mean error (the (scan, target) pairs both matched); then the same pooled over the seeds: recalls as matched over
-counted (target, step) pairs, mean errors weighted by their pairs. Goals: tracks' recall at least
-the detections', tracks' mean error below the detections'.
+tentative ones too (the gap to the confirmed tracks' is mostly the wait for confirmation), and
+the like-for-like mean error (the (scan, target) pairs both matched); then the same pooled over
+the seeds: recalls as matched over counted (target, step) pairs, mean errors weighted by their
+pairs. Goals: tracks' recall at least the detections', tracks' mean error below the detections'.
 
     .venv/bin/python benchmarks/tracking_intruder.py                 # seeds 1-5: about 10 min
     .venv/bin/python benchmarks/tracking_intruder.py --seeds 2
@@ -37,7 +37,7 @@ class Tally:
     tracked: int = 0  # (target, tick) pairs a confirmed track matched
     ticks: int = 0  # (target, tick) pairs that counted
     kept: int = 0  # (target, tick) pairs any track the UAV keeps matched, tentative ones too
-    kept_ticks: int = 0
+    kept_ticks: int = 0  # (target, tick) pairs that counted for those: the same ticks as `ticks`
     pairs: int = 0  # like-for-like (scan, target) pairs
     detection_error: float = 0.0  # sum over those pairs, m
     track_error: float = 0.0
@@ -112,8 +112,8 @@ def main() -> int:
             print(f"[{time.time() - started:5.0f} s] seed {seed}: "
                   + "; ".join(f"{name} {tally.verdict()}" for name, tally in figures.items()), flush=True)
     print("\nintruder, 2 UAVs, classifier: detections (per scan) against confirmed tracks (per truth tick);"
-          "\nw/ tentative: every track the UAV keeps, tentative ones too (the gap to the track recall is the wait"
-          "\nfor confirmation); errors like for like, m (the (scan, target) pairs both matched)")
+          "\nw/ tentative: every track the UAV keeps, tentative ones too (the gap to the track recall is mostly"
+          "\nthe wait for confirmation); errors like for like, m (the (scan, target) pairs both matched)")
     print(HEADER)
     print("\n".join(lines))
     for name, tally in pooled.items():

@@ -64,6 +64,11 @@ compare. Their errors compare only in part that way: a track's error includes th
 between scans and through missed ones, where no detection is scored. So the errors are also set
 side by side like for like (`alike`): over the (scan, target) pairs that both a detection and a
 confirmed track matched, each one's error — what tracking does to the position it is given.
+
+The scored tracks are a UAV's confirmed ones. Scored by the same rules, every track it keeps,
+tentative ones too, gives the recall without the wait for confirmation (`falconry evaluate
+tracking`'s last column): the gap between the two recalls is mostly that wait, plus any tentative
+track near a target that was never confirmed.
 """
 from __future__ import annotations
 
@@ -197,7 +202,7 @@ class ScanDetections:
 
 def tracks_at_ticks(messages: Sequence[TrackSet], ticks: Iterable[int],
                     silence_ns: int = TRACKER_SILENCE_NS) -> Iterator[tuple[int, TrackSet | None]]:
-    """Per tick, in order: the UAV's confirmed tracks then, from its `messages` (in stamp order): the
+    """Per tick, in order: the UAV's scored tracks then, from its `messages` (in stamp order): the
     message of that stamp; none (an empty set) when there is no such message and the latest before
     is at most `silence_ns` old; None when the tracker was silent (see the module's text)."""
     latest, i = None, 0
@@ -214,11 +219,11 @@ def tracks_at_ticks(messages: Sequence[TrackSet], ticks: Iterable[int],
 
 @dataclass(frozen=True)
 class TrackingStep:
-    """One UAV's estimates at one step against the truth then: its confirmed tracks at a truth tick,
+    """One UAV's estimates at one step against the truth then: its scored tracks at a truth tick,
     or the detections of one scan (their ids: their rows in the message)."""
 
     t: float  # mission time, s
-    track_ids: np.ndarray  # (N,) int: the confirmed tracks (or detections)
+    track_ids: np.ndarray  # (N,) int: the scored tracks (or detections)
     tracks: np.ndarray  # (N, 3) their positions
     truth_ids: tuple[str, ...]  # the M targets that count
     truths: np.ndarray  # (M, 3) their true positions
@@ -227,7 +232,7 @@ class TrackingStep:
 
 def tracking_step(t: float, track_ids: Sequence[int], tracks: np.ndarray, truth: TruthSnapshot, uav: str,
                   sensor_range: float = float("inf"), kinds: Sequence[str] = TRACKED_KINDS) -> TrackingStep:
-    """The step of a UAV's confirmed tracks against `truth`: which targets count (see the module's text)."""
+    """The step of a UAV's scored tracks against `truth`: which targets count (see the module's text)."""
     positions = _points(truth.positions)
     standing = np.asarray(truth.standing, dtype=bool).reshape(-1)
     wanted_kind = np.array([kind in kinds for kind in truth.kinds], dtype=bool).reshape(-1)

@@ -332,6 +332,13 @@ def test_the_particle_filter_keeps_its_particles_in_memory():
 
 
 # ------------------------------------------------------------------ gating and deleting
+@pytest.mark.parametrize("probability", [0.5, 0.9, 0.95, 0.99, 0.999, 0.999999])
+def test_the_gate_threshold_is_the_chi2_quantile_of_3_degrees_of_freedom(probability):
+    from scipy.stats import chi2  # the textbook call the gate's lighter scipy.special one stands for
+
+    assert MahalanobisGater(probability).threshold == pytest.approx(chi2.ppf(probability, 3), rel=1e-12)
+
+
 def test_the_gate_accepts_just_inside_the_chi2_threshold_and_rejects_just_beyond():
     gate = MahalanobisGater(0.99)
     assert gate.threshold == pytest.approx(11.3449, abs=1e-4)

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, GroundTruth, Header, TargetTruth, Track, Tracks, VehicleTruth, WorldModel
-from services.evaluation_tracking import (TrackSet, ScanDetections, TrackingScore, TrackingStep, TruthSnapshot,
+from services.evaluation_tracking import (ScanDetections, TrackingScore, TrackingStep, TrackSet, TruthSnapshot,
                                           TruthTimeline, alike, fleet, fleet_alike, fleet_detections, gospa, left_out,
                                           score_detections, score_tracks, tracking_step)
 from services.launcher.cli import main
@@ -355,7 +355,8 @@ def synthetic_run(path: Path) -> Path:
     takes it up again with track 2 (0.4 m off in y, read from its position field); a tentative
     track and a confirmed one on the balloon (which does not count) never weigh, nor does tentative
     track 6 on drone1 in the tick no confirmed track follows it (but its recall with tentative
-    tracks counts it); uav2's LiDAR is
+    tracks counts it), nor tentative track 8 beside track 1 on drone1 in the first tick (one target
+    is matched once in a step, whatever follows it); uav2's LiDAR is
     unknown (the world names none), its one track is false. uav1 scans every other tick: drone1
     detected 0.1 m off in z, then not at all; uav2 has no detections."""
     world = WorldModel(header=Header(stamp=0), scenario="test", arena=[], min_height=1.0, max_height=10.0,
@@ -365,7 +366,8 @@ def synthetic_run(path: Path) -> Path:
     for k, tracks in enumerate(sequence):
         stamp = (k + 1) * TICK
         messages.append((keys.TRUTH, truth_message(stamp)))
-        tentative = {5: (30.0, 0.0, 5.0), **({6: (10.2, 0.0, 5.0)} if not tracks else {})}
+        tentative = {5: (30.0, 0.0, 5.0), **({6: (10.2, 0.0, 5.0)} if not tracks else {}),
+                     **({8: (10.1, 0.0, 5.0)} if k == 0 else {})}
         messages.append(("falconry/uav1/tracks",
                          tracks_message(stamp, {**tracks, 9: (0.0, 10.2, 3.0)}, tentative=tentative,
                                         own_position=(2,))))
@@ -593,13 +595,17 @@ def test_a_short_real_run_is_scored(tmp_path):
 def test_a_uavs_score_takes_the_tracks_it_keeps_not_the_fleet_tracks_it_passes_on():
     from schemas.arrays import from_numpy
     from schemas.messages import Header, Track, Tracks
-    from services.recorder.tracking_input import confirmed_tracks
+    from services.recorder.tracking_input import confirmed_tracks, own_tracks
 
     def track(track_id: int, source: str, confirmed: bool = True) -> Track:
         return Track(id=track_id, state=from_numpy(np.full(9, float(track_id))), covariance=from_numpy(np.eye(9)),
                      detections=3, confirmed=confirmed, uncertainty_radius=2.5, last_detection=0, source=source)
 
     message = Tracks(header=Header(stamp=5), tracks=[track(1, "uav1"), track(2_000_004, "uav2"), track(3, ""),
-                                                     track(4, "uav1", confirmed=False)])
+                                                     track(4, "uav1", confirmed=False),
+                                                     track(2_000_008, "uav2", confirmed=False)])
     kept = confirmed_tracks(message, "uav1")
     assert kept.ids.tolist() == [1, 3] and kept.stamp == 5  # "": a recording from before the fleet picture
+    # every track of its own, tentative ones too: never a partner's, confirmed or not
+    assert own_tracks(message, "uav1").ids.tolist() == [1, 3, 4]
+    np.testing.assert_array_equal(own_tracks(message, "uav1").positions[:, 0], [1.0, 3.0, 4.0])

@@ -73,9 +73,10 @@ comparison table. Its errors do not compare as plainly: a track's include the ti
 scans and through missed ones. The last table sets them like for like: over the (scan, target) pairs
 that both a detection and a confirmed track matched, each one's mean err and RMSE, so "tracks' mean
 err below the detections'" reads off it. The comparison's last column is the recall of every track a
-UAV keeps, tentative ones too: what its tracking would give without the wait for confirmation (a
-target is confirmed at its third detection, or when a partner's confirmed track corroborates it);
-the gap to the confirmed tracks' recall is that wait's cost."""
+UAV publishes as its own, tentative ones too: what its tracking would give without the wait for
+confirmation (a target is confirmed at its third detection, or when a partner's confirmed track
+corroborates it); the gap to the confirmed tracks' recall is mostly that wait, plus any tentative
+track near a target that was never confirmed."""
 
 
 def add_parser(commands) -> None:
@@ -202,6 +203,7 @@ def comparison(scores: dict[str, TrackingScore], baseline: dict[str, DetectionSc
 
 
 def kept_recall(kept: TrackingScore) -> dict:
+    """The --json figures of every track kept, tentative ones too: steps, pairs and recall."""
     s = kept.errors.summary()
     return {"steps": kept.sums.steps, "matched_pairs": s["matched_pairs"],
             "counted_truth_steps": s["counted_truth_steps"], "recall": s["recall"]}

@@ -13,7 +13,7 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import Detections, GroundTruth, Tracks, WorldModel
-from services.evaluation_tracking import TrackSet, ScanDetections, TruthSnapshot, TruthTimeline
+from services.evaluation_tracking import ScanDetections, TrackSet, TruthSnapshot, TruthTimeline
 from services.lidar.models import lidar_model
 from services.recorder.mcap_io import ReadReport, read_recording
 from services.recorder.selection import KeyFilter
@@ -52,8 +52,10 @@ def confirmed_tracks(message: Tracks, uav: str) -> TrackSet:
 
 
 def own_tracks(message: Tracks, uav: str, confirmed_only: bool = False) -> TrackSet:
-    """The tracks `uav`'s tracker keeps itself (`confirmed_tracks`), tentative ones too unless
-    `confirmed_only`."""
+    """The tracks `uav`'s tracker publishes as its own (`confirmed_tracks`), tentative ones too unless
+    `confirmed_only`. An own tentative track the fleet picture fused with a partner's confirmed
+    track is published under the partner's fleet id and `source` (services/tracker/fleet.py) and,
+    as the recording cannot tell it from the partner's track passed on, is not among them."""
     kept = [track for track in message.tracks
             if (track.confirmed or not confirmed_only) and track.source in ("", uav)]
     return TrackSet(stamp=message.header.stamp, ids=np.array([t.id for t in kept], dtype=np.int64),
