@@ -36,8 +36,7 @@ class Tally:
     scans: int = 0  # (target, scan) pairs that counted
     tracked: int = 0  # (target, tick) pairs a confirmed track matched
     ticks: int = 0  # (target, tick) pairs that counted
-    kept: int = 0  # (target, tick) pairs any track the UAV keeps matched, tentative ones too
-    kept_ticks: int = 0  # (target, tick) pairs that counted for those: the same ticks as `ticks`
+    kept: int = 0  # (target, tick) pairs any track the UAV keeps matched, tentative ones too (of `ticks`)
     pairs: int = 0  # like-for-like (scan, target) pairs
     detection_error: float = 0.0  # sum over those pairs, m
     track_error: float = 0.0
@@ -51,7 +50,7 @@ class Tally:
 
         def mean(total: float) -> str:
             return "-" if not self.pairs else f"{total / self.pairs:.3f}"
-        return [share(self.detected, self.scans), share(self.tracked, self.ticks), share(self.kept, self.kept_ticks),
+        return [share(self.detected, self.scans), share(self.tracked, self.ticks), share(self.kept, self.ticks),
                 str(self.pairs), mean(self.detection_error), mean(self.track_error)]
 
     def verdict(self) -> str:
@@ -69,8 +68,10 @@ def tallies(figures: dict) -> dict[str, Tally]:
         detections = figures["detections"]["fleet"] if fleet else figures["detections"]["uavs"][name]
         alike = figures["alike"].get(name, {"pairs": 0, "detections": {}, "tracks": {}})
         pairs, kept = alike["pairs"], figures["comparison"][name]["kept_tracks"]
+        # the same steps and counted targets as the confirmed tracks': only the matches differ
+        assert kept["counted_truth_steps"] == tracks["counted_truth_steps"], (name, kept, tracks)
         out[name] = Tally(detections["matched_pairs"], detections["counted_truth_steps"], tracks["matched_pairs"],
-                          tracks["counted_truth_steps"], kept["matched_pairs"], kept["counted_truth_steps"], pairs,
+                          tracks["counted_truth_steps"], kept["matched_pairs"], pairs,
                           pairs * (alike["detections"].get("mean_error_m") or 0.0),
                           pairs * (alike["tracks"].get("mean_error_m") or 0.0))
     return out
