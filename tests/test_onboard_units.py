@@ -45,17 +45,19 @@ def test_the_checked_in_units_are_the_generators_output():
         assert (CHECKED_IN / name).read_text() == text, f"{name} differs: run `falconry units deploy/onboard/systemd`"
 
 
+@pytest.mark.parametrize("positioning", keys.POSITIONING)
 @pytest.mark.parametrize("detector", keys.DETECTORS)
-def test_one_unit_per_service_the_simulator_expects_and_a_target_wanting_them_all(detector):
-    units = render_units(UnitSettings(detector=detector))
-    services = keys.uav_services(detector)
+def test_one_unit_per_service_the_simulator_expects_and_a_target_wanting_them_all(detector, positioning):
+    units = render_units(UnitSettings(detector=detector, positioning=positioning))
+    services = keys.uav_services(detector, positioning)
+    assert (keys.LOCALIZER in services) == (positioning == "lidar")
     assert set(units) == {unit_name(s) for s in services} | {ROUTER_UNIT, TARGET_UNIT}
     wants = parse_unit(units[TARGET_UNIT])["Unit"]["Wants"].split()
     assert sorted(wants) == sorted(n.replace("@.", "@%i.") for n in units if n != TARGET_UNIT)
 
 
 def test_every_exec_start_is_a_falconry_command_on_wall_time_after_the_router():
-    for name, text in render_units(UnitSettings()).items():
+    for name, text in render_units(UnitSettings(positioning="lidar")).items():  # every unit, the localizer's too
         if name == TARGET_UNIT:
             continue
         unit = parse_unit(text)
@@ -79,8 +81,10 @@ def test_every_exec_start_is_a_falconry_command_on_wall_time_after_the_router():
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None, reason="systemd-analyze is not installed here")
 def test_systemd_accepts_every_unit(tmp_path):
-    """Rendered for this venv, so each ExecStart names an executable that exists."""
-    assert main(["units", str(tmp_path), "--prefix", VENV]) == 0
+    """Rendered for this venv, so each ExecStart names an executable that exists; without GNSS, so
+    the localizer's unit is checked too."""
+    assert main(["units", str(tmp_path), "--prefix", VENV, "--positioning", "lidar"]) == 0
+    assert (tmp_path / unit_name(keys.LOCALIZER)).is_file()
     instances = []
     for unit in tmp_path.iterdir():
         instance = tmp_path / unit.name.replace("@.", "@uav1.")

@@ -27,6 +27,10 @@ def add_parser(commands) -> None:
                    help=f"the virtual environment falconry is installed in (default {DEFAULT_PREFIX})")
     p.add_argument("--detector", choices=ONBOARD_DETECTORS, default=keys.DEFAULT_DETECTOR,
                    help="which per-UAV services to run, as `falconry sim --detector` (default %(default)s)")
+    p.add_argument("--positioning", choices=keys.POSITIONING, default="gnss",
+                   help="where the UAV's position comes from, as `falconry sim --positioning`: lidar (no "
+                        "GNSS) adds the localizer's unit, whose estimate the flight controller bridge flies on "
+                        "(default %(default)s)")
     p.add_argument("--user", default=USER, help="the account the services run as (default %(default)s)")
     p.set_defaults(handler=run_units)
 
@@ -40,7 +44,8 @@ def run_units(args: argparse.Namespace) -> int:
     if out.exists() and not out.is_dir():
         raise CliError(f"{out} exists and is not a directory")
     out.mkdir(parents=True, exist_ok=True)
-    units = render_units(UnitSettings(prefix=args.prefix.rstrip("/"), detector=args.detector, user=args.user))
+    units = render_units(UnitSettings(prefix=args.prefix.rstrip("/"), detector=args.detector, user=args.user,
+                                      positioning=args.positioning))
     for name, text in units.items():
         (out / name).write_text(text)
     print(f"wrote {len(units)} units to {out}: {', '.join(sorted(units))}")
