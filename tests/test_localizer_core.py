@@ -58,7 +58,7 @@ def test_a_scan_registered_by_a_wrong_pose_keeps_every_point_where_it_is_from_th
 
 
 def test_the_flight_controller_holds_the_estimates_error_at_its_own_stamp():
-    relay = EstimateRelay()
+    relay = EstimateRelay(timeout=1_000)
     for k in range(5):
         relay.record_truth("uav1", k * 50, np.array([k, 0.0, 5.0]), 0.1 * k)
     error = relay.take_estimate("uav1", 100, (2.3, 0.1, 5.0), 0.25, np.eye(6), "degraded")
@@ -70,6 +70,23 @@ def test_the_flight_controller_holds_the_estimates_error_at_its_own_stamp():
     assert relay.errors["uav1"].stamp == 100
     wrapped = relay.take_estimate("uav1", 200, (4.0, 0.0, 5.0), -math.pi + 0.01 + 0.4 - 2 * math.pi, None, "tracking")
     assert abs(wrapped.heading) < math.pi
+
+
+def test_an_estimate_stream_that_stops_makes_the_flight_controllers_position_lost():
+    """A localizer alive but silent (frozen, starved of IMU samples) must not leave the UAV flying on
+    a frozen belief still called "tracking": past the timeout the belief's health is "lost"."""
+    relay = EstimateRelay(timeout=1_000)
+    assert relay.belief("uav1", 0) is None  # no estimate yet: the launch pose, no health
+    for k in range(3):
+        relay.record_truth("uav1", k * 100, np.array([k, 0.0, 5.0]), 0.0)
+    relay.take_estimate("uav1", 100, (1.2, 0.0, 5.0), 0.02, np.eye(6), "tracking")
+    fresh, last = relay.belief("uav1", 1_100), relay.belief("uav1", 1_101)
+    assert (fresh.health, last.health) == ("tracking", "lost")
+    assert last.heading_error == pytest.approx(0.02) and np.array_equal(last.covariance, np.eye(6))
+    relay.take_estimate("uav1", 200, (2.1, 0.0, 5.0), 0.0, None, "degraded")  # the stream is back
+    assert relay.belief("uav1", 1_101).health == "degraded"
+    with pytest.raises(ValueError, match="positive"):
+        EstimateRelay(timeout=0)
 
 
 # ------------------------------------------------------------------ poles

@@ -73,6 +73,25 @@ def test_odometry_jump_moves_the_estimate_and_the_vehicle_follows_it():
     assert np.allclose(sim.vehicles()[0].position, [0, 0, 5], atol=0.02)
 
 
+def test_a_uav_without_gnss_has_no_gnss_noise_and_flies_on_its_localizers_error():
+    """The odometry noise models GNSS: a UAV flying without it (the scenario's positioning, or the
+    run's --positioning) gets none, its published position is truth + the estimate's error, and the
+    vehicle flies by that belief (services/simulator/positioning.py sets the error per estimate)."""
+    noisy = {"odometry_position_sigma": 0.2, "odometry_attitude_sigma": 0.05,
+             "overrides": {"uav2": {"positioning": "lidar"}}}
+    for positioning in (None, {"uav1": "lidar", "uav2": "lidar"}):
+        sim = Simulation(world(uav=noisy), ["uav1", "uav2"], seed=3, positioning=positioning)
+        odometry, truth = sim.odometry("uav2"), sim.vehicles()[1]
+        assert np.array_equal(odometry.position, truth.position) and odometry.heading == truth.heading
+        assert (positioning is None) != np.array_equal(sim.odometry("uav1").position, sim.vehicles()[0].position)
+    hovering(sim, "uav2", at=(0.0, 10.0, 5.0))
+    sim.set_odometry_error("uav2", (0.4, -0.2, 0.1))  # an estimate 0.4 m east of the truth, ...
+    sim.set_odometry_error("uav2", (0.3, -0.2, 0.1))  # ... then a newer one: replaced, not added
+    hovering(sim, "uav2", at=(0.0, 10.0, 5.0), seconds=8.0)
+    assert np.allclose(sim.odometry("uav2").position, [0.0, 10.0, 5.0], atol=0.02)
+    assert np.allclose(sim.vehicles()[1].position, [-0.3, 10.2, 4.9], atol=0.02)
+
+
 def test_emergency_landing_descends_gently_and_ignores_the_reference():
     sim = Simulation(world(), ["uav1", "uav2"], seed=3)
     assert hovering(sim) == [("takeoff", "uav1", "")]

@@ -149,8 +149,8 @@ class JobManagerNode(Node):
         return all(s in self.alive_services for s in required) and any(d in self.alive_services for d in DETECTORS)
 
     def positioning_health(self) -> str:
-        """The odometry's health; "lost" once the localizer's token is gone (the flight controller
-        would carry the last estimate on unchecked)."""
+        """The odometry's health; "lost" once the localizer's token is gone, at once (the flight
+        controller would only notice the silence after its estimate timeout: services/simulator/positioning.py)."""
         if self.core.positioning_by_localizer and keys.LOCALIZER not in self.alive_services \
                 and self.core.state is not State.PREFLIGHT:
             return "lost"

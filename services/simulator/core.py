@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -38,13 +39,15 @@ __all__ = ["Simulation", "VehicleState", "TargetState", "OdometryReading", "ImuS
 
 
 class Simulation:
-    def __init__(self, scenario: Scenario, uav_names: list[str], seed: int, imu: ImuParams | None = None) -> None:
+    def __init__(self, scenario: Scenario, uav_names: list[str], seed: int, imu: ImuParams | None = None,
+                 positioning: Mapping[str, str] | None = None) -> None:
+        """`positioning`: UAV -> "gnss" or "lidar" as the run resolved it (default: the scenario's)."""
         self.scenario = scenario
         self.uav_names = list(uav_names)
         self.seed = seed
         self.time_ns = 0
         self.ground_z = float(scenario.ground_z)
-        self.fleet = Fleet(scenario, self.uav_names, seed)
+        self.fleet = Fleet(scenario, self.uav_names, seed, positioning)
         self.balloons = Balloons(scenario)
         self.drones = Drones(scenario, seed)
         self._static = self._static_obstacles()

@@ -64,6 +64,9 @@ class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     # Every UAV's IMU, a Pixhawk-class one by default: services/simulator/imu.py documents each field
     # and its source. A rate_hz that is a multiple of 100 puts samples on the physics' 10 ms sub-steps.
     imu: ImuParams = msgspec.field(default_factory=ImuParams)
+    # s of mission time without a new localizer estimate after which a UAV flying without GNSS
+    # reports its position lost (services/simulator/positioning.py): ten scans of a 10 Hz LiDAR
+    estimate_timeout: float = 1.0
 
 
 def _vec(values) -> tuple[float, float, float]:
@@ -90,8 +93,11 @@ class SimulatorNode(Node):
         check_team(self.scenario, self.uav_names)
         override = getattr(opts, "positioning", None)
         self.positioning = {u: self.scenario.positioning(u, override) for u in self.uav_names}
-        self.relay = EstimateRelay()
-        self.sim = Simulation(self.scenario, self.uav_names, self.seed, imu=self.params.imu)
+        if not self.params.estimate_timeout > 0:
+            raise UsageError(f"[simulator] estimate_timeout must be positive, not {self.params.estimate_timeout}")
+        self.relay = EstimateRelay(to_ns(self.params.estimate_timeout))
+        self.sim = Simulation(self.scenario, self.uav_names, self.seed, imu=self.params.imu,
+                              positioning=self.positioning)
         self._alive: set[str] = set()
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
         self._refused_references = 0
@@ -329,10 +335,10 @@ class SimulatorNode(Node):
             health = ""
             if self.positioning[v.name] == "lidar":
                 self.relay.record_truth(v.name, now, v.position, v.heading)
-                error = self.relay.errors.get(v.name)
-                if error is not None:  # else the launch pose, known without GNSS
-                    heading = float(wrap_angle(heading + error.heading))
-                    covariance, health = error.covariance, error.health
+                belief = self.relay.belief(v.name, now)
+                if belief is not None:  # else the launch pose, known without GNSS
+                    heading = float(wrap_angle(heading + belief.heading_error))
+                    covariance, health = belief.covariance, belief.health
             self.odometry_pubs[v.name].put(Odometry(
                 header=Header(stamp=now), pose=Pose(position=_vec(position), orientation=heading_quaternion(heading)),
                 velocity=_vec(velocity), covariance=from_numpy(np.asarray(covariance, dtype=np.float64)),

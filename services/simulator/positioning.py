@@ -12,6 +12,14 @@ way for the published heading; the simulated airframe's own heading control stay
 published is the true one (a flight controller's inertial velocity is good to centimetres per
 second over a scan's interval; the localizer's is in its own message).
 
+An estimate stream that stops (the localizer frozen, starved of IMU samples or far behind) leaves
+the controller carrying on a belief nothing refreshes: once the latest estimate is older than
+`timeout`, the published health is "lost", whatever the last estimate said, so the job manager
+holds and then lands as on a silent LiDAR (services/job_manager/core.py). A vanished localizer
+token says the same in the job manager; this covers a localizer that is alive but silent. An
+onboard flight-controller bridge has to do the same (PX4's EKF2 likewise drops an external vision
+source whose data stop).
+
 Pure: numpy in, numpy out; the stamps are the caller's (int ns of mission time).
 """
 from __future__ import annotations
@@ -38,12 +46,35 @@ class EstimateError:
     health: str
 
 
-class EstimateRelay:
-    """Per UAV flying without GNSS: the true poses of the last HISTORY ticks and the latest estimate's error."""
+@dataclass(frozen=True)
+class Belief:
+    """What the flight controller publishes of a UAV flying without GNSS, besides its position
+    (truth + the held error, which the vehicle flies on)."""
 
-    def __init__(self) -> None:
+    heading_error: float  # rad, added to the true heading
+    covariance: np.ndarray  # (6, 6), the latest estimate's
+    health: str  # the latest estimate's, or "lost" once it is older than the timeout
+
+
+class EstimateRelay:
+    """Per UAV flying without GNSS: the true poses of the last HISTORY ticks and the latest estimate's
+    error; `timeout` ns without a newer estimate make the belief's health "lost"."""
+
+    def __init__(self, timeout: int) -> None:
+        if timeout <= 0:
+            raise ValueError(f"the estimate timeout must be positive, not {timeout} ns")
+        self.timeout = int(timeout)
         self._truth: dict[str, deque[tuple[int, np.ndarray, float]]] = {}
         self.errors: dict[str, EstimateError] = {}
+
+    def belief(self, uav: str, now: int) -> Belief | None:
+        """The belief at mission time `now`; None before the first estimate (the launch pose is
+        known without GNSS, so the truth then, with no health)."""
+        error = self.errors.get(uav)
+        if error is None:
+            return None
+        health = "lost" if now - error.stamp > self.timeout else error.health
+        return Belief(error.heading, error.covariance, health)
 
     def record_truth(self, uav: str, stamp: int, position: np.ndarray, heading: float) -> None:
         history = self._truth.setdefault(uav, deque(maxlen=HISTORY))

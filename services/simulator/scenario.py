@@ -111,12 +111,13 @@ Top-level fields
                             max_vertical_speed = 2.0} = {5.0, 1.5}   constraint profile for scanning.
   attack                   same fields = {8.3, 3.0}   constraint profile for attacks. The simulated
                            airframe never exceeds the larger of the two profiles, limit by limit.
-  odometry_position_sigma  float = 0.0   white noise on the odometry position, m (>= 0).
-  odometry_attitude_sigma  float = 0.0   white noise on the odometry heading, rad (>= 0).
+  odometry_position_sigma  float = 0.0   white noise on the GNSS odometry position, m (>= 0).
+  odometry_attitude_sigma  float = 0.0   white noise on the GNSS odometry heading, rad (>= 0).
   positioning              "gnss" | "lidar" = "gnss"   where the flight controller's position comes
-                           from: gnss = the odometry above; lidar = flying without GNSS, on the
-                           onboard localizer's LiDAR-inertial estimate (the run starts a localizer
-                           per such UAV; `falconry sim --positioning lidar` sets it for every UAV).
+                           from: gnss = the odometry above; lidar = flying without GNSS (no such
+                           noise), on the onboard localizer's LiDAR-inertial estimate (the run
+                           starts a localizer per such UAV; `falconry sim --positioning lidar` sets
+                           it for every UAV).
   overrides.<uav>          a table with any of the fields above, for one UAV (uav1..uav3).
 
 [[faults]]  the fault schedule, injected at mission times (file order kept)

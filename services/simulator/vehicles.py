@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -100,7 +101,9 @@ class _Reference:
 
 
 class Fleet:
-    def __init__(self, scenario: Scenario, names: list[str], seed: int) -> None:
+    def __init__(self, scenario: Scenario, names: list[str], seed: int,
+                 positioning: Mapping[str, str] | None = None) -> None:
+        """`positioning`: UAV -> "gnss" or "lidar" as the run resolved it (default: the scenario's)."""
         self.names = list(names)
         self.seed = seed % (1 << 63)
         self.ground_z = float(scenario.ground_z)
@@ -121,7 +124,11 @@ class Fleet:
         # Columns: max_speed, max_acceleration, max_heading_rate, max_vertical_speed.
         self.envelope = np.array([_limits(s.envelope()) for s in specs]).reshape(count, 4)
         self.limits = np.array([_limits(s.sweeping) for s in specs]).reshape(count, 4)
-        self.sigmas = np.array([[s.odometry_position_sigma, s.odometry_attitude_sigma] for s in specs]).reshape(-1, 2)
+        # the GNSS odometry's white noise; a UAV without GNSS publishes its localizer's belief instead
+        # (services/simulator/positioning.py), which carries its own error: no noise about the truth
+        gnss = [(positioning or {}).get(n, s.positioning) == "gnss" for n, s in zip(self.names, specs)]
+        self.sigmas = np.array([[s.odometry_position_sigma, s.odometry_attitude_sigma] if with_gnss else [0.0, 0.0]
+                                for s, with_gnss in zip(specs, gnss)]).reshape(-1, 2)
         self.offset = np.zeros((count, 3))
         self.jumped = False  # any odometry offset yet (skips work in the common case)
 
