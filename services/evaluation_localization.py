@@ -50,7 +50,7 @@ window, and through the fixed LiDAR mount (sensor pose in the body frame, measur
 first scan: `mount_transform`): B_k = B_a · M · T_a⁻¹ · T_k · M⁻¹, with B_a the true body pose at the
 anchor scan a, T the KISS-ICP poses and M the mount. The body trajectory is scored like the
 localizer's, against the same truth. Seen from a few metres up, a simulated scan is mostly flat,
-noise-free ground whose rings move with the sensor; KISS-ICP's point-to-point registration then
+featureless ground (2 cm of range noise) whose rings move with the sensor; KISS-ICP's point-to-point registration then
 takes much of a horizontal motion for none (on the intruder scenario it keeps within 0.4 m over
 23 m of flight once the ground points are left out, and loses most of it with them): the
 baseline is KISS-ICP as its authors configure it, its failure there is part of the comparison.

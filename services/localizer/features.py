@@ -82,6 +82,9 @@ from services.localizer.poles import group_poles, pole_slices
 
 
 class FeatureParams(msgspec.Struct, forbid_unknown_fields=True):
+    # The thresholds below are reasoned for 1 cm of range noise (σ); the sensor driver's scans carry
+    # 2 cm (its range_noise), at which they were flown and measured (benchmarks/localization.py,
+    # tests/test_localizer_core.py's flights).
     sectors: int = 4  # azimuth sectors, each giving its own features (seed 003: forward, left, back, right)
     # planes and edges kept per sector (seed 003: one of each). Two, with min_angle_between_deg, give
     # a wall beside the floor: the floor alone leaves x, y and yaw to the IMU (an open field's scans)
