@@ -2,6 +2,7 @@
 partner is killed or cut off, the area split among three UAVs, and the abort system."""
 from __future__ import annotations
 
+import re
 import subprocess
 from pathlib import Path
 
@@ -220,13 +221,19 @@ def test_the_team_rides_out_a_router_restart_and_every_service_comes_back(tmp_pa
 def test_without_gnss_an_open_field_loses_the_position_and_each_uav_holds_then_lands(tmp_path, port):
     """Flying on the localizer over a field with nothing but the floor: its x and y drift unobserved,
     the health goes degraded (slower) and lost (hold), and lost for the job manager's sensor_timeout
-    each UAV makes an emergency landing, as on a silent LiDAR (the degraded and held phases, which
-    leave no transition, are tests/test_job_manager_machine.py's). Heavy (17 s: `make acceptance`):
-    make test holds the same chain in parts, the localizer on an open field going degraded then lost
-    (tests/test_localizer_core.py), its node answering lost, and the job manager holding then landing."""
+    each UAV makes an emergency landing, as on a silent LiDAR (the degraded and held phases leave no
+    transition: the job manager's log notes them, and tests/test_job_manager_machine.py checks what
+    it flies in each). Heavy (17 s: `make acceptance`): make test holds the same chain in parts, the
+    localizer on an open field going degraded then lost (tests/test_localizer_core.py), its node
+    answering lost, and the job manager holding then landing."""
+    log = tmp_path / "services.log"
     summary, output = run_mission(tmp_path, port, "", uavs=2, duration=25, base="open",
-                                  extra=("--positioning", "lidar"))
+                                  extra=("--positioning", "lidar", "--log-file", str(log)))
     for name, uav in summary["uavs"].items():
+        notes = re.findall(rf"{name}/job_manager: \[t=([\d.]+)\] positioning (\w+)(: [^\n]*)?", log.read_text())
+        assert [health for _, health, _ in notes[:2]] == ["degraded", "lost"], (name, notes)  # slower, then held
+        assert "holding position" in notes[1][2], (name, notes)
+        print(f"{name}: positioning degraded at t={notes[0][0]} s, lost at t={notes[1][0]} s")
         decisions = [(t, state, reason) for t, state, reason in uav["decisions"]]
         reasons = {state: (t, reason) for t, state, reason in decisions}
         assert "IDLE" in reasons and "EMERGENCY_LANDING" in reasons, (name, decisions)  # it flew first
