@@ -198,10 +198,11 @@ def test_an_open_field_gives_the_floor_alone_and_positioning_degrades_then_is_lo
 
 
 # ------------------------------------------------------------------ the node
-def test_the_node_publishes_an_estimate_per_scan_and_lost_for_good_once_the_graph_fails(monkeypatch):
-    """The localizer node on a fake session (tests/tools/fuzz.py's harness): the launch pose from the
-    first odometry, IMU batches, then scans of a hovering UAV over mbzirc each answered on
-    falconry/<uav>/localization; a gtsam failure turns every later answer into "lost" at the last pose."""
+def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | None = None, monkeypatch=None):
+    """The localizer node on a fake session (tests/tools/fuzz.py's harness): the first odometry (its
+    pose the UAV's true one, plus `first_odometry`'s fields), IMU batches, then scans of a hovering
+    UAV over mbzirc every other tick; the graph made to give up at tick `fail_at`. Returns the node,
+    the answers on falconry/<uav>/localization and the true position."""
     from schemas import keys
     from schemas.arrays import from_numpy
     from schemas.messages import Header, ImuBatch, Odometry, PointCloud, Pose
@@ -214,10 +215,11 @@ def test_the_node_publishes_an_estimate_per_scan_and_lost_for_good_once_the_grap
     world = primitives_from_obstacles(sim.obstacles())
     me = sim.vehicles()[0]
     wired.deliver(keys.uav(UAV, keys.ODOMETRY), encode(Odometry(
-        header=Header(stamp=0), pose=Pose(position=tuple(me.position), orientation=heading_quaternion(me.heading)))))
+        header=Header(stamp=0), pose=Pose(position=tuple(me.position), orientation=heading_quaternion(me.heading)),
+        **first_odometry)))
     out = keys.uav(UAV, keys.LOCALIZATION)
     answers = []
-    for k in range(1, 9):
+    for k in range(1, ticks + 1):
         sim.step(TICK)
         samples = sim.imu("uav1")
         wired.deliver(keys.uav(UAV, keys.IMU), encode(ImuBatch(
@@ -225,7 +227,7 @@ def test_the_node_publishes_an_estimate_per_scan_and_lost_for_good_once_the_grap
             accelerometer=from_numpy(samples.accelerometer), gyroscope=from_numpy(samples.gyroscope), rate_hz=200)))
         if k % 2:
             continue
-        if k == 6:  # the graph gives up on this scan
+        if k == fail_at:  # the graph gives up on this scan
             monkeypatch.setattr(wired.node.core, "add_scan", lambda *a: (_ for _ in ()).throw(RuntimeError("Indeterminate")))
         origin = me.position + yaw_rotation(me.heading) @ np.asarray(DEFAULT_MOUNT)
         cloud = scan(origin, me.heading, MODEL.directions(k // 2), world, np.random.default_rng(k),
@@ -235,8 +237,34 @@ def test_the_node_publishes_an_estimate_per_scan_and_lost_for_good_once_the_grap
             sensor_pose=Pose(position=tuple(origin), orientation=heading_quaternion(me.heading)),
             points=from_numpy(cloud.points))))
         answers.append(wired.published(Odometry, out))
+    return wired.node, answers, me.position
+
+
+def test_the_node_publishes_an_estimate_per_scan_and_lost_for_good_once_the_graph_fails(monkeypatch):
+    """The launch pose from the first odometry (no health: not a belief), then each scan answered; a
+    gtsam failure turns every later answer into "lost" at the last pose."""
+    node, answers, truth = hover_through_the_node({}, fail_at=6, monkeypatch=monkeypatch)
     assert [a.header.stamp for a in answers] == [k * 50_000_000 for k in (2, 4, 6, 8)]
     assert [a.health for a in answers] == ["tracking", "tracking", "lost", "lost"]
-    assert np.linalg.norm(np.asarray(answers[1].pose.position) - me.position) < 0.05
+    assert np.linalg.norm(np.asarray(answers[1].pose.position) - truth) < 0.05
     assert answers[3].pose == answers[1].pose  # the last estimate, held
-    assert wired.node.counters.handler_errors == 0
+    assert node.counters.handler_errors == 0
+
+
+def test_a_localizer_restarted_in_flight_carries_the_beliefs_covariance_on():
+    """Restarted in flight, the first odometry is the flight controller's belief (it has a health):
+    the map frame starts there, and the estimates keep its uncertainty rather than claiming the
+    launch point's millimetre; a belief 0.6 m uncertain is not "tracking" (0.5 m) however well the
+    new map frame holds. A belief with no usable covariance starts the map frame all the same."""
+    from schemas.arrays import from_numpy, to_numpy
+
+    belief = np.diag([0.36, 0.36, 0.04, 1e-4, 1e-4, 1e-4])
+    node, answers, _ = hover_through_the_node({"health": "tracking", "covariance": from_numpy(belief)}, ticks=4)
+    assert [a.health for a in answers] == ["degraded", "degraded"]
+    for answer in answers:
+        covariance = to_numpy(answer.covariance).reshape(6, 6)
+        assert np.all(np.diag(covariance) >= np.diag(belief) - 1e-12)
+        assert np.diag(covariance)[0] < 0.36 + 0.01  # plus the new frame's own, small
+    node, answers, _ = hover_through_the_node({"health": "degraded", "covariance": from_numpy(np.full((6, 6), np.nan))},
+                                              ticks=4)
+    assert [a.health for a in answers] == ["tracking", "tracking"] and node.counters.handler_errors == 0

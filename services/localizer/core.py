@@ -85,10 +85,12 @@ class Localizer:
     def started(self) -> bool:
         return self.graph.started
 
-    def start(self, stamp_ns: int, rotation: np.ndarray, translation: np.ndarray, velocity: np.ndarray) -> None:
+    def start(self, stamp_ns: int, rotation: np.ndarray, translation: np.ndarray, velocity: np.ndarray,
+              frame_covariance: np.ndarray | None = None) -> None:
         """The body's pose (rotation body → world, translation) and world velocity at `stamp_ns`:
-        the map frame's origin (the launch point, known without GNSS)."""
-        self.graph.start(stamp_ns, rotation, translation, velocity)
+        the map frame's origin (the launch point, known without GNSS; or, restarted in flight, the
+        flight controller's belief with its covariance `frame_covariance`: LocalizerGraph.start)."""
+        self.graph.start(stamp_ns, rotation, translation, velocity, frame_covariance)
         self.start_stamp = int(stamp_ns)
 
     def add_imu(self, stamps_ns: np.ndarray, accelerometer: np.ndarray, gyroscope: np.ndarray) -> None:

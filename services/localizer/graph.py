@@ -556,6 +556,7 @@ class LocalizerGraph:
         self._pending = (gtsam.NonlinearFactorGraph(), gtsam.Values())  # the start's priors until the first scan
         self._imu = _ImuStream(np.empty(0, dtype=np.int64), np.empty((0, 3)), np.empty((0, 3)))
         self._unassociated_scans = 0
+        self._frame_covariance = np.zeros((6, 6))  # the start pose's own uncertainty in the world (start)
         self._smoother_stamps: dict[int, float] = {}  # key -> s since the start: the smoother's timestamps
 
     # ------------------------------------------------------------------ public API
@@ -563,11 +564,22 @@ class LocalizerGraph:
     def started(self) -> bool:
         return bool(self._stamps)
 
-    def start(self, stamp_ns: int, rotation: np.ndarray, translation: np.ndarray, velocity: np.ndarray) -> None:
+    def start(self, stamp_ns: int, rotation: np.ndarray, translation: np.ndarray, velocity: np.ndarray,
+              frame_covariance: np.ndarray | None = None) -> None:
         """The first state: pose (body → world) and world velocity at `stamp_ns`, with the priors of
-        GraphParams. Its pose defines the map frame."""
+        GraphParams. Its pose defines the map frame. `frame_covariance` ((6, 6) as an estimate's;
+        default none) is that pose's own uncertainty in the world when it is not a known launch
+        point (a localizer restarted in flight starts at the flight controller's belief, its previous
+        estimate): every estimate's covariance, position σ and so health then include it, since the
+        map frame is only as good as the pose it was started at (to first order: its yaw σ is not
+        carried out along the distance flown since)."""
         if self._stamps:
             raise ValueError("the graph has already started")
+        if frame_covariance is not None:
+            frame = _finite_array(frame_covariance, (6, 6), "frame covariance")
+            if not np.allclose(frame, frame.T, atol=1e-9) or np.linalg.eigvalsh((frame + frame.T) / 2)[0] < -1e-9:
+                raise ValueError("the frame covariance is not symmetric positive semi-definite")
+            self._frame_covariance = (frame + frame.T) / 2
         stamp = _stamp(stamp_ns, "start stamp")
         rotation = _finite_array(rotation, (3, 3), "start rotation")
         if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) or np.linalg.det(rotation) < 0:
@@ -858,7 +870,7 @@ class LocalizerGraph:
         velocity = correction.rotation().rotate(velocity)
         self._best = gtsam.NavState(pose.rotation(), pose.translation(), velocity)
         rotation = pose.rotation().matrix()
-        covariance = odometry_covariance(rotation, pose_covariance)
+        covariance = odometry_covariance(rotation, pose_covariance) + self._frame_covariance
         position_sigma = math.sqrt(max(np.linalg.eigvalsh(covariance[:3, :3])[-1], 0.0))
         constraint_sigma = self.params.start_position_sigma if state == 0 else self._constraint_sigma(rotation,
                                                                                                       associated)

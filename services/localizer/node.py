@@ -1,7 +1,9 @@
 """localizer node: LiDAR scans and IMU samples in, the UAV's pose out (seed 003's Grape; see core.py).
 
 Subscribes falconry/<uav>/odometry (Odometry: only the first one, the launch pose, known without
-GNSS, which starts the map frame), falconry/<uav>/imu (ImuBatch, every batch) and
+GNSS, which starts the map frame; a localizer restarted in flight gets the flight controller's
+belief instead, a previous estimate, whose health says so: the map frame starts there with that
+estimate's covariance, which every later estimate carries on), falconry/<uav>/imu (ImuBatch, every batch) and
 falconry/<uav>/points (PointCloud: its world-frame points are taken back to the sensor frame by its
 sensor_pose, which is how the driver registered them). Publishes falconry/<uav>/localization
 (Odometry with the covariance and the health, stamped with the scan's stamp) for every scan fused.
@@ -49,6 +51,14 @@ def _reproducible(values, step: float) -> tuple[float, ...]:
     return tuple(_on_grid(values, step).tolist())
 
 
+def _covariance(msg: Odometry) -> np.ndarray | None:
+    """The message's (6, 6) covariance, or None when it has none or not a finite 6 × 6 one."""
+    if msg.covariance is None:
+        return None
+    covariance = to_numpy(msg.covariance)
+    return covariance.reshape(6, 6) if covariance.size == 36 and np.isfinite(covariance).all() else None
+
+
 class LocalizerNode(Node):
     service = keys.LOCALIZER
     upstream = ("sensor_driver",)
@@ -76,12 +86,20 @@ class LocalizerNode(Node):
         if self.core.started:
             return  # in a GNSS-denied run, our own estimate relayed by the flight controller
         rotation = rotation_matrix(msg.pose.orientation)
+        in_flight = bool(msg.health)  # a belief the flight controller carries on from an earlier estimate
+        frame = _covariance(msg) if in_flight else None
         try:
-            self.core.start(msg.header.stamp, rotation, np.asarray(msg.pose.position), np.asarray(msg.velocity))
+            self.core.start(msg.header.stamp, rotation, np.asarray(msg.pose.position), np.asarray(msg.velocity),
+                            frame)
         except ValueError as exc:
-            self._refuse("launch poses refused (not finite, or not a rotation)", exc)
+            self._refuse("launch poses refused (not finite, not a rotation, or a covariance that is not one)", exc)
             return
-        self.log.info("map frame started at the launch pose (%.2f, %.2f, %.2f)", *msg.pose.position)
+        if in_flight:
+            self.log.warning("restarted in flight: map frame started at the flight controller's %s belief "
+                             "(%.2f, %.2f, %.2f), %s", msg.health, *msg.pose.position,
+                             "its covariance carried on" if frame is not None else "which has no usable covariance")
+        else:
+            self.log.info("map frame started at the launch pose (%.2f, %.2f, %.2f)", *msg.pose.position)
 
     def on_imu(self, msg: ImuBatch, key: str) -> None:
         if not self.core.started:
