@@ -14,7 +14,7 @@ scans of the first run replayed through services/localizer/core.py in this proce
 Goals (issue 14): position error <= 0.5 % of distance, yaw error <= 0.1 % of yaw turned, time per scan
 <= 50 ms median on one core. Seed 003: 2.3 % in a cluttered outdoor scene; LOAM 0.9-1.3 % indoors.
 
-    .venv/bin/python benchmarks/localization.py                          # mbzirc and intruder, seeds 1-3: ~45 min
+    .venv/bin/python benchmarks/localization.py                          # mbzirc and intruder, seeds 1-3: ~2 h
     .venv/bin/python benchmarks/localization.py --scenarios mbzirc --seeds 1 --baseline-seeds
 """
 from __future__ import annotations
@@ -104,13 +104,15 @@ def main() -> int:
     parser.add_argument("--scenarios", nargs="+", default=["mbzirc", "intruder"], help="default: mbzirc intruder")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3], help="default: 1 2 3")
     parser.add_argument("--duration", type=float, default=120.0, help="mission time per run, s (default 120)")
-    parser.add_argument("--baseline-seeds", type=int, nargs="*", default=[1], metavar="SEED",
-                        help="seeds whose runs also get the KISS-ICP baseline (default 1; none: leave it out). "
-                             "It takes 10-15 min a run on 2 cores: 0.1-0.5 s per OS0-128 scan")
+    parser.add_argument("--baseline-seeds", type=int, nargs="*", default=None, metavar="SEED",
+                        help="seeds whose runs also get the KISS-ICP baseline (default: every seed; none: leave it "
+                             "out). It takes 10-15 min a run on 2 cores: 0.1-0.5 s per OS0-128 scan")
     parser.add_argument("--timing-scans", type=int, default=300,
                         help="scans of the first run replayed for the time per scan (default 300: 30 s of flight)")
     parser.add_argument("--keep", metavar="DIR", help="keep the recordings in DIR (about 3.5 GB each)")
     args = parser.parse_args()
+    if args.baseline_seeds is None:
+        args.baseline_seeds = list(args.seeds)
     started = time.time()
     rows, misses, yaw_misses = [], [], []
     totals: dict[str, list[float]] = {}
