@@ -5,6 +5,7 @@ the estimate (sensor_driver/core.py), the flight controller's relay of the estim
 world, scan by scan, without Zenoh. Fixed seeds: deterministic."""
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -198,10 +199,12 @@ def test_an_open_field_gives_the_floor_alone_and_positioning_degrades_then_is_lo
 
 
 # ------------------------------------------------------------------ the node
-def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | None = None, monkeypatch=None):
+def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | None = None, monkeypatch=None,
+                           mount=DEFAULT_MOUNT, warnings: list[str] | None = None):
     """The localizer node on a fake session (tests/tools/fuzz.py's harness): the first odometry (its
     pose the UAV's true one, plus `first_odometry`'s fields), IMU batches, then scans of a hovering
-    UAV over mbzirc every other tick; the graph made to give up at tick `fail_at`. Returns the node,
+    UAV over mbzirc every other tick, registered with the LiDAR at `mount`; the graph made to give up
+    at tick `fail_at`; the node's warnings appended to `warnings`. Returns the node,
     the answers on falconry/<uav>/localization and the true position."""
     from schemas import keys
     from schemas.arrays import from_numpy
@@ -210,6 +213,10 @@ def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | 
     from tests.tools.fuzz import UAV, encode, wire
 
     wired = wire("localizer")
+    if warnings is not None:
+        logger = wired.node.log.logger
+        logger.setLevel(logging.WARNING)
+        logger.addHandler(type("Collect", (logging.Handler,), {"emit": lambda self, r: warnings.append(r.getMessage())})())
     sc = load_scenario("mbzirc")
     sim = Simulation(sc, ["uav1", "uav2"], seed=1)
     world = primitives_from_obstacles(sim.obstacles())
@@ -229,7 +236,7 @@ def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | 
             continue
         if k == fail_at:  # the graph gives up on this scan
             monkeypatch.setattr(wired.node.core, "add_scan", lambda *a: (_ for _ in ()).throw(RuntimeError("Indeterminate")))
-        origin = me.position + yaw_rotation(me.heading) @ np.asarray(DEFAULT_MOUNT)
+        origin = me.position + yaw_rotation(me.heading) @ np.asarray(mount)
         cloud = scan(origin, me.heading, MODEL.directions(k // 2), world, np.random.default_rng(k),
                      min_range=MODEL.min_range, max_range=MODEL.max_range)
         wired.deliver(keys.uav(UAV, "points"), encode(PointCloud(
@@ -243,12 +250,28 @@ def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | 
 def test_the_node_publishes_an_estimate_per_scan_and_lost_for_good_once_the_graph_fails(monkeypatch):
     """The launch pose from the first odometry (no health: not a belief), then each scan answered; a
     gtsam failure turns every later answer into "lost" at the last pose."""
-    node, answers, truth = hover_through_the_node({}, fail_at=6, monkeypatch=monkeypatch)
+    warnings = []
+    node, answers, truth = hover_through_the_node({}, fail_at=6, monkeypatch=monkeypatch, warnings=warnings)
     assert [a.header.stamp for a in answers] == [k * 50_000_000 for k in (2, 4, 6, 8)]
     assert [a.health for a in answers] == ["tracking", "tracking", "lost", "lost"]
     assert np.linalg.norm(np.asarray(answers[1].pose.position) - truth) < 0.05
     assert answers[3].pose == answers[1].pose  # the last estimate, held
     assert node.counters.handler_errors == 0
+    np.testing.assert_allclose(node.mount_seen, DEFAULT_MOUNT, atol=1e-6)  # the driver's mount, as lidar_mount
+    assert not [w for w in warnings if "lidar_mount" in w]
+
+
+def test_the_node_sees_the_lidar_mount_the_scans_were_registered_with():
+    """The first scan at the launch point shows where the sensor driver mounts the LiDAR: a
+    lidar_mount that differs (two services, two parameters) is warned about (MOUNT_TOLERANCE)."""
+    from services.localizer.node import MOUNT_TOLERANCE
+
+    elsewhere = np.asarray(DEFAULT_MOUNT) + [0.1, 0.0, -0.05]
+    warnings = []
+    node, _, _ = hover_through_the_node({}, ticks=4, mount=elsewhere, warnings=warnings)
+    np.testing.assert_allclose(node.mount_seen, elsewhere, atol=1e-6)
+    assert np.linalg.norm(elsewhere - DEFAULT_MOUNT) > MOUNT_TOLERANCE
+    assert sum("lidar_mount says" in w for w in warnings) == 1  # once, not per scan
 
 
 def test_a_localizer_restarted_in_flight_carries_the_beliefs_covariance_on():

@@ -80,6 +80,7 @@ class Localizer:
         self.map = FeatureMap()
         self._mount = np.asarray(self.params.lidar_mount, dtype=np.float64)
         self.start_stamp = 0  # ns, of the start state (valid once started)
+        self._start_pose = (np.eye(3), np.zeros(3))  # rotation body → world and translation (once started)
 
     @property
     def started(self) -> bool:
@@ -92,6 +93,15 @@ class Localizer:
         flight controller's belief with its covariance `frame_covariance`: LocalizerGraph.start)."""
         self.graph.start(stamp_ns, rotation, translation, velocity, frame_covariance)
         self.start_stamp = int(stamp_ns)
+        self._start_pose = (np.asarray(rotation, dtype=np.float64), np.asarray(translation, dtype=np.float64))
+
+    def mount_seen(self, sensor_position: np.ndarray) -> np.ndarray:
+        """(3,) m, where a scan's sensor position sits in the body frame of the start pose:
+        R₀ᵀ (p − t₀). For a scan taken at the launch point (on the ground, before take-off) that is
+        the LiDAR's mount as whoever registered the scan (the sensor driver) has it; it should be
+        `lidar_mount`, which the two services' parameters state separately."""
+        rotation, translation = self._start_pose
+        return rotation.T @ (np.asarray(sensor_position, dtype=np.float64).reshape(3) - translation)
 
     def add_imu(self, stamps_ns: np.ndarray, accelerometer: np.ndarray, gyroscope: np.ndarray) -> None:
         self.graph.add_imu(stamps_ns, accelerometer, gyroscope)

@@ -8,6 +8,10 @@ falconry/<uav>/points (PointCloud: its world-frame points are taken back to the 
 sensor_pose, which is how the driver registered them). Publishes falconry/<uav>/localization
 (Odometry with the covariance and the health, stamped with the scan's stamp) for every scan fused.
 
+The first scan at the launch point shows where the sensor driver has the LiDAR in the body frame;
+one further than MOUNT_TOLERANCE from lidar_mount (the same mount, stated in two services'
+parameters) is warned about once.
+
 Should gtsam give up on the graph (an indeterminate system), every later scan is answered with the
 last estimate and health "lost" (the job manager then lands), until the service restarts.
 
@@ -41,6 +45,10 @@ from services.runtime.node import Node
 POSITION_STEP = 1e-6  # m (and m/s for the velocity)
 ORIENTATION_STEP = 1e-9  # of each quaternion component
 COVARIANCE_STEP = 1e-12  # m², rad², m·rad
+# m: the first scan at the launch point shows the LiDAR's mount as the sensor driver has it; further
+# from lidar_mount than this, the two services' parameters disagree (warned once: every feature
+# would sit that far off in the body frame)
+MOUNT_TOLERANCE = 0.02
 
 
 def _on_grid(values, step: float) -> np.ndarray:
@@ -77,6 +85,8 @@ class LocalizerNode(Node):
         self._last_sample: int | None = None
         self._waiting: deque[PointCloud] = deque()
         self._health = ""
+        self._check_mount = False  # on the first scan after a start at the launch point
+        self.mount_seen: np.ndarray | None = None  # (3,) m, the LiDAR's mount that scan showed
         self._last: Odometry | None = None  # the latest estimate published
         self._failed: Odometry | None = None  # once the graph failed: the last estimate, health "lost"
         self._refused: dict[str, int] = {}
@@ -100,6 +110,7 @@ class LocalizerNode(Node):
                              "its covariance carried on" if frame is not None else "which has no usable covariance")
         else:
             self.log.info("map frame started at the launch pose (%.2f, %.2f, %.2f)", *msg.pose.position)
+            self._check_mount = True
 
     def on_imu(self, msg: ImuBatch, key: str) -> None:
         if not self.core.started:
@@ -148,6 +159,8 @@ class LocalizerNode(Node):
             points = sensor_frame(to_numpy(msg.points).reshape(msg.height, msg.width, 3),
                                   np.asarray(msg.sensor_pose.position), rotation_matrix(msg.sensor_pose.orientation))
             result = self.core.add_scan(msg.header.stamp, points)
+            if self._check_mount:
+                self._compare_mount(np.asarray(msg.sensor_pose.position))
         except ValueError as exc:
             self._refuse("scans refused (shape, or stamped before the last one)", exc)
             return
@@ -160,6 +173,14 @@ class LocalizerNode(Node):
             self.pub.put(msgspec.structs.replace(self._failed, header=Header(stamp=msg.header.stamp)))
             return
         self._publish(result)
+
+    def _compare_mount(self, sensor_position: np.ndarray) -> None:
+        self._check_mount = False
+        self.mount_seen = seen = self.core.mount_seen(sensor_position)
+        if np.linalg.norm(seen - np.asarray(self.params.lidar_mount)) > MOUNT_TOLERANCE:
+            self.log.warning("the scans put the LiDAR at (%.3f, %.3f, %.3f) m in the body frame at launch, "
+                             "lidar_mount says (%.3f, %.3f, %.3f): set [localizer] lidar_mount to the sensor "
+                             "driver's mount", *seen, *self.params.lidar_mount)
 
     def _publish(self, result: ScanResult) -> None:
         e = result.estimate
