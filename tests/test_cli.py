@@ -106,6 +106,11 @@ def test_bad_parameter_file_names_table_and_field(tmp_path):
     config.write_text("[warp]\nx = 1\n")
     result = falconry("sim", "--config", str(config))
     assert result.returncode == 2 and "unknown table [warp]" in result.stderr
+    for timeout in ("inf", "1e-12", "-1.0"):  # a flight controller that never, or always, calls its estimate old
+        config.write_text(f"[simulator]\nestimate_timeout = {timeout}\n")
+        result = falconry("run", "simulator", "--config", str(config))
+        assert result.returncode == 2 and "Traceback" not in result.stderr
+        assert "estimate_timeout must be a positive number of seconds" in result.stderr, result.stderr
 
 
 def test_a_native_viewer_without_a_display_says_what_to_use_instead():

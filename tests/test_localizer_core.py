@@ -13,10 +13,10 @@ import pytest
 
 from schemas.messages import Obstacle
 from services.lidar.models import lidar_model
-from services.localizer.core import Localizer, LocalizerParams, sensor_frame
+from services.localizer.core import Localizer, LocalizerParams, restart_frame_covariance, sensor_frame
 from services.localizer.features import FeatureParams, extract_features
-from services.sensor_driver.core import (DEFAULT_MOUNT, SensorDriverParams, primitives_from_obstacles, reregistered, scan,
-                                        yaw_rotation)
+from services.sensor_driver.core import (DEFAULT_MOUNT, SensorDriverParams, primitives_from_obstacles, reregistered,
+                                        scan, yaw_rotation)
 from services.simulator.core import Simulation
 from services.simulator.positioning import EstimateRelay
 from services.simulator.scenario import load_scenario
@@ -212,11 +212,12 @@ def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | 
     from services.geometry import heading_quaternion
     from tests.tools.fuzz import UAV, encode, wire
 
-    wired = wire("localizer")
+    wired = wire("localizer")  # the node logs to a logger of its own (the harness's), at ERROR
     if warnings is not None:
-        logger = wired.node.log.logger
-        logger.setLevel(logging.WARNING)
-        logger.addHandler(type("Collect", (logging.Handler,), {"emit": lambda self, r: warnings.append(r.getMessage())})())
+        collect = logging.Handler(logging.WARNING)
+        collect.emit = lambda record: warnings.append(record.getMessage())
+        wired.node.log.logger.setLevel(logging.WARNING)
+        wired.node.log.logger.addHandler(collect)
     sc = load_scenario("mbzirc")
     sim = Simulation(sc, ["uav1", "uav2"], seed=1)
     world = primitives_from_obstacles(sim.obstacles())
@@ -235,7 +236,8 @@ def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | 
         if k % 2:
             continue
         if k == fail_at:  # the graph gives up on this scan
-            monkeypatch.setattr(wired.node.core, "add_scan", lambda *a: (_ for _ in ()).throw(RuntimeError("Indeterminate")))
+            monkeypatch.setattr(wired.node.core, "add_scan",
+                                lambda *a: (_ for _ in ()).throw(RuntimeError("Indeterminate")))
         origin = me.position + yaw_rotation(me.heading) @ np.asarray(mount)
         cloud = scan(origin, me.heading, MODEL.directions(k // 2), world, np.random.default_rng(k),
                      min_range=MODEL.min_range, max_range=MODEL.max_range)
@@ -288,6 +290,21 @@ def test_a_localizer_restarted_in_flight_carries_the_beliefs_covariance_on():
         covariance = to_numpy(answer.covariance).reshape(6, 6)
         assert np.all(np.diag(covariance) >= np.diag(belief) - 1e-12)
         assert np.diag(covariance)[0] < 0.36 + 0.01  # plus the new frame's own, small
-    node, answers, _ = hover_through_the_node({"health": "degraded", "covariance": from_numpy(np.full((6, 6), np.nan))},
-                                              ticks=4)
-    assert [a.health for a in answers] == ["tracking", "tracking"] and node.counters.handler_errors == 0
+    unusable = from_numpy(np.full((6, 6), np.nan))
+    node, answers, _ = hover_through_the_node({"health": "degraded", "covariance": unusable}, ticks=4)
+    assert [a.health for a in answers] == ["lost", "lost"] and node.counters.handler_errors == 0
+
+
+def test_a_restart_from_a_lost_or_unknown_belief_starts_lost():
+    lost_sigma = LocalizerParams().graph.lost_position_sigma
+    belief = np.diag([0.04, 0.04, 0.01, 1e-4, 1e-4, 1e-4])
+    belief[0, 1] = 0.01  # not symmetric as received (a float32 bridge): made so
+    frame = restart_frame_covariance(belief, "tracking", lost_sigma)
+    np.testing.assert_allclose(frame, frame.T)
+    np.testing.assert_allclose(frame[0, 1], 0.005)
+    assert frame[0, 0] == 0.04
+    for covariance, health in ((belief, "lost"), (None, "tracking"), (np.full(36, np.nan), "degraded"),
+                               (-np.eye(6), "tracking"), (np.eye(3), "tracking")):
+        frame = restart_frame_covariance(covariance, health, lost_sigma)
+        assert np.all(np.diag(frame)[:3] >= lost_sigma ** 2), (covariance, health)
+        assert np.linalg.eigvalsh(frame)[0] >= 0

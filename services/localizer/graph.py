@@ -176,7 +176,8 @@ class GraphParams(msgspec.Struct, forbid_unknown_fields=True):
     start_velocity_sigma: float = 0.1  # m/s
     accelerometer_bias_sigma: float = _IMU.accelerometer_bias_sigma  # m/s²
     gyroscope_bias_sigma: float = _IMU.gyroscope_bias_sigma  # rad/s
-    # Measurements. A plane's normal from a ~1 m patch of 300 returns with 1 cm range noise is good to
+    # Measurements (reasoned at 1 cm of range noise, flown at the sensor driver's 2 cm: FeatureParams).
+    # A plane's normal from a ~1 m patch of 300 returns with 1 cm range noise is good to
     # about half a degree and its offset to millimetres, but real walls are not flat: σ allow for that
     plane_normal_sigma: float = math.radians(1.0)  # rad, each of the normal's two tangent components
     plane_offset_sigma: float = 0.02  # m
@@ -575,17 +576,17 @@ class LocalizerGraph:
         carried out along the distance flown since)."""
         if self._stamps:
             raise ValueError("the graph has already started")
-        if frame_covariance is not None:
-            frame = _finite_array(frame_covariance, (6, 6), "frame covariance")
-            if not np.allclose(frame, frame.T, atol=1e-9) or np.linalg.eigvalsh((frame + frame.T) / 2)[0] < -1e-9:
-                raise ValueError("the frame covariance is not symmetric positive semi-definite")
-            self._frame_covariance = (frame + frame.T) / 2
         stamp = _stamp(stamp_ns, "start stamp")
         rotation = _finite_array(rotation, (3, 3), "start rotation")
         if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6) or np.linalg.det(rotation) < 0:
             raise ValueError("the start rotation is not a rotation matrix")
         pose = gtsam.Pose3(gtsam.Rot3(rotation), _finite_array(translation, (3,), "start translation"))
         velocity = _finite_array(velocity, (3,), "start velocity")
+        if frame_covariance is not None:
+            frame = _finite_array(frame_covariance, (6, 6), "frame covariance")
+            if not np.allclose(frame, frame.T, atol=1e-9) or np.linalg.eigvalsh((frame + frame.T) / 2)[0] < -1e-9:
+                raise ValueError("the frame covariance is not symmetric positive semi-definite")
+            self._frame_covariance = (frame + frame.T) / 2
         p = self.params
         factors, values = self._pending
         factors.add(gtsam.PriorFactorPose3(_pose_key(0), pose, gtsam.noiseModel.Diagonal.Sigmas(

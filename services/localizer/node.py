@@ -3,7 +3,8 @@
 Subscribes falconry/<uav>/odometry (Odometry: only the first one, the launch pose, known without
 GNSS, which starts the map frame; a localizer restarted in flight gets the flight controller's
 belief instead, a previous estimate, whose health says so: the map frame starts there with that
-estimate's covariance, which every later estimate carries on), falconry/<uav>/imu (ImuBatch, every batch) and
+estimate's covariance, which every later estimate carries on; a lost belief, or one without a
+usable covariance, starts it lost: core.restart_frame_covariance), falconry/<uav>/imu (ImuBatch, every batch) and
 falconry/<uav>/points (PointCloud: its world-frame points are taken back to the sensor frame by its
 sensor_pose, which is how the driver registered them). Publishes falconry/<uav>/localization
 (Odometry with the covariance and the health, stamped with the scan's stamp) for every scan fused.
@@ -22,6 +23,7 @@ waits longer than max_imu_wait is dropped and counted. In a GNSS-denied run the 
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import msgspec
@@ -31,7 +33,8 @@ from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Header, ImuBatch, Odometry, PointCloud, Pose
 from services.geometry import quaternion, rotation_matrix
-from services.localizer.core import Localizer, LocalizerParams, ScanResult, sensor_frame, warm_up
+from services.localizer.core import (Localizer, LocalizerParams, ScanResult, restart_frame_covariance,
+                                     sensor_frame, warm_up)
 from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
@@ -57,14 +60,6 @@ def _on_grid(values, step: float) -> np.ndarray:
 
 def _reproducible(values, step: float) -> tuple[float, ...]:
     return tuple(_on_grid(values, step).tolist())
-
-
-def _covariance(msg: Odometry) -> np.ndarray | None:
-    """The message's (6, 6) covariance, or None when it has none or not a finite 6 × 6 one."""
-    if msg.covariance is None:
-        return None
-    covariance = to_numpy(msg.covariance)
-    return covariance.reshape(6, 6) if covariance.size == 36 and np.isfinite(covariance).all() else None
 
 
 class LocalizerNode(Node):
@@ -97,17 +92,18 @@ class LocalizerNode(Node):
             return  # in a GNSS-denied run, our own estimate relayed by the flight controller
         rotation = rotation_matrix(msg.pose.orientation)
         in_flight = bool(msg.health)  # a belief the flight controller carries on from an earlier estimate
-        frame = _covariance(msg) if in_flight else None
+        frame = restart_frame_covariance(None if msg.covariance is None else to_numpy(msg.covariance), msg.health,
+                                         self.params.graph.lost_position_sigma) if in_flight else None
         try:
             self.core.start(msg.header.stamp, rotation, np.asarray(msg.pose.position), np.asarray(msg.velocity),
                             frame)
         except ValueError as exc:
-            self._refuse("launch poses refused (not finite, not a rotation, or a covariance that is not one)", exc)
+            self._refuse("launch poses refused (not finite, or not a rotation)", exc)
             return
         if in_flight:
             self.log.warning("restarted in flight: map frame started at the flight controller's %s belief "
-                             "(%.2f, %.2f, %.2f), %s", msg.health, *msg.pose.position,
-                             "its covariance carried on" if frame is not None else "which has no usable covariance")
+                             "(%.2f, %.2f, %.2f), position sigma %.2f m carried on", msg.health, *msg.pose.position,
+                             math.sqrt(max(np.linalg.eigvalsh(frame[:3, :3])[-1], 0.0)))
         else:
             self.log.info("map frame started at the launch pose (%.2f, %.2f, %.2f)", *msg.pose.position)
             self._check_mount = True

@@ -16,6 +16,7 @@ controller flies on (services/simulator/positioning.py).
 """
 from __future__ import annotations
 
+import math
 import time
 
 import msgspec
@@ -93,8 +94,9 @@ class SimulatorNode(Node):
         check_team(self.scenario, self.uav_names)
         override = getattr(opts, "positioning", None)
         self.positioning = {u: self.scenario.positioning(u, override) for u in self.uav_names}
-        if not self.params.estimate_timeout > 0:
-            raise UsageError(f"[simulator] estimate_timeout must be positive, not {self.params.estimate_timeout}")
+        if not (math.isfinite(self.params.estimate_timeout) and to_ns(self.params.estimate_timeout) > 0):
+            raise UsageError(f"[simulator] estimate_timeout must be a positive number of seconds, "
+                             f"not {self.params.estimate_timeout}")
         self.relay = EstimateRelay(to_ns(self.params.estimate_timeout))
         self.sim = Simulation(self.scenario, self.uav_names, self.seed, imu=self.params.imu,
                               positioning=self.positioning)
