@@ -17,6 +17,7 @@ from services.localizer.core import Localizer, LocalizerParams, restart_frame_co
 from services.localizer.features import FeatureParams, extract_features
 from services.sensor_driver.core import (DEFAULT_MOUNT, SensorDriverParams, primitives_from_obstacles, reregistered,
                                         scan, yaw_rotation)
+from services.runtime.clock import to_ns
 from services.simulator.core import Simulation
 from services.simulator.positioning import EstimateRelay
 from services.simulator.scenario import load_scenario
@@ -72,6 +73,37 @@ def test_the_flight_controller_holds_the_estimates_error_at_its_own_stamp():
     assert relay.errors["uav1"].stamp == 100
     wrapped = relay.take_estimate("uav1", 200, (4.0, 0.0, 5.0), -math.pi + 0.01 + 0.4 - 2 * math.pi, None, "tracking")
     assert abs(wrapped.heading) < math.pi
+
+
+def test_the_simulator_publishes_the_belief_and_calls_it_lost_once_the_estimates_stop():
+    """The simulator node as the flight controller of a UAV without GNSS: its odometry is the belief
+    (truth + the estimate's error, the localizer's covariance and health) until the estimates stop
+    for estimate_timeout, then "lost"; a UAV with GNSS is untouched."""
+    from schemas import keys
+    from schemas.arrays import from_numpy, to_numpy
+    from schemas.messages import Header, Odometry, Pose
+    from services.geometry import heading_quaternion
+    from tests.tools.fuzz import encode, wire
+
+    wired = wire("simulator", positioning="lidar")
+    node = wired.node
+    node.publish_state(0, 0)
+    first = wired.published(Odometry, keys.uav("uav1", keys.ODOMETRY))
+    assert first.health == ""  # the launch pose: no estimate yet
+    truth = node.sim.vehicles()[0]
+    covariance = np.diag([0.01, 0.01, 0.01, 1e-4, 1e-4, 1e-4])
+    wired.deliver(keys.uav("uav1", keys.LOCALIZATION), encode(Odometry(
+        header=Header(stamp=0), pose=Pose(position=tuple(truth.position + [0.2, 0.0, 0.0]),
+                                          orientation=heading_quaternion(truth.heading)),
+        covariance=from_numpy(covariance), health="tracking")))
+    timeout = to_ns(node.params.estimate_timeout)
+    for now, health in ((timeout, "tracking"), (timeout + 50_000_000, "lost")):
+        node.publish_state(1, now)
+        odometry = wired.published(Odometry, keys.uav("uav1", keys.ODOMETRY))
+        assert odometry.health == health
+        np.testing.assert_allclose(odometry.pose.position, node.sim.vehicles()[0].position + [0.2, 0.0, 0.0])
+        np.testing.assert_allclose(to_numpy(odometry.covariance).reshape(6, 6), covariance)
+    assert node.positioning == {"uav1": "lidar", "uav2": "lidar"}
 
 
 def test_an_estimate_stream_that_stops_makes_the_flight_controllers_position_lost():

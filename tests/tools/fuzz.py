@@ -211,10 +211,11 @@ class WiredNode:
                                                    step=self.step, dt=dt_ns / 1e9, lockstep=False)))
 
 
-def wire(service: str) -> WiredNode:
+def wire(service: str, **options) -> WiredNode:
+    """The service's node on a fake session; `options` override the run's (e.g. positioning="lidar")."""
     cls = node_class(service)
-    options = SimpleNamespace(scenario="mbzirc", uavs=2, seed=1, duration=60.0, lockstep=False, rtf=1.0,
-                              tick=0.05, detector="classifier")
+    options = SimpleNamespace(**{**dict(scenario="mbzirc", uavs=2, seed=1, duration=60.0, lockstep=False, rtf=1.0,
+                                        tick=0.05, detector="classifier"), **options})
     node = cls(None if service in keys.SIM_SERVICES else UAV, ZenohSettings(), options=options)
     errors = _LastErrors()
     logger = logging.Logger(node.sender, logging.ERROR)  # its own: the process's loggers stay as they were
