@@ -327,16 +327,15 @@ def test_a_localizer_restarted_in_flight_carries_the_beliefs_covariance_on():
     assert [a.health for a in answers] == ["lost", "lost"] and node.counters.handler_errors == 0
 
 
-def test_a_restart_from_a_lost_or_unknown_belief_starts_lost():
+def test_a_restart_from_a_belief_of_unknown_worth_starts_lost():
     lost_sigma = LocalizerParams().graph.lost_position_sigma
     belief = np.diag([0.04, 0.04, 0.01, 1e-4, 1e-4, 1e-4])
     belief[0, 1] = 0.01  # not symmetric as received (a float32 bridge): made so
-    frame = restart_frame_covariance(belief, "tracking", lost_sigma)
+    frame = restart_frame_covariance(belief, lost_sigma)
     np.testing.assert_allclose(frame, frame.T)
     np.testing.assert_allclose(frame[0, 1], 0.005)
     assert frame[0, 0] == 0.04
-    for covariance, health in ((belief, "lost"), (None, "tracking"), (np.full(36, np.nan), "degraded"),
-                               (-np.eye(6), "tracking"), (np.eye(3), "tracking")):
-        frame = restart_frame_covariance(covariance, health, lost_sigma)
-        assert np.all(np.diag(frame)[:3] >= lost_sigma ** 2), (covariance, health)
+    for covariance in (None, np.full(36, np.nan), -np.eye(6), np.eye(3)):
+        frame = restart_frame_covariance(covariance, lost_sigma)
+        assert np.all(np.diag(frame)[:3] == lost_sigma ** 2), covariance
         assert np.linalg.eigvalsh(frame)[0] >= 0

@@ -61,24 +61,23 @@ class ScanResult:
     new: int  # features added to the map
 
 
-def restart_frame_covariance(covariance: np.ndarray | None, health: str, lost_position_sigma: float) -> np.ndarray:
+def restart_frame_covariance(covariance: np.ndarray | None, lost_position_sigma: float) -> np.ndarray:
     """The (6, 6) uncertainty a localizer restarted in flight starts its map frame with, from the
-    flight controller's belief it starts at (that belief's covariance as published, and its health):
-    the covariance, made symmetric. For a belief that is "lost", or whose covariance is missing or is
-    not one (not 6 × 6, not finite, not positive semi-definite), what it is worth is unknown: position
-    σ at least `lost_position_sigma` on each axis, so every later estimate says "lost" (and the job
-    manager lands, as for any lost positioning)."""
-    frame = np.zeros((6, 6))
+    covariance of the flight controller's belief it starts at: that covariance, made symmetric. The
+    belief's health does not enter: it is "lost" after any restart that outlasts the controller's
+    estimate timeout, which says the estimates stopped, not that the pose is poor; the controller
+    grows the covariance as its own inertial error grows (docs/deploy.md; the simulated one holds
+    the error, which then does not grow). A covariance that is missing or is not one (not 6 × 6, not
+    finite, not positive semi-definite) leaves the belief's worth unknown: position σ
+    `lost_position_sigma` on each axis, so every later estimate says "lost" (and the job manager
+    lands, as for any lost positioning)."""
     usable = covariance is not None and np.size(covariance) == 36 and np.isfinite(covariance).all()
     if usable:
         frame = np.asarray(covariance, dtype=np.float64).reshape(6, 6)
         frame = (frame + frame.T) / 2
-        usable = np.linalg.eigvalsh(frame)[0] >= -1e-9
-    if not usable or health == "lost":
-        frame = frame if usable else np.zeros((6, 6))
-        for axis in range(3):
-            frame[axis, axis] = max(frame[axis, axis], lost_position_sigma ** 2)
-    return frame
+        if np.linalg.eigvalsh(frame)[0] >= -1e-9:
+            return frame
+    return np.diag([lost_position_sigma ** 2] * 3 + [0.0] * 3)
 
 
 def sensor_frame(points: np.ndarray, sensor_position: np.ndarray, sensor_rotation: np.ndarray) -> np.ndarray:

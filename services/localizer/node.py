@@ -3,8 +3,8 @@
 Subscribes falconry/<uav>/odometry (Odometry: only the first one, the launch pose, known without
 GNSS, which starts the map frame; a localizer restarted in flight gets the flight controller's
 belief instead, a previous estimate, whose health says so: the map frame starts there with that
-estimate's covariance, which every later estimate carries on; a lost belief, or one without a
-usable covariance, starts it lost: core.restart_frame_covariance), falconry/<uav>/imu (ImuBatch, every batch) and
+estimate's covariance, which every later estimate carries on; a belief without a usable
+covariance starts it lost: core.restart_frame_covariance), falconry/<uav>/imu (ImuBatch, every batch) and
 falconry/<uav>/points (PointCloud: its world-frame points are taken back to the sensor frame by its
 sensor_pose, which is how the driver registered them). Publishes falconry/<uav>/localization
 (Odometry with the covariance and the health, stamped with the scan's stamp) for every scan fused.
@@ -92,7 +92,7 @@ class LocalizerNode(Node):
             return  # in a GNSS-denied run, our own estimate relayed by the flight controller
         rotation = rotation_matrix(msg.pose.orientation)
         in_flight = bool(msg.health)  # a belief the flight controller carries on from an earlier estimate
-        frame = restart_frame_covariance(None if msg.covariance is None else to_numpy(msg.covariance), msg.health,
+        frame = restart_frame_covariance(None if msg.covariance is None else to_numpy(msg.covariance),
                                          self.params.graph.lost_position_sigma) if in_flight else None
         try:
             self.core.start(msg.header.stamp, rotation, np.asarray(msg.pose.position), np.asarray(msg.velocity),
