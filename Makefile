@@ -55,7 +55,7 @@ bench-tracking-intruder: .venv
 bench-interception: .venv
 	$(PY) benchmarks/interception.py
 
-# GNSS-denied missions on mbzirc and intruder, 3 seeds each: Table 2 of seed 003 beside KISS-ICP (about 45 min)
+# GNSS-denied missions on mbzirc and intruder, 3 seeds each: Table 2 of seed 003 beside KISS-ICP (about 2 h)
 bench-localization: .venv
 	$(PY) benchmarks/localization.py
 
