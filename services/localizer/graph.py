@@ -250,6 +250,12 @@ class GraphParams(msgspec.Struct, forbid_unknown_fields=True):
             raise msgspec.ValidationError("lost_position_sigma must be at least tracking_position_sigma")
 
 
+def worst_position_sigma(covariance: np.ndarray) -> float:
+    """m, the position's σ in its worst direction: √ of the largest eigenvalue of the covariance's
+    position block (the first three rows and columns)."""
+    return math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3])[-1]), 0.0))
+
+
 @dataclass(frozen=True)
 class Observation:
     """One feature of a scan, in the body frame, with the global id of the landmark it sights."""
@@ -872,7 +878,7 @@ class LocalizerGraph:
         self._best = gtsam.NavState(pose.rotation(), pose.translation(), velocity)
         rotation = pose.rotation().matrix()
         covariance = odometry_covariance(rotation, pose_covariance) + self._frame_covariance
-        position_sigma = math.sqrt(max(np.linalg.eigvalsh(covariance[:3, :3])[-1], 0.0))
+        position_sigma = worst_position_sigma(covariance)
         constraint_sigma = self.params.start_position_sigma if state == 0 else self._constraint_sigma(rotation,
                                                                                                       associated)
         self._unassociated_scans = 0 if associated or state == 0 else self._unassociated_scans + 1

@@ -23,7 +23,6 @@ waits longer than max_imu_wait is dropped and counted. In a GNSS-denied run the 
 """
 from __future__ import annotations
 
-import math
 from collections import deque
 
 import msgspec
@@ -35,6 +34,7 @@ from schemas.messages import Header, ImuBatch, Odometry, PointCloud, Pose
 from services.geometry import quaternion, rotation_matrix
 from services.localizer.core import (Localizer, LocalizerParams, ScanResult, restart_frame_covariance,
                                      sensor_frame, warm_up)
+from services.localizer.graph import worst_position_sigma
 from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
@@ -103,7 +103,7 @@ class LocalizerNode(Node):
         if in_flight:
             self.log.warning("restarted in flight: map frame started at the flight controller's %s belief "
                              "(%.2f, %.2f, %.2f), position sigma %.2f m carried on", msg.health, *msg.pose.position,
-                             math.sqrt(max(np.linalg.eigvalsh(frame[:3, :3])[-1], 0.0)))
+                             worst_position_sigma(frame))
         else:
             self.log.info("map frame started at the launch pose (%.2f, %.2f, %.2f)", *msg.pose.position)
             self._check_mount = True

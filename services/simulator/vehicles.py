@@ -126,7 +126,7 @@ class Fleet:
         self.limits = np.array([_limits(s.sweeping) for s in specs]).reshape(count, 4)
         # the GNSS odometry's white noise; a UAV without GNSS publishes its localizer's belief instead
         # (services/simulator/positioning.py), which carries its own error: no noise about the truth
-        gnss = [(positioning or {}).get(n, s.positioning) == "gnss" for n, s in zip(self.names, specs)]
+        gnss = [((positioning or {}).get(n) or scenario.positioning(n)) == "gnss" for n in self.names]
         self.sigmas = np.array([[s.odometry_position_sigma, s.odometry_attitude_sigma] if with_gnss else [0.0, 0.0]
                                 for s, with_gnss in zip(specs, gnss)]).reshape(-1, 2)
         self.offset = np.zeros((count, 3))
