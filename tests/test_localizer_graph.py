@@ -359,7 +359,10 @@ def test_out_of_order_input_is_refused_with_a_one_line_error():
                  lambda: LocalizerGraph().add_imu(np.array([0]), rest[:1], np.zeros((1, 3))),
                  lambda: graph.start(0, np.eye(3), np.zeros(3), np.zeros(3)),  # started twice
                  lambda: LocalizerGraph().start(0, 2 * np.eye(3), np.zeros(3), np.zeros(3)),
-                 lambda: LocalizerGraph().start(0, np.eye(3), [0.0, math.nan, 0.0], np.zeros(3))):
+                 lambda: LocalizerGraph().start(0, np.eye(3), [0.0, math.nan, 0.0], np.zeros(3)),
+                 lambda: LocalizerGraph().start(0, np.eye(3), np.zeros(3), np.zeros(3), -np.eye(6)),  # not PSD
+                 lambda: LocalizerGraph().start(0, np.eye(3), np.zeros(3), np.zeros(3),  # not symmetric
+                                                np.eye(6) + np.eye(6, k=1) * 0.1)):
         with pytest.raises(ValueError) as error:
             call()
         errors.append(str(error.value))

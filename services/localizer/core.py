@@ -29,7 +29,7 @@ import numpy as np
 from services.localizer.association import AssociationParams, FeatureMap, associate, transform_features
 from services.localizer.features import FeatureParams, Features, extract_features
 from services.localizer.graph import (GraphParams, LocalizerGraph, PoseEstimate, line_residuals, observations,
-                                      tangent_basis)
+                                      symmetric_psd, tangent_basis)
 from services.sensor_driver.core import DEFAULT_MOUNT
 
 
@@ -72,12 +72,8 @@ def restart_frame_covariance(covariance: np.ndarray | None, lost_position_sigma:
     `lost_position_sigma` on each axis, so every later estimate says "lost" (and the job manager
     lands, as for any lost positioning)."""
     usable = covariance is not None and np.size(covariance) == 36 and np.isfinite(covariance).all()
-    if usable:
-        frame = np.asarray(covariance, dtype=np.float64).reshape(6, 6)
-        frame = (frame + frame.T) / 2
-        if np.linalg.eigvalsh(frame)[0] >= -1e-9:
-            return frame
-    return np.diag([lost_position_sigma ** 2] * 3 + [0.0] * 3)
+    frame = symmetric_psd(np.asarray(covariance, dtype=np.float64).reshape(6, 6)) if usable else None
+    return frame if frame is not None else np.diag([lost_position_sigma ** 2] * 3 + [0.0] * 3)
 
 
 def sensor_frame(points: np.ndarray, sensor_position: np.ndarray, sensor_rotation: np.ndarray) -> np.ndarray:

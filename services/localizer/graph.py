@@ -250,6 +250,13 @@ class GraphParams(msgspec.Struct, forbid_unknown_fields=True):
             raise msgspec.ValidationError("lost_position_sigma must be at least tracking_position_sigma")
 
 
+def symmetric_psd(matrix: np.ndarray) -> np.ndarray | None:
+    """A square float matrix made symmetric, (M + Mᵀ) / 2, if that is positive semi-definite (its
+    smallest eigenvalue above −1e-9, round-off); None otherwise."""
+    symmetric = (matrix + matrix.T) / 2
+    return symmetric if np.linalg.eigvalsh(symmetric)[0] >= -1e-9 else None
+
+
 def worst_position_sigma(covariance: np.ndarray) -> float:
     """m, the position's σ in its worst direction: √ of the largest eigenvalue of the covariance's
     position block (the first three rows and columns)."""
@@ -590,9 +597,10 @@ class LocalizerGraph:
         velocity = _finite_array(velocity, (3,), "start velocity")
         if frame_covariance is not None:
             frame = _finite_array(frame_covariance, (6, 6), "frame covariance")
-            if not np.allclose(frame, frame.T, atol=1e-9) or np.linalg.eigvalsh((frame + frame.T) / 2)[0] < -1e-9:
+            symmetric = symmetric_psd(frame)
+            if symmetric is None or not np.allclose(frame, frame.T, atol=1e-9):
                 raise ValueError("the frame covariance is not symmetric positive semi-definite")
-            self._frame_covariance = (frame + frame.T) / 2
+            self._frame_covariance = symmetric
         p = self.params
         factors, values = self._pending
         factors.add(gtsam.PriorFactorPose3(_pose_key(0), pose, gtsam.noiseModel.Diagonal.Sigmas(

@@ -69,6 +69,12 @@ class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     # reports its position lost (services/simulator/positioning.py): ten scans of a 10 Hz LiDAR
     estimate_timeout: float = 1.0
 
+    def __post_init__(self) -> None:  # the params loader reports it as one line naming the table
+        if not (math.isfinite(self.estimate_timeout) and to_ns(self.estimate_timeout) > 0):
+            # inf would never call an estimate old, a value below 1 ns always would
+            raise msgspec.ValidationError(f"estimate_timeout must be a positive number of seconds, "
+                                          f"not {self.estimate_timeout}")
+
 
 def _vec(values) -> tuple[float, float, float]:
     return (float(values[0]), float(values[1]), float(values[2]))
@@ -94,9 +100,6 @@ class SimulatorNode(Node):
         check_team(self.scenario, self.uav_names)
         override = getattr(opts, "positioning", None)
         self.positioning = {u: self.scenario.positioning(u, override) for u in self.uav_names}
-        if not (math.isfinite(self.params.estimate_timeout) and to_ns(self.params.estimate_timeout) > 0):
-            raise UsageError(f"[simulator] estimate_timeout must be a positive number of seconds, "
-                             f"not {self.params.estimate_timeout}")
         self.relay = EstimateRelay(to_ns(self.params.estimate_timeout))
         self.sim = Simulation(self.scenario, self.uav_names, self.seed, imu=self.params.imu,
                               positioning=self.positioning)
