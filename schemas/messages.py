@@ -271,6 +271,28 @@ class TrajectoryReference(msgspec.Struct, kw_only=True):
     profile: ConstraintProfile = msgspec.field(default_factory=ConstraintProfile)
 
 
+PlanOutcome = Literal["clear", "detour", "clipped", "blocked", "replanned", "braked"]
+
+
+class PlanReport(msgspec.Struct, kw_only=True):
+    """What the planner made of a command, or what its guard did to the reference in flight, against
+    the obstacles its UAV knows (the a-priori map and what its mapper learnt).
+
+    outcome: "clear" (the manoeuvre as asked, free), "detour" (free by another route, approach
+    direction or height), "clipped" (flown only as far as free space allows: it ends short, at
+    rest), "blocked" (no free way: the vehicle holds where it is), "replanned" (the guard found the
+    active reference entering occupied or unseen space and a new plan avoids it), "braked" (the
+    guard found it too close ahead to avoid: the vehicle brakes to a hold)."""
+
+    header: Header
+    command_id: int  # the command planned (-1: none, e.g. the watchdog's hover)
+    action: str  # its MissionAction
+    outcome: PlanOutcome
+    note: str = ""  # one line for the operator: what was in the way, where
+    clearance: float | None = None  # m from the body to the nearest known obstacle along the plan (None: none within reach)
+    target: Vec3 | None = None  # the command's target, when it had one
+
+
 class ForbiddenZoneStatus(msgspec.Struct, kw_only=True):
     """A forbidden zone of a job manager (seed 004 §3.5.2): detections inside are ignored until `expires`."""
 
@@ -360,6 +382,9 @@ class WorldModel(msgspec.Struct, kw_only=True):
     sensors: dict[str, str] = {}  # UAV -> LiDAR model its sensor driver simulates
     appearance: Appearance = msgspec.field(default_factory=Appearance)
     positioning: dict[str, str] = {}  # UAV -> "lidar" when it flies without GNSS, on its localizer; else absent
+    # UAV -> the radius of the sphere its body fits in, m: touching an obstacle or a partner with it is
+    # a crash (the simulator), and the planner keeps it clear of what the UAV knows is occupied
+    uav_radius: dict[str, float] = {}
 
 
 class VehicleTruth(msgspec.Struct, kw_only=True):
@@ -386,6 +411,9 @@ class GroundTruth(msgspec.Struct, kw_only=True):
     step: int
     uavs: list[VehicleTruth] = []
     targets: list[TargetTruth] = []
+    # static obstacles the mission's survey lacks (WorldModel.obstacles holds the surveyed ones): the
+    # simulated sensors see them, evaluation measures clearance to them; no service that flies reads them
+    obstacles: list[Obstacle] = []
 
 
 class SimEvent(msgspec.Struct, kw_only=True):
@@ -460,6 +488,7 @@ ALL_MESSAGES: tuple[type[msgspec.Struct], ...] = (
     Tracks,
     MissionCommand,
     TrajectoryReference,
+    PlanReport,
     UavStatus,
     SimClock,
     StepAck,

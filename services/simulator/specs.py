@@ -34,6 +34,7 @@ class ObstacleSpec(msgspec.Struct, forbid_unknown_fields=True):
     height: float = 0.0
     name: str = ""
     color: Color | None = None
+    surveyed: bool = True  # in the mission's a-priori map (the world model); False: only sensors find it
 
 
 class BalloonSpec(msgspec.Struct, forbid_unknown_fields=True):
@@ -133,6 +134,7 @@ class UavSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     odometry_position_sigma: float = 0.0
     odometry_attitude_sigma: float = 0.0
     positioning: Positioning = "gnss"
+    radius: float = 0.4  # m: the sphere the airframe fits in (touching anything with it is a crash)
 
     def envelope(self) -> ProfileSpec:
         """What the airframe can do at most: the larger of its profiles, limit by limit."""
@@ -150,6 +152,7 @@ class UavOverride(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     odometry_position_sigma: float | None = None
     odometry_attitude_sigma: float | None = None
     positioning: Positioning | None = None
+    radius: float | None = None
 
 
 class UavTable(UavSpec, kw_only=True):
