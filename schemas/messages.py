@@ -367,6 +367,9 @@ class Appearance(msgspec.Struct, kw_only=True):
     ambient: float = 0.4  # share of the light that does not depend on the surface's orientation
 
 
+DEFAULT_UAV_RADIUS = 0.4  # m: a UAV's body radius when the world model names none (WorldModel.uav_radius)
+
+
 class WorldModel(msgspec.Struct, kw_only=True):
     """The static world and team, published by the simulator at start and every second."""
 

@@ -10,7 +10,7 @@ from typing import Annotated, Literal
 
 import msgspec
 
-from schemas.messages import ConstraintProfile, FaultCommand, FaultKind, Header
+from schemas.messages import DEFAULT_UAV_RADIUS, ConstraintProfile, FaultCommand, FaultKind, Header
 
 MAX_UAVS = 3  # the largest team the command line accepts (--uavs 2|3)
 POLE_RADIUS = 0.05
@@ -134,7 +134,7 @@ class UavSpec(msgspec.Struct, forbid_unknown_fields=True, kw_only=True):
     odometry_position_sigma: float = 0.0
     odometry_attitude_sigma: float = 0.0
     positioning: Positioning = "gnss"
-    radius: float = 0.4  # m: the sphere the airframe fits in (touching anything with it is a crash)
+    radius: float = DEFAULT_UAV_RADIUS  # m: the sphere the airframe fits in (touching anything with it is a crash)
 
     def envelope(self) -> ProfileSpec:
         """What the airframe can do at most: the larger of its profiles, limit by limit."""
