@@ -26,7 +26,8 @@ def scenario(**extra):
         "name": "unit",
         "arena": [[-50, -50], [50, -50], [50, 50], [-50, 50]],
         "starts": [[0.0, 0.0, 0.0], [0.0, 10.0, 0.0]],
-        "balloons": [{"pole": [20.0, 0.0], "height": 4.7, "tether": 0.0, "name": "red"}],  # centre at z = 5.0
+        # centre at z = 5.0, the pole's top 0.8 m below it: a body flying through the balloon clears the pole
+        "balloons": [{"pole": [20.0, 0.0], "height": 4.2, "tether": 0.5, "name": "red"}],
         "drones": [{"center": [0.0, 0.0, 8.0], "radius": 6.0, "speed": 2.0, "phase": 0.5}],
         "obstacles": [{"kind": "box", "center": [-20.0, -20.0, 2.0], "size": [4.0, 4.0, 4.0]}],
     }
@@ -142,7 +143,7 @@ def test_obstacles_include_ground_and_poles():
     kinds = [(o.kind, o.name) for o in sim.obstacles()]
     assert kinds == [("plane", "ground"), ("box", ""), ("cylinder", "red_pole")]
     pole = sim.obstacles()[2]
-    assert pole.radius == 0.05 and pole.height == 4.7 and pole.center == (20.0, 0.0, 0.0)
+    assert pole.radius == 0.05 and pole.height == 4.2 and pole.center == (20.0, 0.0, 0.0)
 
 
 def test_unknown_uav_rejected():

@@ -264,6 +264,8 @@ def _check_uav_settings(u, where: str) -> None:
     for field in ("odometry_position_sigma", "odometry_attitude_sigma"):
         if getattr(u, field) is not None:
             _not_negative(getattr(u, field), f"{where}.{field}")
+    if u.radius is not None:
+        _positive(u.radius, f"{where}.radius")
 
 
 def _check_uav_table(s: Scenario) -> None:

@@ -13,6 +13,12 @@ liveliness token returns.
 A UAV flying without GNSS (positioning "lidar": the scenario's, or --positioning) gets its
 odometry from its localizer's estimate (falconry/<uav>/localization), which the simulated flight
 controller flies on (services/simulator/positioning.py).
+
+The world model carries the surveyed obstacles (the mission's a-priori map) and every UAV's body
+radius; every ground truth carries the obstacles the survey lacks, for the simulated sensors and
+evaluation only. A UAV that crashes (a `collision` event, core.py) is out of the mission as a
+whole-UAV kill: its kill is announced on falconry/sim/faults as a scheduled one is, so the launcher
+takes its services down for good and lockstep stops waiting for them.
 """
 from __future__ import annotations
 
@@ -193,12 +199,17 @@ class SimulatorNode(Node):
         for step in range(first_step, steps + 1):
             if self.stopping:
                 return
+            crashed = []
             if step > 0:
                 self.handle_released(self.inputs.release(self._alive))
                 for kind, subject, detail in self.sim.step(self.tick_s):
                     self.event(kind, subject, detail)
+                    if kind == "collision":
+                        crashed.append(subject)
             now = to_ns(step * self.tick_s)
             self.clock.advance_to(now)
+            for uav in crashed:
+                self.announce_crash(uav, now)
             self.inject_faults(now)
             self.publish_state(step, now)
             rtf = (seconds(now) - mission_start) / max(time.monotonic() - wall_start, 1e-9)
@@ -318,18 +329,16 @@ class SimulatorNode(Node):
             self.event("fault_injected", target, spec.kind + (f" for {spec.duration:g} s" if spec.duration else ""))
             self.faults_pub.put(command)
 
+    def announce_crash(self, uav: str, now: int) -> None:
+        """A crashed UAV is out of the mission as a whole-UAV kill for good (the launcher's fault
+        executor takes its processes down), announced as a scheduled kill is."""
+        command = FaultCommand(header=Header(stamp=now), kind="kill", uav=uav)
+        self.fault_windows.add(command)  # before this tick's wait, not when it comes back to us
+        self.faults_pub.put(command)
+
     # ------------------------------------------------------------ output
     def publish_world(self) -> None:
-        sc = self.scenario
-        self.world_pub.put(WorldModel(
-            header=Header(stamp=self.clock.now_ns()), scenario=sc.name, arena=[tuple(p) for p in sc.arena],
-            min_height=sc.min_height, max_height=sc.max_height, obstacles=self.sim.obstacles(),
-            uavs=list(self.uav_names), seed=self.seed, duration=self.duration,
-            sensors={u: sc.uav_spec(u).sensor for u in self.uav_names},
-            positioning={u: "lidar" for u in self.uav_names if self.positioning[u] == "lidar"},
-            appearance=Appearance(sky=tuple(sc.appearance.sky), ground=tuple(sc.appearance.ground),
-                                  obstacle=tuple(sc.appearance.obstacle), sun_elevation=sc.appearance.sun_elevation,
-                                  sun_azimuth=sc.appearance.sun_azimuth, ambient=sc.appearance.ambient)))
+        self.world_pub.put(world_model(self.sim, self.clock.now_ns(), self.seed, self.duration, self.positioning))
 
     def publish_state(self, step: int, now: int) -> None:
         if step % max(1, int(round(self.params.world_period / self.tick_s))) == 0:
@@ -349,16 +358,37 @@ class SimulatorNode(Node):
                 velocity=_vec(velocity), covariance=from_numpy(np.asarray(covariance, dtype=np.float64)),
                 health=health))
             self.imu_pubs[v.name].put(imu_batch(self.sim.imu(v.name), now, v.name, self.sim.imu_params.rate_hz))
-        self.truth_pub.put(GroundTruth(
-            header=Header(stamp=now), step=step,
-            uavs=[VehicleTruth(name=v.name, position=tuple(float(x) for x in v.position),
-                               velocity=tuple(float(x) for x in v.velocity), heading=float(v.heading),
-                               airborne=bool(v.airborne), alive=bool(v.alive)) for v in vehicles],
-            targets=[t.truth() for t in self.sim.targets()]))
+        self.truth_pub.put(ground_truth(self.sim, step, now, vehicles))
 
     def event(self, kind: str, subject: str, detail: str = "") -> None:
         self.log.info("event %s %s %s", kind, subject, detail)
         self.events_pub.put(SimEvent(header=Header(stamp=self.clock.now_ns()), kind=kind, subject=subject, detail=detail))
+
+
+def world_model(sim: Simulation, stamp: int, seed: int, duration: float, positioning: dict[str, str]) -> WorldModel:
+    """What every service may know of the world: the arena, the surveyed obstacles, the team."""
+    sc, uavs = sim.scenario, sim.uav_names
+    return WorldModel(
+        header=Header(stamp=stamp), scenario=sc.name, arena=[tuple(p) for p in sc.arena],
+        min_height=sc.min_height, max_height=sc.max_height, obstacles=sim.obstacles(),
+        uavs=list(uavs), seed=seed, duration=duration,
+        sensors={u: sc.uav_spec(u).sensor for u in uavs},
+        positioning={u: "lidar" for u in uavs if positioning[u] == "lidar"},
+        appearance=Appearance(sky=tuple(sc.appearance.sky), ground=tuple(sc.appearance.ground),
+                              obstacle=tuple(sc.appearance.obstacle), sun_elevation=sc.appearance.sun_elevation,
+                              sun_azimuth=sc.appearance.sun_azimuth, ambient=sc.appearance.ambient),
+        uav_radius={u: float(sc.uav_spec(u).radius) for u in uavs})
+
+
+def ground_truth(sim: Simulation, step: int, stamp: int, vehicles: list | None = None) -> GroundTruth:
+    """The truth of this moment, with the obstacles the survey lacks (for sensors and evaluation)."""
+    return GroundTruth(
+        header=Header(stamp=stamp), step=step,
+        uavs=[VehicleTruth(name=v.name, position=tuple(float(x) for x in v.position),
+                           velocity=tuple(float(x) for x in v.velocity), heading=float(v.heading),
+                           airborne=bool(v.airborne), alive=bool(v.alive))
+              for v in (vehicles if vehicles is not None else sim.vehicles())],
+        targets=[t.truth() for t in sim.targets()], obstacles=sim.unsurveyed_obstacles())
 
 
 def imu_batch(samples: ImuSamples, now: int, uav: str, rate_hz: int) -> ImuBatch:

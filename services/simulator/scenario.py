@@ -4,7 +4,7 @@ A scenario is a TOML file; built-in ones live in services/simulator/scenarios/ a
 their file stem (`mbzirc`). Unknown fields and wrong types are rejected with a one-line
 `ScenarioError` naming the field, e.g. ``mbzirc.toml: balloons[2].height: expected float, got str``.
 Lists are indexed from 0 in messages. Units: metres, seconds, radians; x east, y north, z up.
-Later issues add obstacles that UAVs collide with and wind acting on UAVs and drones.
+Later issues add wind acting on UAVs and drones.
 
 Top-level fields
   name            str, required. Shown in logs and the world model.
@@ -30,18 +30,23 @@ Top-level fields
                   first (towards +x while inside the arena, then towards -x; spots already taken
                   are skipped); with none, the first goes to the arena point furthest from its edges.
 
-[[obstacles]]  static primitives (also seen by the simulated LiDAR; UAVs fly through them for now)
-  kind    "box" | "cylinder" | "cone" | "sphere", required.
-  center  [x, y, z] = [0, 0, 0]. Box and sphere: the centre. Cylinder and cone: the centre of
-          the base (both stand vertically; a cone's apex is at center + height).
-  size    [sx, sy, sz] = [0, 0, 0]   box edge lengths (all > 0 for a box).
-  radius  float = 0.0   cylinder, cone (base) and sphere radius (> 0 for those kinds).
-  height  float = 0.0   cylinder and cone height (> 0 for those kinds).
-  name    str = ""
-  color   [r, g, b] = appearance.obstacle   what a camera sees of it, sRGB 0-255.
+[[obstacles]]  static primitives, seen by the simulated LiDAR and camera; a UAV whose body (its [uav]
+               radius) touches one crashes (a `collision` event; it falls and is out of the mission)
+  kind      "box" | "cylinder" | "cone" | "sphere", required.
+  center    [x, y, z] = [0, 0, 0]. Box and sphere: the centre. Cylinder and cone: the centre of
+            the base (both stand vertically; a cone's apex is at center + height).
+  size      [sx, sy, sz] = [0, 0, 0]   box edge lengths (all > 0 for a box).
+  radius    float = 0.0   cylinder, cone (base) and sphere radius (> 0 for those kinds).
+  height    float = 0.0   cylinder and cone height (> 0 for those kinds).
+  name      str = ""      what events and summaries call it; unnamed: "unnamed <kind> (x, y)".
+  color     [r, g, b] = appearance.obstacle   what a camera sees of it, sRGB 0-255.
+  surveyed  bool = true   in the mission's a-priori map: the world model carries it to every
+            service. false: only the ground truth does, so the simulated sensors see it and the
+            run's evaluation measures clearance to it, but no flying service knows it beforehand.
 
 [[balloons]]  targets: a sphere tethered to the top of a thin pole (the pole, radius 0.05 m, is a
-              static cylinder obstacle from the ground to its top)
+              static cylinder obstacle from the ground to its top, surveyed, which a UAV crashes
+              into like any other; the balloon itself is a target, never an obstacle)
   pole    [x, y], required, inside the airspace.
   height  float = 3.0   height of the pole's top above the ground, m (> 0).
   radius  float = 0.3   balloon radius (0.6 m diameter), m (> 0).
@@ -118,6 +123,11 @@ Top-level fields
                            noise), on the onboard localizer's LiDAR-inertial estimate (the run
                            starts a localizer per such UAV; `falconry sim --positioning lidar` sets
                            it for every UAV).
+  radius                   float = 0.4   the sphere about its centre the airframe fits in, m (> 0): this
+                           body touching an obstacle, a balloon's pole or a flying partner's body
+                           is a crash; so is touching the ground outside a landing (an emergency
+                           landing, or a reference at most 0.3 m above the ground met at most
+                           2.5 m/s down and 1 m/s across).
   overrides.<uav>          a table with any of the fields above, for one UAV (uav1..uav3).
 
 [[faults]]  the fault schedule, injected at mission times (file order kept)

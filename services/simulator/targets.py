@@ -89,11 +89,13 @@ class Balloons:
         return (self.positions(t + h) - self.positions(t - h)) / (2 * h)
 
     def check_hits(self, t: np.ndarray, uav_positions: np.ndarray, alive: np.ndarray, names: list[str]) -> list:
-        """Balloons hit during S sub-steps (UAV positions (S, U, 3)): [(sub-step, event), ...]."""
+        """Balloons hit during S sub-steps (UAV positions (S, U, 3); alive (U,), or (S, U) when a UAV
+        died within the step): [(sub-step, event), ...]."""
         if not len(self.ids):
             return []
         gap = np.linalg.norm(uav_positions[:, :, None, :] - self.positions(t)[:, None, :, :], axis=-1)
-        hit = (gap <= self.reach) & alive[None, :, None] & ~self.destroyed  # (S, U, N)
+        hit = (gap <= self.reach) & np.broadcast_to(alive, gap.shape[:2])[:, :, None]
+        hit &= ~self.destroyed  # (S, U, N)
         found = []
         for j in np.flatnonzero(hit.any(axis=(0, 1))):
             k = int(np.argmax(hit[:, :, j].any(axis=1)))
@@ -148,13 +150,15 @@ class Drones:
 
     def check_captures(self, t: np.ndarray, uav_positions: np.ndarray, uav_velocities: np.ndarray,
                        alive: np.ndarray, names: list[str]) -> list:
-        """Drones captured during S sub-steps (UAV states (S, U, 3)): [(sub-step, event), ...]."""
+        """Drones captured during S sub-steps (UAV states (S, U, 3); alive (U,) or (S, U)):
+        [(sub-step, event), ...]."""
         if not len(self.ids) or self.captured.all():
             return []
         positions, velocities = self.kinematics(t)
         gap = np.linalg.norm(uav_positions[:, :, None, :] - positions[:, None, :, :], axis=-1)
         relative = np.linalg.norm(uav_velocities[:, :, None, :] - velocities[:, None, :, :], axis=-1)
-        caught = (gap <= self.capture_radius) & (relative <= self.capture_speed) & alive[None, :, None]
+        caught = (gap <= self.capture_radius) & (relative <= self.capture_speed)
+        caught &= np.broadcast_to(alive, gap.shape[:2])[:, :, None]
         caught &= ~self.captured  # (S, U, M)
         found = []
         for j in np.flatnonzero(caught.any(axis=(0, 1))):

@@ -18,6 +18,13 @@ white noise (position and heading, σ from the scenario) is drawn from a generat
 Emergency landing ignores the reference for good: brake horizontally and descend at
 EMERGENCY_DESCENT (capped by the vertical limit) until on the ground.
 
+Touching the ground: an airborne UAV that comes down to LANDED_HEIGHT has landed when it was
+landing, and crashed otherwise. Landing is an emergency landing, or a reference at the ground
+(at most LANDING_REFERENCE_HEIGHT above it) met gently (at most LANDING_VERTICAL_SPEED down and
+LANDING_HORIZONTAL_SPEED across); anything else is a ("collision", uav, "ground at ...") event, and
+the vehicle is dead from then on, as one killed. Obstacles and partners are the simulation's to
+check (core.py), since they need the whole team's sub-steps at once.
+
 Offboard loss: an airborne UAV that has received no trajectory reference for OFFBOARD_TIMEOUT_S
 (its planner re-sends the current one every 2 s) while that reference still moves it brakes and
 holds its position until the next one arrives, as a flight controller's offboard failsafe does
@@ -46,6 +53,9 @@ TAKEOFF_HEIGHT = 0.2  # above ground: airborne
 LANDED_HEIGHT = 0.05  # above ground: landed again (hysteresis against chatter)
 EMERGENCY_DESCENT = 1.0  # m/s
 OFFBOARD_TIMEOUT_S = 5.0  # s without a trajectory reference before an airborne UAV holds its position
+LANDING_REFERENCE_HEIGHT = 0.3  # m above ground: a reference this low is a landing
+LANDING_VERTICAL_SPEED = 2.5  # m/s: a landing touches down no faster than this, ...
+LANDING_HORIZONTAL_SPEED = 1.0  # ... and drifts no faster than this; else it is a crash
 MIN_VARIANCE = 1e-6  # reported for a noiseless estimate, so the covariance stays invertible
 ODOMETRY_SALT = zlib.crc32(b"odometry")
 
@@ -131,6 +141,7 @@ class Fleet:
                                 for s, with_gnss in zip(specs, gnss)]).reshape(-1, 2)
         self.offset = np.zeros((count, 3))
         self.jumped = False  # any odometry offset yet (skips work in the common case)
+        self.radius = np.array([s.radius for s in specs], dtype=float)  # the body's sphere, m
 
     def index(self, uav: str) -> int:
         try:
@@ -154,6 +165,10 @@ class Fleet:
         self.hold[i] = self.position[i]
         self.references[i] = None
         return True
+
+    def crash(self, i: int) -> None:
+        """The vehicle is dead from now on: it falls and stays on the ground."""
+        self.alive[i] = False
 
     def emergency_land(self, i: int) -> bool:
         """Start an emergency landing; False when already landing that way or dead."""
@@ -202,6 +217,7 @@ class Fleet:
         velocity[:, :2] *= shrink[:, None]
         velocity[alive, 2] = np.clip(velocity[alive, 2], -max_vz[alive], max_vz[alive])
         position = self.position + velocity * h
+        touching = velocity.copy()  # what a vehicle meets the ground with, before the ground stops it
 
         on_ground = position[:, 2] <= self.ground_z
         resting = on_ground & ~self.airborne
@@ -224,8 +240,32 @@ class Fleet:
             elif self.airborne[i] and height[i] <= LANDED_HEIGHT:
                 self.airborne[i] = False
                 self.hold[i] = position[i]
+                if self.alive[i] and not self._landing(i, p_ref[i], touching[i]):
+                    self.crash(i)
+                    events.append(("collision", name, f"ground at {np.linalg.norm(touching[i]):.1f} m/s "
+                                                      f"({position[i, 0]:.1f}, {position[i, 1]:.1f}, "
+                                                      f"{position[i, 2]:.1f})"))
                 detail = "crashed" if not self.alive[i] else "emergency" if self.emergency[i] else ""
                 events.append(("landed", name, detail))
+
+    def _landing(self, i: int, reference: np.ndarray, velocity: np.ndarray) -> bool:
+        """Whether touching the ground with this velocity, on this reference, is a landing."""
+        if self.emergency[i]:
+            return True
+        return bool(reference[2] <= self.ground_z + LANDING_REFERENCE_HEIGHT
+                    and abs(velocity[2]) <= LANDING_VERTICAL_SPEED
+                    and math.hypot(velocity[0], velocity[1]) <= LANDING_HORIZONTAL_SPEED)
+
+    def snapshot(self) -> tuple:
+        """What integrating changes, to fly the same sub-steps again from here (`restore`)."""
+        return (self.position.copy(), self.velocity.copy(), self.heading.copy(), self.airborne.copy(),
+                self.alive.copy(), self.hold.copy(), list(self.references), self.now_ns)
+
+    def restore(self, state: tuple) -> None:
+        position, velocity, heading, airborne, alive, hold, references, now_ns = state
+        self.position, self.velocity, self.heading = position.copy(), velocity.copy(), heading.copy()
+        self.airborne, self.alive, self.hold = airborne.copy(), alive.copy(), hold.copy()
+        self.references, self.now_ns = list(references), now_ns
 
     def _offboard_failsafe(self, t_ns: int, events: list) -> None:
         for i, name in enumerate(self.names):
