@@ -1,7 +1,8 @@
 """The sensor driver and the oracle as running services: every scan comes with its truth
 (same stamp, same shape), the oracle turns the target hits into detections, a scheduled
 `lidar_silent` fault silences exactly its window of mission time, and the LiDAR model is the
-parameters' or else the one the world model names for the UAV."""
+parameters' or else the one the world model names for the UAV; the sensor driver and the camera
+see the obstacles only the ground truth carries."""
 from __future__ import annotations
 
 import subprocess
@@ -15,6 +16,7 @@ import pytest
 from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import (
+    CameraFrame,
     Detections,
     FaultCommand,
     GroundTruth,
@@ -130,3 +132,61 @@ def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes,
     uav2 = got["uav2"]
     assert uav2 and all(m.sensor_model == "mid360" and to_numpy(m.points).shape == (4, 5000, 3) for m in uav2)
     assert (uav2[0].min_range, uav2[0].max_range) == (0.1, 40.0)
+
+
+SHED = Obstacle(kind="box", center=(8.0, 0.0, 3.0), size=(2.0, 6.0, 6.0), name="shed", color=(20, 20, 200))
+
+
+def test_the_simulated_sensors_see_an_obstacle_the_survey_lacks(hub, processes):
+    """An obstacle only the ground truth carries (unsurveyed): the LiDAR's rays and the camera's
+    pixels meet it from the tick it appears in the truth, beside the world model's ground."""
+    session, endpoint = hub
+    for service in ("sensor_driver", "camera"):
+        processes.start("run", service, "--uav", "uav1", "--connect", endpoint, "--exit-with-parent")
+    wait_healthy(session, [("uav1", "sensor_driver"), ("uav1", "camera")])
+    got: dict[str, list] = {"points": [], "points_truth": [], "camera": []}
+    types = {"points": PointCloud, "points_truth": PointTruth, "camera": CameraFrame}
+    subscribers = [session.declare_subscriber(keys.uav("uav1", topic), lambda s, t=topic: got[t].append(
+        msgspec.msgpack.decode(s.payload.to_bytes(), type=types[t]))) for topic in types]
+    time.sleep(0.5)
+
+    def put(key: str, msg) -> None:
+        session.put(key, msgspec.msgpack.encode(msg))
+
+    put(keys.WORLD, WorldModel(header=Header(sender="sim/simulator", seq=1), scenario="test",
+                               arena=[(0, 0), (1, 0), (0, 1)], min_height=0.0, max_height=20.0, uavs=["uav1"], seed=3,
+                               obstacles=[Obstacle(kind="plane", center=(0, 0, 0), name="ground")]))
+    time.sleep(0.3)
+    appears = 20  # the shed is in the truth from this tick on
+    for tick in range(1, 41):
+        now = stamp_ns(tick)
+        put(keys.TRUTH, GroundTruth(header=Header(sender="sim/simulator", seq=tick, stamp=now), step=tick,
+                                    uavs=[VehicleTruth(name="uav1", position=(0.0, 0.0, 3.0), velocity=(0, 0, 0),
+                                                       heading=0.0, airborne=True)],
+                                    obstacles=[SHED] if tick >= appears else []))
+        put(keys.CLOCK, SimClock(header=Header(sender="sim/simulator", seq=tick, stamp=now), step=tick, dt=0.05,
+                                 lockstep=False))
+        time.sleep(0.08)
+    time.sleep(1.0)
+    for s in subscribers:
+        s.undeclare()
+
+    hits = {m.header.stamp: to_numpy(m.hits) for m in got["points_truth"]}
+    on_shed = {}  # scan stamp -> returns from the shed's face (x = 7), off the ground
+    for cloud in got["points"]:
+        points = to_numpy(cloud.points).reshape(-1, 3)
+        face = (np.abs(points[:, 0] - 7.0) < 0.1) & (np.abs(points[:, 1]) < 3.0) & (points[:, 2] > 0.3)
+        assert (hits[cloud.header.stamp].reshape(-1)[face] == 0).all()  # the static world's id
+        on_shed[cloud.header.stamp] = int(face.sum())
+    # in real time a tick may overtake its own truth: the scan at the appearance tick may miss it
+    before = [n for stamp, n in on_shed.items() if stamp < stamp_ns(appears)]
+    after = [n for stamp, n in on_shed.items() if stamp > stamp_ns(appears)]
+    assert len(before) >= 5 and len(after) >= 5, sorted(on_shed)
+    assert max(before) == 0 and min(after) > 50, (before, after)
+    # the camera's optical axis (10° down from 3.15 m) meets the face 6.85 m ahead: 6.96 m along the
+    # axis; without the shed it meets the ground 17.9 m away, beyond the depth image's 10 m
+    centre = {m.header.stamp: np.median(to_numpy(m.depth)[170:190, 310:330]) / 1000.0 for m in got["camera"]}
+    seen = [d for stamp, d in centre.items() if stamp > stamp_ns(appears)]
+    unseen = [d for stamp, d in centre.items() if stamp < stamp_ns(appears)]
+    assert len(seen) >= 5 and len(unseen) >= 5, sorted(centre)
+    assert all(d == 0.0 for d in unseen) and all(abs(d - 6.96) < 0.3 for d in seen), (unseen, seen)

@@ -1,8 +1,9 @@
 """camera node: the simulated RGB-D camera of its UAV (core.py) on falconry/<uav>/camera, and a
 compressed frame for the ground (recordings, `falconry snapshot`) on falconry/<uav>/camera_jpeg.
 
-Renders the simulator's world (static obstacles and appearance from falconry/sim/world, standing
-targets and the own pose from falconry/sim/truth, as the simulated LiDAR does) at `rate_hz` of
+Renders the simulator's world (static obstacles and appearance from falconry/sim/world, the
+obstacles the mission's survey lacks, standing targets and the own pose from falconry/sim/truth,
+as the simulated LiDAR does) at `rate_hz` of
 mission time, `phase` of a period after the LiDAR's scans. Only this service, the sensor driver
 and the simulator may read ground truth; the frames carry none of it. Onboard, a RealSense
 driver publishes the same messages.
@@ -41,8 +42,9 @@ class CameraNode(Node):
         self.rng: np.random.Generator | None = None
         self.rng_key: tuple[int, int] | None = None
         self.gains = Gains()
-        self.static: Primitives | None = None
-        self.obstacles = None
+        self.static: Primitives | None = None  # the world model's obstacles and the truth's, built when either changes
+        self.obstacles = None  # the world model's
+        self.unsurveyed: list = []  # the truth's
         self.appearance = Appearance()
         self.truth: GroundTruth | None = None
         self.last_slot = -1
@@ -60,7 +62,7 @@ class CameraNode(Node):
     def on_world(self, world: WorldModel, key: str) -> None:
         if world.obstacles != self.obstacles:
             self.obstacles = world.obstacles
-            self.static = primitives_from_obstacles(world.obstacles)
+            self.static = primitives_from_obstacles([*self.obstacles, *self.unsurveyed])
         self.appearance = world.appearance
         if (key := noise_stream_key(world, self.uav)) != self.rng_key:
             self.rng_key = key
@@ -70,6 +72,10 @@ class CameraNode(Node):
 
     def on_truth(self, truth: GroundTruth, key: str) -> None:
         self.truth = truth
+        if truth.obstacles != self.unsurveyed:  # the same every tick of a run: compared, not rebuilt
+            self.unsurveyed = truth.obstacles
+            if self.obstacles is not None:
+                self.static = primitives_from_obstacles([*self.obstacles, *self.unsurveyed])
 
     def on_tick(self, now_ns: int) -> None:
         if now_ns < self.phase_ns:

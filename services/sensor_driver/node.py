@@ -1,8 +1,9 @@
 """sensor_driver node: simulated LiDAR scans of its UAV on falconry/<uav>/points, and for
 evaluation only the id of what every ray hit on falconry/<uav>/points_truth.
 
-Ray-casts the simulator's world (static obstacles from falconry/sim/world, standing targets and
-the own pose from falconry/sim/truth) at `rate_hz` of mission time with the LiDAR model the
+Ray-casts the simulator's world (static obstacles from falconry/sim/world and those the mission's
+survey lacks from falconry/sim/truth, standing targets and the own pose from the truth too) at
+`rate_hz` of mission time with the LiDAR model the
 parameters name, or else the one the scenario names for this UAV in the world model
 (core.SensorDriverParams, services/lidar/models.py). Both messages of a scan carry the same stamp; the
 PointTruth never enters the PointCloud, so perception cannot see it. LiDAR faults scheduled on
@@ -58,8 +59,9 @@ class SensorDriverNode(Node):
             raise ValueError(f"sensor_driver.rate_hz must be > 0, got {p.rate_hz}")
         self._use_model(p.model or FALLBACK_MODEL)
         self.period_ns = max(1, int(round(1e9 / p.rate_hz)))
-        self.static: Primitives | None = None
-        self.obstacles = None
+        self.static: Primitives | None = None  # the world model's obstacles and the truth's, built when either changes
+        self.obstacles = None  # the world model's
+        self.unsurveyed: list = []  # the truth's
         self.truth: GroundTruth | None = None
         self.rng: np.random.Generator | None = None
         self.rng_key: tuple[int, int] | None = None
@@ -107,7 +109,7 @@ class SensorDriverNode(Node):
                 self.log.error("keeping LiDAR model %s: %s", self.model.name, err)
         if world.obstacles != self.obstacles:
             self.obstacles = world.obstacles
-            self.static = primitives_from_obstacles(world.obstacles)
+            self.static = primitives_from_obstacles([*self.obstacles, *self.unsurveyed])
         lidar = world.positioning.get(self.uav) == "lidar"
         if lidar != self.registered_by_odometry:
             self.registered_by_odometry = lidar
@@ -118,6 +120,10 @@ class SensorDriverNode(Node):
 
     def on_truth(self, truth: GroundTruth, key: str) -> None:
         self.truth = truth
+        if truth.obstacles != self.unsurveyed:  # the same every tick of a run: compared, not rebuilt
+            self.unsurveyed = truth.obstacles
+            if self.obstacles is not None:
+                self.static = primitives_from_obstacles([*self.obstacles, *self.unsurveyed])
 
     def on_odometry(self, odometry: Odometry, key: str) -> None:
         self.odometry = odometry
