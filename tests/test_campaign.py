@@ -7,7 +7,7 @@ import tomllib
 import pytest
 
 from services.launcher import netns
-from services.launcher.campaign import EARLIEST, LATEST_BEFORE_END, draw_runs
+from services.launcher.campaign import EARLIEST, HEADER, LATEST_BEFORE_END, RunPlan, RunResult, draw_runs, row, totals
 from services.simulator.scenario import SCENARIO_DIR, parse_scenario
 from tests.conftest import falconry_argv
 
@@ -31,6 +31,38 @@ def test_a_campaign_is_the_same_list_of_valid_runs_for_the_same_seed():
         draw_runs(1, 1, 20.0)  # no room for a fault between take-off and the end
 
 
+def summary(collisions: int = 0, clearances=(1.84, 0.93), violations: int = 0) -> dict:
+    """What a run's --summary-json says, the parts the table reads."""
+    return {"outcome": "finished", "min_separation": {"m": 6.2, "t": 40.0, "pair": "uav1-uav2"},
+            "separation_violations": [{"start": 1.0, "end": 2.0, "pair": "uav1-uav2", "m": 4.0}] * violations,
+            "collisions": [{"t": 55.9, "uav": "uav1", "with": "tree2", "detail": "tree2 at 4.1 m/s (10.3, 29.1, 5.0)"}]
+            * collisions,
+            "clearance": {f"uav{k + 1}": {"m": m, "to": "tree2", "t": 50.0, "attack_pole": None}
+                          for k, m in enumerate(clearances)},
+            "destroyed": [], "targets": 5, "uavs": {}, "restarts": [],
+            "health": {"handler_errors": 0, "decode_errors": 0, "lost_own_uav": 0}}
+
+
+def test_a_collision_fails_a_run_like_a_separation_violation_and_the_table_shows_clearance():
+    plan = RunPlan(1, 42, 2)
+    clean = RunResult.from_summary(plan, summary())
+    crashed = RunResult.from_summary(plan, summary(collisions=1, clearances=(0.61, None)))
+    too_close = RunResult.from_summary(plan, summary(violations=1))
+    never_flew = RunResult.from_summary(plan, summary(clearances=(None, None)))
+    assert (clean.collisions, clean.clearance, clean.ok) == (0, 0.93, True)
+    assert (crashed.collisions, crashed.clearance, crashed.ok) == (1, 0.61, False)
+    assert not too_close.ok and never_flew.clearance is None and never_flew.ok
+    assert RunResult.from_summary(plan, {}).clearance is None  # a run that wrote no summary
+    columns = HEADER.split()
+    assert columns[columns.index("viol") + 1:columns.index("viol") + 4] == ["coll", "clear", "m"]
+    cells = row(crashed).split()
+    assert cells[cells.index("6.2") + 1:cells.index("6.2") + 4] == ["0", "1", "0.61"]  # viol, coll, clear m
+    assert row(never_flew).split()[cells.index("6.2") + 3] == "-"
+    assert len(row(clean)) == len(row(crashed))  # the columns line up
+    lines = totals([clean, crashed, never_flew], 5.0)
+    assert "collisions: 1; smallest clearance to an obstacle over all runs: 0.61 m" in lines[1]
+
+
 @pytest.mark.timeout(600)
 @pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
 def test_a_small_campaign_keeps_the_team_apart_and_prints_its_table(tmp_path):
@@ -42,6 +74,7 @@ def test_a_small_campaign_keeps_the_team_apart_and_prints_its_table(tmp_path):
     print(result.stdout[-2500:])
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
     assert "runs finished: 2/2; separation violations (closer than 5 m): 0" in result.stdout
+    assert "collisions: 0; smallest clearance to an obstacle over all runs: " in result.stdout
     assert "handler errors: 0;" in result.stdout
     table = result.stdout.split("run UAVs")[1].splitlines()
     assert len([line for line in table if line.strip().startswith(("1 ", "2 "))]) == 2

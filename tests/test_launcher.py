@@ -165,6 +165,10 @@ def test_two_uav_mission_flies_and_reports(tmp_path):
         assert uav["takeoff_s"] is not None and uav["distance_m"] > 50, (name, uav)
         assert uav["max_height_m"] > 4.0, (name, uav)
     assert summary["targets"] >= 5
+    # the world model reaches the monitor: every UAV that flew has its closest approach to an obstacle
+    assert set(summary["clearance"]) == {"uav1", "uav2"}
+    assert all(c["m"] is not None and c["to"] for c in summary["clearance"].values()), summary["clearance"]
+    assert all(c["uav"] in ("uav1", "uav2") and c["with"] for c in summary["collisions"])
     # where the CPU went: every process answered its health query before it was stopped
     services = keys.uav_services()  # the default detector, onboard: the camera services too
     assert "camera" in services and "object_detect" in services

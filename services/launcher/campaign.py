@@ -1,5 +1,6 @@
 """The fault campaign's pure part: seeded random fault schedules, and the table of what each run
-did with its faults (`falconry campaign`, `campaign_cmd.py`, runs them).
+did with its faults (`falconry campaign`, `campaign_cmd.py`, runs them). A run fails when it did
+not finish, broke the safety distance, had a collision or a handler error.
 
 A run's schedule is drawn from its own seed alone (numpy's PCG64 seeded with [campaign seed, run
 index]), so a campaign is the same list of runs on every machine, and each run is a lockstep
@@ -119,11 +120,14 @@ class RunResult:
     handler_errors: int
     decode_errors: int
     lost: int
+    collisions: int
+    clearance: float | None  # m: the smallest body-to-obstacle clearance of the run's UAVs (attacked poles apart)
 
     @classmethod
     def from_summary(cls, plan: RunPlan, summary: dict) -> "RunResult":
         health = summary.get("health") or {}
         separation = summary.get("min_separation")
+        clearances = [c["m"] for c in (summary.get("clearance") or {}).values() if c and c.get("m") is not None]
         return cls(plan=plan, outcome=summary.get("outcome", "?"),
                    min_separation=None if separation is None else separation["m"],
                    violations=len(summary.get("separation_violations", [])),
@@ -131,32 +135,39 @@ class RunResult:
                    emergency_landings=sum("EMERGENCY_LANDING" in [s for _, s in u.get("states", [])]
                                           for u in summary.get("uavs", {}).values()),
                    restarts=len(summary.get("restarts", [])), handler_errors=health.get("handler_errors", -1),
-                   decode_errors=health.get("decode_errors", -1), lost=health.get("lost_own_uav", -1))
+                   decode_errors=health.get("decode_errors", -1), lost=health.get("lost_own_uav", -1),
+                   collisions=len(summary.get("collisions", [])), clearance=min(clearances, default=None))
 
     @property
     def ok(self) -> bool:
-        return self.outcome == "finished" and self.violations == 0 and self.handler_errors == 0
+        return (self.outcome == "finished" and self.violations == 0 and self.collisions == 0
+                and self.handler_errors == 0)
 
 
-HEADER = (f"{'run':>3} {'UAVs':>4} {'seed':>5}  {'faults':<44} {'min sep m':>9} {'viol':>4} {'destroyed':>9} "
-          f"{'e-land':>6} {'restarts':>8} {'handler':>7} {'decode':>6} {'lost':>5}  outcome")
+HEADER = (f"{'run':>3} {'UAVs':>4} {'seed':>5}  {'faults':<44} {'min sep m':>9} {'viol':>4} {'coll':>4} "
+          f"{'clear m':>7} {'destroyed':>9} {'e-land':>6} {'restarts':>8} {'handler':>7} {'decode':>6} {'lost':>5}  "
+          f"outcome")
 
 
 def row(r: RunResult) -> str:
     faults = "; ".join(f.label() for f in r.plan.faults)
     separation = "-" if r.min_separation is None else f"{r.min_separation:.1f}"
+    clearance = "-" if r.clearance is None else f"{r.clearance:.2f}"
     return (f"{r.plan.index:>3} {r.plan.uavs:>4} {r.plan.seed:>5}  {faults:<44} {separation:>9} {r.violations:>4} "
-            f"{f'{r.destroyed}/{r.targets}':>9} {r.emergency_landings:>6} {r.restarts:>8} {r.handler_errors:>7} "
-            f"{r.decode_errors:>6} {r.lost:>5}  {r.outcome}")
+            f"{r.collisions:>4} {clearance:>7} {f'{r.destroyed}/{r.targets}':>9} {r.emergency_landings:>6} "
+            f"{r.restarts:>8} {r.handler_errors:>7} {r.decode_errors:>6} {r.lost:>5}  {r.outcome}")
 
 
 def totals(results: list[RunResult], safety_distance: float) -> list[str]:
     finished = sum(r.outcome == "finished" for r in results)
     separations = [r.min_separation for r in results if r.min_separation is not None]
+    clearances = [r.clearance for r in results if r.clearance is not None]
     return [
         f"runs finished: {finished}/{len(results)}; separation violations (closer than {safety_distance:g} m): "
         f"{sum(r.violations for r in results)}; closest approach over all runs: "
         + (f"{min(separations):.1f} m" if separations else "-"),
+        f"collisions: {sum(r.collisions for r in results)}; smallest clearance to an obstacle over all runs: "
+        + (f"{min(clearances):.2f} m" if clearances else "-") + " (attacked balloons' poles apart)",
         f"handler errors: {sum(r.handler_errors for r in results)}; undecodable payloads: "
         f"{sum(r.decode_errors for r in results)}; restarts: {sum(r.restarts for r in results)}; emergency landings: "
         f"{sum(r.emergency_landings for r in results)}; own-UAV messages not received by services that ran throughout: "

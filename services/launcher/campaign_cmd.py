@@ -1,5 +1,6 @@
 """`falconry campaign`: many seeded lockstep runs, each with a random fault, and one table of how
-the team coped (separation kept, targets destroyed, emergency landings, restarts, errors)."""
+the team coped (separation kept, collisions, clearance to obstacles, targets destroyed, emergency
+landings, restarts, errors)."""
 from __future__ import annotations
 
 import argparse
@@ -24,11 +25,14 @@ def add_parser(commands) -> None:
         description="Draw N fault schedules from a seed (kind, time, UAV, duration: one fault per run by default, "
                     f"kinds {', '.join(KINDS)}), fly each as a lockstep `falconry sim` on 2- and 3-UAV teams in "
                     "turn, and print one line per run and a table: faults, minimum separation of flying UAVs, "
-                    "separation violations, targets destroyed, emergency landings, restarts, handler errors, "
-                    "undecodable payloads, own-UAV messages not received by services that ran throughout (what a "
-                    "killed or frozen service missed while gone follows wall time; each run's summary has it). "
-                    "The same command gives the same table. "
-                    "Exit status 1 when a run did not finish, broke the safety distance or had a handler error.",
+                    "separation violations, collisions (a UAV's body touching an obstacle, a partner or the "
+                    "ground outside a landing), the smallest clearance of a UAV's body to an obstacle (the pole "
+                    "of a balloon it attacks apart), targets destroyed, emergency landings, restarts, handler "
+                    "errors, undecodable payloads, own-UAV messages not received by services that ran throughout "
+                    "(what a killed or frozen service missed while gone follows wall time; each run's summary has "
+                    "it). The same command gives the same table. "
+                    "Exit status 1 when a run did not finish, broke the safety distance, had a collision or a "
+                    "handler error.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--runs", type=int, default=20, help="how many runs")
     p.add_argument("--seed", type=int, default=1, help="the campaign's seed (each run's schedule and seed follow)")

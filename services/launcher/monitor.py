@@ -1,6 +1,13 @@
 """What the launcher watches during `falconry sim`: it writes the ground-truth log and
 builds the progress line and the end-of-run summary from messages alone (truth, events,
-status, tracks, detections, liveliness)."""
+status, tracks, detections, commands, the world model, liveliness).
+
+Clearance: at every truth tick, each alive, airborne UAV's body (its radius from the world model)
+is measured against every static obstacle, the world model's and the truth's unsurveyed ones (not
+the ground): the closest approach, which obstacle, when. While the UAV's latest mission command is
+an attack, the pole of the balloon attacked (the `<balloon>_pole` whose axis is horizontally
+nearest the command's target, within ATTACKED_POLE_WITHIN) is measured apart, as its `attack_pole`:
+an attack flies close over that pole's top by design."""
 from __future__ import annotations
 
 import hashlib
@@ -15,16 +22,18 @@ import numpy as np
 
 from schemas import keys
 from schemas.arrays import to_numpy
-from schemas.messages import (Detections, GroundTruth, MissionCommand, PointTruth, SimClock, SimEvent, Tracks,
-                              UavStatus)
+from schemas.messages import (Detections, GroundTruth, MissionCommand, Obstacle, PointTruth, SimClock, SimEvent,
+                              Tracks, UavStatus, WorldModel)
 from services import evaluation
 from services.geometry import pairwise_gaps
 from services.runtime.clock import StampOrigin, seconds
+from services.simulator import contact
 from services.tracker.view import track_positions
 
 _LENGTH = struct.Struct("<I")
 DETECTED_WITHIN = 1.5  # m between a detection and a target's true position for "first detected"
 NEAREST_PERIOD = 0.25  # s of mission time between samples of each UAV's distance to its nearest partner
+ATTACKED_POLE_WITHIN = 1.5  # m from an attack command's target to the axis of the pole it attacks
 
 
 def write_record(stream: BinaryIO, payload: bytes) -> None:
@@ -70,7 +79,10 @@ class UavSummary:
     camera: evaluation.PerceptionScore = field(default_factory=evaluation.PerceptionScore)  # Object Detect's
     engagements: list[evaluation.Engagement] = field(default_factory=list)
     last_action: str = ""  # of the job manager's latest command
+    attacking: tuple[float, float, float] | None = None  # the target of the latest command, an attack
     team_view: tuple | None = None  # (working area x-range, fallen partners) last reported
+    clearance: tuple[float, str, float] | None = None  # (m, obstacle, mission time) of the closest approach
+    attack_pole: tuple[float, str, float] | None = None  # the same to the pole of the balloon it attacked
 
 
 class RunMonitor:
@@ -98,10 +110,17 @@ class RunMonitor:
         self.restarts: list[str] = []
         self.team_changes: list[dict] = []  # a UAV's working area or fallen partners changed (revenge mode)
         self.faults: list[str] = []
+        self.collisions: list[dict] = []  # t, uav, with (the other party), detail
+        self._surveyed: list[Obstacle] | None = None  # the world model's obstacles (None: no world model yet)
+        self._unsurveyed: list[Obstacle] = []  # the truth's
+        self._solids: list[Obstacle] = []  # both, as contact.shapes orders them (the ground left out)
+        self._shapes = contact.shapes([])
+        self.uav_radius: dict[str, float] = {}
         self.decode = {
             keys.CLOCK: msgspec.msgpack.Decoder(SimClock),
             keys.TRUTH: msgspec.msgpack.Decoder(GroundTruth),
             keys.EVENTS: msgspec.msgpack.Decoder(SimEvent),
+            keys.WORLD: msgspec.msgpack.Decoder(WorldModel),
         }
         self._origin = StampOrigin()
         self.latest = 0.0  # the latest mission time any message carried, s
@@ -174,6 +193,7 @@ class RunMonitor:
         u = self._uav(uav)
         previous, action = u.last_action, command.action
         u.last_action = action
+        u.attacking = tuple(command.target) if action == "attack" and command.target is not None else None
         if action not in ("attack", "intercept") or command.target is None or action == previous:
             return
         target, miss = evaluation.aimed_at(command.target, self._targets_at(command.header.stamp))
@@ -235,6 +255,43 @@ class RunMonitor:
                                           "fallen": list(view[1])})
             u.team_view = view
 
+    def _on_world(self, world: WorldModel) -> None:
+        self.uav_radius = dict(world.uav_radius)
+        if world.obstacles != self._surveyed:
+            self._surveyed = world.obstacles
+            self._rebuild_solids()
+
+    def _rebuild_solids(self) -> None:
+        self._solids = [o for o in [*(self._surveyed or []), *self._unsurveyed] if o.kind in contact.KINDS]
+        self._shapes = contact.shapes(self._solids)
+
+    def _note_clearance(self, t: float, truth: GroundTruth) -> None:
+        """Each flying UAV's closest approach to an obstacle so far (see the module's docstring)."""
+        flying = [v for v in truth.uavs if v.airborne and v.alive and v.name in self.uav_radius]
+        if not flying or not len(self._shapes):
+            return
+        radius = np.array([self.uav_radius[v.name] for v in flying])
+        gaps = contact.signed_distance(np.array([v.position for v in flying]), self._shapes) - radius[:, None]
+        for v, row in zip(flying, gaps):
+            u = self._uav(v.name)
+            pole = self._attacked_pole(u.attacking)
+            if pole is not None:
+                u.attack_pole = _closer(u.attack_pole, (float(row[pole]), self._shapes.names[pole], t))
+                row = row.copy()
+                row[pole] = np.inf
+            k = int(np.argmin(row))
+            if np.isfinite(row[k]):
+                u.clearance = _closer(u.clearance, (float(row[k]), self._shapes.names[k], t))
+
+    def _attacked_pole(self, target: tuple[float, float, float] | None) -> int | None:
+        """The index of the balloon pole an attack on `target` goes for, if any."""
+        if target is None:
+            return None
+        poles = [(math.dist(o.center[:2], target[:2]), k) for k, o in enumerate(self._solids)
+                 if o.kind == "cylinder" and o.name.endswith("_pole")]
+        nearest = min(poles, default=None)
+        return nearest[1] if nearest is not None and nearest[0] <= ATTACKED_POLE_WITHIN else None
+
     def _on_clock(self, tick: SimClock) -> None:
         self.step = max(self.step, tick.step)
         self.mission_time = seconds(tick.header.stamp)
@@ -247,6 +304,9 @@ class RunMonitor:
     def _on_truth(self, truth: GroundTruth) -> None:
         self.truth_step = max(self.truth_step, truth.step)
         t = self._seconds(truth.header.stamp)
+        if truth.obstacles != self._unsurveyed:
+            self._unsurveyed = truth.obstacles
+            self._rebuild_solids()
         for v in truth.uavs:
             u = self._uav(v.name)
             if u.last_position is not None:
@@ -267,6 +327,7 @@ class RunMonitor:
         self._truth_history[truth.header.stamp] = dict(self._target_positions)
         while len(self._truth_history) > 64:
             self._truth_history.pop(min(self._truth_history))
+        self._note_clearance(t, truth)
         flying = [v for v in truth.uavs if v.airborne and v.alive]
         if len(flying) < 2:
             self._note_separation(t, None, "")
@@ -314,6 +375,9 @@ class RunMonitor:
             self.over = True
         elif event.kind in ("target_destroyed", "target_captured"):
             self.destroyed.append((self._seconds(event.header.stamp), event.subject, event.detail))
+        elif event.kind == "collision":
+            self.collisions.append({"t": round(self._seconds(event.header.stamp), 2), "uav": event.subject,
+                                    "with": event.detail.rsplit(" at ", 1)[0], "detail": event.detail})
         elif event.kind == "service_restarted":
             self.restarts.append(f"{event.subject} ({event.detail})")
         elif event.kind.startswith("fault_"):
@@ -343,6 +407,10 @@ class RunMonitor:
                 "pair": self.min_separation[2]},
             "safety_distance": self.safety_distance,
             "separation_violations": [dict(v) for v in self.violations],
+            "collisions": [dict(c) for c in self.collisions],
+            "clearance": {name: {**_approach(u.clearance), "attack_pole": None if u.attack_pole is None
+                                 else _approach(u.attack_pole)}
+                          for name, u in sorted(self.uavs.items())},
             "restarts": list(self.restarts),
             "team_changes": list(self.team_changes),
             "faults": list(self.faults),
@@ -361,3 +429,14 @@ class RunMonitor:
             "events": [f"{seconds(self._origin.mission_ns(e.header.stamp)):.2f} {e.kind} {e.subject} {e.detail}".rstrip()
                        for e in self.events],
         }
+
+
+def _closer(best: tuple[float, str, float] | None, sample: tuple[float, str, float]) -> tuple[float, str, float]:
+    return sample if best is None or sample[0] < best[0] else best
+
+
+def _approach(closest: tuple[float, str, float] | None) -> dict:
+    """{"m", "to", "t"} of a closest approach (None each when there was none)."""
+    if closest is None:
+        return {"m": None, "to": None, "t": None}
+    return {"m": round(closest[0], 2), "to": closest[1], "t": round(closest[2], 2)}

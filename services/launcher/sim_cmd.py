@@ -40,7 +40,7 @@ from services.viz.settings import web_address
 VIEWER = "sim/viewer"
 LEAVING_STATES = ("LANDING", "EMERGENCY_LANDING")
 RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
-WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS) + tuple(
+WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, keys.WORLD) + tuple(
     keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth", "camera_detections",
                                        "command"))
 
@@ -402,7 +402,29 @@ def _completion_lines(s: dict) -> list[str]:
                        f"t={episodes[0]['start']:.1f} s ({episodes[0]['pair']})")
         lines.append(f"closest approach of two flying UAVs: {sep['m']:.1f} m ({sep['pair']}, t={sep['t']:.1f} s)"
                      + verdict)
+    lines.append(collisions_line(s.get("collisions", [])))
     return lines
+
+
+def collisions_line(collisions: list[dict]) -> str:
+    """'collisions: none', or each crash: when, who, what it hit and how fast, where."""
+    if not collisions:
+        return "collisions: none"
+    return f"COLLISIONS: {len(collisions)}" + "".join(f"\n  t={c['t']:.1f} s {c['uav']} hit {c['detail']}"
+                                                       for c in collisions)
+
+
+def clearance_line(c: dict | None) -> str:
+    """'1.84 m to tree2 at t=55.9 s; in attacks 0.41 m to balloon3_pole at t=70.2 s': the body's closest
+    approach to an obstacle while flying, and apart from it to the pole of a balloon it attacked."""
+    if c is None:
+        return "not measured"
+    closest = "none measured" if c["m"] is None else f"{c['m']:.2f} m to {c['to']} at t={c['t']:.1f} s"
+    return closest + _attack_pole_part(c.get("attack_pole"))
+
+
+def _attack_pole_part(pole: dict | None) -> str:
+    return "" if pole is None else f"; in attacks {pole['m']:.2f} m to {pole['to']} at t={pole['t']:.1f} s"
 
 
 def perception_line(p: dict) -> str:
@@ -506,6 +528,7 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
                          f"distance), {c['false']} false "
                          f"({c['false_per_minute']:.1f} per minute)")
         lines.append(f"  engagements: {engagement_line(u['engagements'])}")
+        lines.append(f"  clearance: {clearance_line(s.get('clearance', {}).get(name))}")
     lines.append("restarts: " + (", ".join(s["restarts"]) if s["restarts"] else "none"))
     injected = [f for f in s["faults"] if "fault_injected" in f]
     lines.append(f"faults injected: {len(injected)}" + "".join(f"\n  {f}" for f in s["faults"]))

@@ -1,0 +1,99 @@
+"""The run monitor's collisions and clearance, from synthetic world, truth, command and event
+messages, and how the summary prints them."""
+from __future__ import annotations
+
+import msgspec
+import pytest
+
+from schemas import keys
+from schemas.messages import GroundTruth, Header, MissionCommand, Obstacle, SimEvent, VehicleTruth, WorldModel
+from services.launcher.monitor import RunMonitor
+from services.launcher.sim_cmd import WATCHED, clearance_line, collisions_line
+
+S = 1_000_000_000
+encode = msgspec.msgpack.encode
+TREE = Obstacle(kind="cylinder", center=(10.0, 30.0, 0.0), radius=1.2, height=6.0, name="tree2")
+POLE = Obstacle(kind="cylinder", center=(50.0, 30.0, 0.0), radius=0.05, height=4.0, name="balloon2_pole")
+OTHER_POLE = Obstacle(kind="cylinder", center=(52.0, 30.0, 0.0), radius=0.05, height=3.0, name="balloon9_pole")
+SHED = Obstacle(kind="box", center=(80.0, 0.0, 2.0), size=(4.0, 4.0, 4.0), name="shed")  # unsurveyed
+
+
+def world(monitor: RunMonitor, radius=None) -> None:
+    monitor.handle(keys.WORLD, encode(WorldModel(
+        header=Header(), scenario="test", arena=[(0, 0), (100, 0), (0, 60)], min_height=0.0, max_height=20.0,
+        uavs=["uav1", "uav2"], uav_radius=radius or {"uav1": 0.4, "uav2": 0.5},
+        obstacles=[Obstacle(kind="plane", center=(0.0, 0.0, 0.0), name="ground"), TREE, POLE, OTHER_POLE])))
+
+
+def truth(monitor: RunMonitor, t: float, uav1, uav2=(0.0, 0.0, 0.0), airborne2=False, alive1=True) -> None:
+    monitor.handle(keys.TRUTH, encode(GroundTruth(
+        header=Header(stamp=round(t * S)), step=round(t * 20), obstacles=[SHED],
+        uavs=[VehicleTruth(name="uav1", position=uav1, velocity=(0, 0, 0), heading=0, airborne=True, alive=alive1),
+              VehicleTruth(name="uav2", position=uav2, velocity=(0, 0, 0), heading=0, airborne=airborne2)])))
+
+
+def command(monitor: RunMonitor, t: float, action: str, target=None) -> None:
+    monitor.handle("falconry/uav1/command", encode(MissionCommand(header=Header(stamp=round(t * S)), command_id=1,
+                                                                 action=action, target=target)))
+
+
+def test_clearance_is_the_bodys_closest_approach_to_any_obstacle_and_an_attacked_pole_counts_apart():
+    monitor = RunMonitor()
+    world(monitor)
+
+    def closest(uav: str = "uav1") -> tuple:
+        c = monitor.summary()["clearance"][uav]
+        return (c["m"], c["to"], c["t"]), c["attack_pole"]
+
+    truth(monitor, 1.0, (10.0, 33.0, 3.0))  # 3 m from the tree's axis: 1.8 m from its bark, less the 0.4 m body
+    assert closest() == ((1.4, "tree2", 1.0), None)
+    truth(monitor, 2.0, (10.0, 32.0, 3.0))
+    truth(monitor, 3.0, (10.0, 40.0, 3.0))
+    assert closest() == ((0.4, "tree2", 2.0), None)
+    command(monitor, 3.5, "attack", (50.3, 30.0, 4.5))  # balloon2, 0.3 m off its pole's axis
+    truth(monitor, 4.0, (50.0, 30.0, 4.5))  # 0.5 m over balloon2's pole top: 0.1 m, apart: it attacks it
+    assert closest() == ((0.4, "tree2", 2.0), {"m": 0.1, "to": "balloon2_pole", "t": 4.0})
+    truth(monitor, 4.5, (51.3, 30.0, 2.5))  # balloon9's pole is no exception: 0.65 m from it, 0.25 m
+    assert closest()[0] == (0.25, "balloon9_pole", 4.5)
+    command(monitor, 5.0, "scan")
+    truth(monitor, 5.5, (50.0, 30.0, 4.5))  # over balloon2's pole again, no longer attacking it
+    assert closest() == ((0.1, "balloon2_pole", 5.5), {"m": 0.1, "to": "balloon2_pole", "t": 4.0})
+    truth(monitor, 6.0, (80.0, 2.45, 2.0), uav2=(10.0, 31.0, 3.0), airborne2=True)  # the shed: the truth's only
+    truth(monitor, 7.0, (10.0, 30.0, 3.0), alive1=False)  # dead (it crashed): no longer measured
+    assert closest() == ((0.05, "shed", 6.0), {"m": 0.1, "to": "balloon2_pole", "t": 4.0})
+    # uav2 flew at one tick only, 1 m from the tree's axis: 0.2 m inside its bark, less its 0.5 m body
+    assert closest("uav2") == ((-0.7, "tree2", 6.0), None)
+    summary = monitor.summary()
+    assert summary["collisions"] == []
+    assert clearance_line(summary["clearance"]["uav1"]) == ("0.05 m to shed at t=6.0 s; in attacks 0.10 m to "
+                                                            "balloon2_pole at t=4.0 s")
+    assert clearance_line(summary["clearance"]["uav2"]) == "-0.70 m to tree2 at t=6.0 s"
+
+
+def test_without_a_world_model_or_a_flight_there_is_no_clearance():
+    monitor = RunMonitor()
+    truth(monitor, 1.0, (10.0, 33.0, 3.0))  # no world model yet: no radius to measure with
+    world(monitor)
+    summary = monitor.summary()["clearance"]
+    assert summary["uav1"] == {"m": None, "to": None, "t": None, "attack_pole": None}
+    assert clearance_line(summary["uav1"]) == "none measured"
+    assert clearance_line(None) == "not measured"
+
+
+def test_collision_events_are_listed_with_the_other_party():
+    monitor = RunMonitor()
+    for t, uav, detail in ((55.9, "uav1", "tree2 at 4.1 m/s (10.3, 29.1, 5.0)"),
+                           (60.0, "uav2", "unnamed box (3.0, 4.0) at 2.0 m/s (1.0, 4.0, 2.0)"),
+                           (61.5, "uav1", "ground at 3.2 m/s (4.0, 5.0, 0.0)")):
+        monitor.handle(keys.EVENTS, encode(SimEvent(header=Header(stamp=round(t * S)), kind="collision", subject=uav,
+                                                    detail=detail)))
+    collisions = monitor.summary()["collisions"]
+    assert [(c["t"], c["uav"], c["with"]) for c in collisions] == [
+        (55.9, "uav1", "tree2"), (60.0, "uav2", "unnamed box (3.0, 4.0)"), (61.5, "uav1", "ground")]
+    assert collisions[0]["detail"] == "tree2 at 4.1 m/s (10.3, 29.1, 5.0)"
+    assert collisions_line([]) == "collisions: none"
+    assert collisions_line(collisions[:1]) == "COLLISIONS: 1\n  t=55.9 s uav1 hit tree2 at 4.1 m/s (10.3, 29.1, 5.0)"
+
+
+def test_the_launcher_hands_the_world_model_to_the_monitor():
+    assert keys.WORLD in WATCHED
