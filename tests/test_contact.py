@@ -48,7 +48,8 @@ def around(o: Obstacle, count: int, rng: np.random.Generator) -> np.ndarray:
     elif o.kind == "sphere":
         low, high = np.asarray(o.center) - o.radius, np.asarray(o.center) + o.radius
     else:
-        low, high = np.array([cx - o.radius, cy - o.radius, cz]), np.array([cx + o.radius, cy + o.radius, cz + o.height])
+        low = np.array([cx - o.radius, cy - o.radius, cz])
+        high = np.array([cx + o.radius, cy + o.radius, cz + o.height])
     return rng.uniform(low - 3.0, high + 3.0, (count, 3))
 
 
@@ -62,8 +63,8 @@ def cone_surface_distance(o: Obstacle, point: np.ndarray) -> float:
                                             cy + o.radius * (1 - share) * np.sin(angle), cz + o.height * share), -1)
 
     def base(angle, share):
-        return np.stack(np.broadcast_arrays(cx + o.radius * share * np.cos(angle), cy + o.radius * share * np.sin(angle),
-                                            cz + 0 * share), -1)
+        return np.stack(np.broadcast_arrays(cx + o.radius * share * np.cos(angle),
+                                            cy + o.radius * share * np.sin(angle), cz + 0 * share), -1)
 
     angles, shares = np.linspace(0.0, 2 * np.pi, 721)[:, None], np.linspace(0.0, 1.0, 2001)[None, :]
     best = math.inf
