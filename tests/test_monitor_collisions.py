@@ -21,7 +21,7 @@ SHED = Obstacle(kind="box", center=(80.0, 0.0, 2.0), size=(4.0, 4.0, 4.0), name=
 def world(monitor: RunMonitor, radius=None) -> None:
     monitor.handle(keys.WORLD, encode(WorldModel(
         header=Header(), scenario="test", arena=[(0, 0), (100, 0), (0, 60)], min_height=0.0, max_height=20.0,
-        uavs=["uav1", "uav2"], uav_radius=radius or {"uav1": 0.4, "uav2": 0.5},
+        uavs=["uav1", "uav2"], uav_radius={"uav1": 0.4, "uav2": 0.5} if radius is None else radius,
         obstacles=[Obstacle(kind="plane", center=(0.0, 0.0, 0.0), name="ground"), TREE, POLE, OTHER_POLE])))
 
 
@@ -72,12 +72,14 @@ def test_clearance_is_the_bodys_closest_approach_to_any_obstacle_and_an_attacked
 
 def test_without_a_world_model_or_a_flight_there_is_no_clearance():
     monitor = RunMonitor()
-    truth(monitor, 1.0, (10.0, 33.0, 3.0))  # no world model yet: no radius to measure with
-    world(monitor)
+    truth(monitor, 1.0, (10.0, 33.0, 3.0))  # no world model yet: the surveyed obstacles are unknown
+    world(monitor, radius={})  # one that names no radius: the default body
     summary = monitor.summary()["clearance"]
     assert summary["uav1"] == {"m": None, "to": None, "t": None, "attack_pole": None}
     assert clearance_line(summary["uav1"]) == "none measured"
     assert clearance_line(None) == "not measured"
+    truth(monitor, 2.0, (10.0, 33.0, 3.0))
+    assert monitor.summary()["clearance"]["uav1"] == {"m": 1.4, "to": "tree2", "t": 2.0, "attack_pole": None}
 
 
 def test_collision_events_are_listed_with_the_other_party():

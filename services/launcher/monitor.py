@@ -2,8 +2,8 @@
 builds the progress line and the end-of-run summary from messages alone (truth, events,
 status, tracks, detections, commands, the world model, liveliness).
 
-Clearance: at every truth tick, each alive, airborne UAV's body (its radius from the world model)
-is measured against every static obstacle, the world model's and the truth's unsurveyed ones (not
+Clearance: at every truth tick, each alive, airborne UAV's body (its radius from the world model,
+DEFAULT_UAV_RADIUS where it names none) is measured against every static obstacle, the world model's and the truth's unsurveyed ones (not
 the ground): the closest approach, which obstacle, when. While the UAV's latest mission command is
 an attack, the pole of the balloon attacked (the `<balloon>_pole` whose axis is horizontally
 nearest the command's target, within ATTACKED_POLE_WITHIN) is measured apart, as its `attack_pole`:
@@ -22,7 +22,7 @@ import numpy as np
 
 from schemas import keys
 from schemas.arrays import to_numpy
-from schemas.messages import (Detections, GroundTruth, MissionCommand, Obstacle, PointTruth, SimClock, SimEvent,
+from schemas.messages import (DEFAULT_UAV_RADIUS, Detections, GroundTruth, MissionCommand, Obstacle, PointTruth, SimClock, SimEvent,
                               Tracks, UavStatus, WorldModel)
 from services import evaluation
 from services.geometry import pairwise_gaps
@@ -267,10 +267,10 @@ class RunMonitor:
 
     def _note_clearance(self, t: float, truth: GroundTruth) -> None:
         """Each flying UAV's closest approach to an obstacle so far (see the module's docstring)."""
-        flying = [v for v in truth.uavs if v.airborne and v.alive and v.name in self.uav_radius]
-        if not flying or not len(self._shapes):
+        flying = [v for v in truth.uavs if v.airborne and v.alive]
+        if not flying or self._surveyed is None or not len(self._shapes):  # no world model yet: obstacles unknown
             return
-        radius = np.array([self.uav_radius[v.name] for v in flying])
+        radius = np.array([self.uav_radius.get(v.name, DEFAULT_UAV_RADIUS) for v in flying])
         gaps = contact.signed_distance(np.array([v.position for v in flying]), self._shapes) - radius[:, None]
         for v, row in zip(flying, gaps):
             u = self._uav(v.name)
