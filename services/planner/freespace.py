@@ -1,0 +1,245 @@
+"""What the UAV knows is occupied, as its planner asks about it (pure: numpy and the compiled
+kernels of services/voxels/clearance.py; the node hands in the map messages).
+
+The source is the UAV's own mapper (falconry/<uav>/map): the mission's a-priori map (the world
+model's static obstacles, which the mapper pins occupied) and everything its LiDAR has shown it
+since. A voxel counts as occupied from the tentative state of eq. 7 up (schemas/voxels.py): one
+scan's returns on a surface make it tentative, so an obstacle the survey lacks is avoided from the
+first scans that show it, not after the many a confident state takes. The ground is left out —
+the voxel layer holding the ground plane and everything below it — because the ground is not
+something to keep a margin from: take-off and landing touch it, and the sweep height and the
+pursuit floor keep flight above it. A box lower than one voxel (0.5 m) is left out with it.
+
+Three questions:
+- `clearance(points)`: the distance from each point to the nearest occupied voxel's box (m);
+- `path_conflict(positions, need)`: the first point of a polyline (densified to SAMPLE_STEP) that
+  is closer than `need` to an occupied box, as a fraction of the polyline's vertex index;
+- `blocked(low, high)`: the search grid over a box of voxels — a voxel is blocked when an occupied
+  box lies closer than `search_radius` to its centre, kept as a count per voxel that each map
+  message updates where it changed (services/voxels/clearance.py).
+A point anywhere in a voxel that is not blocked is at least search_radius − HALF_DIAGONAL from
+every occupied box, so the search is run with search_radius = the plans' clearance + HALF_DIAGONAL,
+and a polyline through free voxel centres keeps that clearance along its whole length (every point
+of a segment between neighbouring centres lies in the closed cube of one of them).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from schemas.voxels import STATE_TENTATIVE, STATE_UNKNOWN
+from services.voxels.clearance import add_counts, box_clearance, first_within, inflation_offsets, nearest_box
+from services.voxels.grid import GridGeometry
+from services.voxels.replica import MapReplica
+
+SAMPLE_STEP = 0.2  # m between the points a polyline is checked at
+NO_EXEMPTION = np.array([0.0, 0.0, 0.0, 0.0])
+
+
+def half_diagonal(voxel_size: float) -> float:
+    return 0.5 * math.sqrt(3.0) * voxel_size
+
+
+def densify(positions: np.ndarray, step: float = SAMPLE_STEP) -> tuple[np.ndarray, np.ndarray]:
+    """Points along the polyline (N, 3) at most `step` apart (every vertex included), and each
+    point's position as a fractional vertex index."""
+    positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+    if len(positions) < 2:
+        return positions.copy(), np.zeros(len(positions))
+    lengths = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    pieces = np.maximum(np.ceil(lengths / step).astype(np.int64), 1)
+    owner = np.repeat(np.arange(len(lengths)), pieces)
+    within = np.arange(int(pieces.sum())) - np.repeat(np.cumsum(pieces) - pieces, pieces)
+    fraction = within / pieces[owner]
+    points = positions[owner] + fraction[:, None] * (positions[owner + 1] - positions[owner])
+    return (np.vstack([points, positions[-1:]]),
+            np.concatenate([owner + fraction, [len(positions) - 1.0]]))
+
+
+class FreeSpace:
+    """The planner's copy of its UAV's map, with the occupancy and search grids derived from it.
+    Until a map arrives nothing is known to be occupied."""
+
+    def __init__(self, search_radius: float, reach: float = 4.0) -> None:
+        self.search_radius = float(search_radius)
+        self.reach = float(reach)  # m: how far clearance is looked for (farther counts as `reach`)
+        self.replica: MapReplica | None = None
+        self.geometry: GridGeometry | None = None
+        self.occupied = np.zeros(0, dtype=np.uint8)  # flat, 1 = occupied and above the ground
+        self.counts = np.zeros(0, dtype=np.uint16)  # flat: occupied boxes within search_radius
+        self.ground_z: float | None = None
+        self.floor_layer = -1  # voxel layers up to this one hold the ground (left out)
+        self.offsets = np.zeros((0, 3), dtype=np.int64)
+
+    @property
+    def known(self) -> bool:
+        return self.geometry is not None
+
+    # ---------------------------------------------------------------- inputs
+    def set_ground(self, ground_z: float) -> None:
+        """The ground plane's height; the voxel layer holding it and those below are not obstacles."""
+        if self.ground_z == ground_z:
+            return
+        self.ground_z = float(ground_z)
+        if self.geometry is not None:
+            self._set_floor()
+            self._rebuild()
+
+    def apply_map(self, snapshot: bool, origin, shape, voxel_size: float, default_value: float,
+                  indices: np.ndarray, values: np.ndarray) -> bool:
+        """One VoxelMap message; False when a delta does not fit the map held (wait for a snapshot)."""
+        if self.replica is None:
+            if not snapshot:
+                return False
+            self.replica = MapReplica(origin, shape, voxel_size, default_value)
+        if not self.replica.apply(snapshot, origin, shape, voxel_size, default_value, indices, values):
+            return False
+        if self.geometry is not self.replica.geometry:  # the first map, or a snapshot of another grid
+            self.geometry = self.replica.geometry
+            self.offsets = inflation_offsets(self.search_radius, self.geometry.voxel_size)
+            self.occupied = np.zeros(self.geometry.size, dtype=np.uint8)
+            self.counts = np.zeros(self.geometry.size, dtype=np.uint16)
+            self._set_floor()
+        if snapshot:
+            self._rebuild()
+        else:
+            self._update(np.asarray(indices, dtype=np.int64).reshape(-1))
+        return True
+
+    def _set_floor(self) -> None:
+        g = self.geometry
+        self.floor_layer = -1 if self.ground_z is None else \
+            int(math.floor((self.ground_z - g.corner[2]) / g.voxel_size + 1e-6))
+
+    def _occupancy(self, flats: np.ndarray) -> np.ndarray:
+        layer = flats % self.geometry.shape[2]
+        return ((self.replica.states[flats] >= STATE_TENTATIVE) & (layer > self.floor_layer)).astype(np.uint8)
+
+    def _rebuild(self) -> None:
+        every = np.arange(self.geometry.size, dtype=np.int64)
+        self._update(every)
+
+    def _update(self, flats: np.ndarray) -> None:
+        flats = flats[(flats >= 0) & (flats < self.geometry.size)]
+        now = self._occupancy(flats)
+        changed = now != self.occupied[flats]
+        if not changed.any():
+            return
+        gained, lost = flats[changed & (now == 1)], flats[changed & (now == 0)]
+        self.occupied[flats[changed]] = now[changed]
+        shape = np.asarray(self.geometry.shape, dtype=np.int64)
+        add_counts(self.counts, lost, self.offsets, shape, -1)
+        add_counts(self.counts, gained, self.offsets, shape, 1)
+
+    # --------------------------------------------------------------- queries
+    def clearance(self, points: np.ndarray, exempt: np.ndarray | None = None) -> np.ndarray:
+        """(N,) m from each point to the nearest occupied box (`reach` when none is that near)."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if self.geometry is None:
+            return np.full(len(points), self.reach)
+        g = self.geometry
+        return box_clearance(points, self.occupied, np.asarray(g.shape, dtype=np.int64), g.corner, g.voxel_size,
+                             self.reach, NO_EXEMPTION if exempt is None else np.asarray(exempt, dtype=np.float64))
+
+    def nearest(self, point: np.ndarray) -> tuple[float, np.ndarray]:
+        """(distance, away): how far the point is from the nearest occupied box (`reach` at most), and
+        the unit vector pointing away from it (zero when none is within reach)."""
+        if self.geometry is None:
+            return self.reach, np.zeros(3)
+        g = self.geometry
+        return nearest_box(np.asarray(point, dtype=np.float64).reshape(3), self.occupied,
+                           np.asarray(g.shape, dtype=np.int64), g.corner, g.voxel_size, self.reach)
+
+    def _maybe_near(self, points: np.ndarray) -> np.ndarray:
+        """(N,) True where a point's voxel is blocked or outside the grid: only those need the exact
+        distance (any point of a free voxel is search_radius − HALF_DIAGONAL clear)."""
+        g = self.geometry
+        voxels = g.voxel_of(points)
+        inside = g.inside(voxels)
+        near = np.ones(len(points), dtype=bool)
+        near[inside] = self.counts[g.flat(voxels[inside])] > 0
+        return near
+
+    def path_conflict(self, positions: np.ndarray, need: float, exempt: np.ndarray | None = None) -> float | None:
+        """The first place along the polyline (N, 3) closer than `need` to an occupied box, as a
+        fractional vertex index; None when it is clear all along. A polyline that starts too close
+        (the vehicle is there already) conflicts only where it comes closer still before it is
+        clear: leaving is what it should do."""
+        if self.geometry is None or len(positions) == 0:
+            return None
+        points, where = densify(positions)
+        limit = need + 0.5 * SAMPLE_STEP
+        start = self._escape(points, limit, exempt)
+        if start < 0:
+            return 0.0
+        points, where = points[start:], where[start:]
+        fast_ok = self.search_radius - half_diagonal(self.geometry.voxel_size) >= limit
+        check = self._maybe_near(points) if fast_ok else np.ones(len(points), dtype=bool)
+        if not check.any():
+            return None
+        g = self.geometry
+        first = first_within(points, check, self.occupied, np.asarray(g.shape, dtype=np.int64), g.corner,
+                             g.voxel_size, limit, NO_EXEMPTION if exempt is None else np.asarray(exempt, dtype=np.float64))
+        return None if first < 0 else float(where[first])
+
+    def _escape(self, points: np.ndarray, limit: float, exempt: np.ndarray | None) -> int:
+        """Index of the first point clear of `limit` when the polyline starts closer than it and
+        moves away (0 when it starts clear); -1 when it comes closer before it is clear."""
+        head = self.clearance(points[:1], exempt)
+        if head[0] >= limit:
+            return 0
+        distances = self.clearance(points, exempt)
+        clear = np.flatnonzero(distances >= limit)
+        end = int(clear[0]) if len(clear) else len(points)
+        leading = distances[:end]
+        if np.any(np.diff(leading) < -0.02):  # closing in on what it is already too close to
+            return -1
+        return end
+
+    def path_clearance(self, positions: np.ndarray, exempt: np.ndarray | None = None) -> float:
+        """The smallest clearance along the polyline (densified), `reach` at most."""
+        if self.geometry is None or len(positions) == 0:
+            return self.reach
+        points, _ = densify(positions)
+        return float(self.clearance(points, exempt).min())
+
+    def unknown(self, points: np.ndarray) -> np.ndarray:
+        """(N,) True where a point lies in a voxel never seen (eq. 7's uncertain state) or off the map."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if self.geometry is None:
+            return np.zeros(len(points), dtype=bool)
+        g = self.geometry
+        voxels = g.voxel_of(points)
+        inside = g.inside(voxels)
+        out = np.ones(len(points), dtype=bool)
+        out[inside] = self.replica.states[g.flat(voxels[inside])] == STATE_UNKNOWN
+        return out
+
+    def unseen(self, points: np.ndarray) -> np.ndarray:
+        """(N,) True where a point lies in unseen space: its voxel never seen and at least half of its
+        26 neighbours neither (off the map counts as unseen). A lone unknown voxel is not: the map
+        keeps the voxels of a flying object at the unknown value (seed 000's g_unk), and a drone is
+        not a region the LiDAR has failed to look into."""
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        if self.geometry is None:
+            return np.zeros(len(points), dtype=bool)
+        g = self.geometry
+        voxels = g.voxel_of(points)
+        out = self.unknown(points)
+        for row in np.flatnonzero(out):
+            v = voxels[row]
+            if not g.inside(v[None])[0]:
+                continue
+            low = np.maximum(v - 1, 0)
+            high = np.minimum(v + 2, np.asarray(g.shape))
+            block = self.replica.states.reshape(g.shape)[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
+            out[row] = np.count_nonzero(block == STATE_UNKNOWN) - 1 >= 0.5 * (block.size - 1)
+        return out
+
+    def blocked(self, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+        """(nx, ny, nz) uint8 of the voxels low..high-1 (clipped to the grid by the caller):
+        1 where an occupied box is closer than search_radius to the centre."""
+        g = self.geometry
+        counts = self.counts.reshape(g.shape)[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
+        return (counts > 0).astype(np.uint8)
