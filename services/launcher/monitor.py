@@ -3,11 +3,12 @@ builds the progress line and the end-of-run summary from messages alone (truth, 
 status, tracks, detections, commands, the world model, liveliness).
 
 Clearance: at every truth tick, each alive, airborne UAV's body (its radius from the world model,
-DEFAULT_UAV_RADIUS where it names none) is measured against every static obstacle, the world model's and the truth's unsurveyed ones (not
-the ground): the closest approach, which obstacle, when. While the UAV's latest mission command is
-an attack, the pole of the balloon attacked (the `<balloon>_pole` whose axis is horizontally
-nearest the command's target, within ATTACKED_POLE_WITHIN) is measured apart, as its `attack_pole`:
-an attack flies close over that pole's top by design."""
+DEFAULT_UAV_RADIUS where it names none) is measured against every static obstacle, the world
+model's and the truth's unsurveyed ones (not the ground): the closest approach, which obstacle,
+when. While the UAV's latest mission command is an attack, the pole of the balloon attacked (the
+`<balloon>_pole` whose axis is horizontally nearest the command's target, within
+ATTACKED_POLE_WITHIN) is measured apart, as its `attack_pole`: an attack flies close over that
+pole's top by design."""
 from __future__ import annotations
 
 import hashlib
@@ -22,8 +23,8 @@ import numpy as np
 
 from schemas import keys
 from schemas.arrays import to_numpy
-from schemas.messages import (DEFAULT_UAV_RADIUS, Detections, GroundTruth, MissionCommand, Obstacle, PointTruth, SimClock, SimEvent,
-                              Tracks, UavStatus, WorldModel)
+from schemas.messages import (DEFAULT_UAV_RADIUS, Detections, GroundTruth, MissionCommand, Obstacle, PointTruth,
+                              SimClock, SimEvent, Tracks, UavStatus, WorldModel)
 from services import evaluation
 from services.geometry import pairwise_gaps
 from services.runtime.clock import StampOrigin, seconds
