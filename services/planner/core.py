@@ -17,7 +17,7 @@ import numpy as np
 from schemas.messages import ConstraintProfile
 from services.planner.intercept import InterceptPlan, intercept, plan_intercept
 from services.planner.pursuit import pursuit
-from services.planner.scan import inner_rectangle, lawnmower, lawnmower_waypoints, scan_rectangle
+from services.planner.scan import inner_rectangle, lawnmower, lawnmower_line, lawnmower_waypoints, scan_rectangle
 from services.planner.timing import (
     DT,
     STOP_ANGLE,
@@ -33,8 +33,9 @@ from services.planner.timing import (
 )
 
 __all__ = [
-    "DT", "STOP_ANGLE", "Path", "InterceptPlan", "approach", "approach_goal", "attack", "deadband", "evaluate",
-    "fly", "goto", "hover", "inner_rectangle", "intercept", "land", "lawnmower", "lawnmower_waypoints",
+    "DT", "STOP_ANGLE", "Path", "InterceptPlan", "approach", "approach_goal", "approach_waypoints", "attack",
+    "attack_waypoints", "deadband", "evaluate", "facing", "fly", "goto", "hover", "inner_rectangle", "intercept",
+    "land", "lawnmower", "lawnmower_line", "lawnmower_waypoints",
     "path_duration", "plan_intercept", "pursuit", "plan_timing", "sample_path", "scan_rectangle", "speed_caps", "steer",
     "stop", "takeoff", "wrap_angle",
 ]
@@ -105,12 +106,32 @@ def _horizontal_direction(position: np.ndarray, target: np.ndarray, fallback_hea
 
 
 def approach_goal(position: np.ndarray, target: np.ndarray, wait_distance: float = WAIT_DISTANCE,
-                  deadband_band: float = DEADBAND, heading: float | None = None) -> np.ndarray:
+                  deadband_band: float = DEADBAND, heading: float | None = None, level: float = 0.0) -> np.ndarray:
     """Alg. 1 lines 2-6: `wait_distance` short of the target on the horizontal line from the
-    UAV, at the target's height, then the deadband."""
+    UAV, at the target's height raised by `level`, then the deadband. The planner raises it by the
+    attack's hit offset o_h, which Alg. 1 does not: the attack's run-in is then level, and a vehicle
+    still descending when the attack starts passes over the pole higher, not lower (with the goal
+    at the target's height, mbzirc seed 1's attacks passed 0.24 m from the pole tops)."""
     position, target = _vec3(position), _vec3(target)
     goal = target - wait_distance * _horizontal_direction(position, target, heading)
+    goal[2] += level
     return deadband(goal, position, target, deadband_band)
+
+
+def approach_waypoints(position: np.ndarray, target: np.ndarray, goal: np.ndarray,
+                       descend_distance: float = DESCEND_DISTANCE, wait_distance: float = WAIT_DISTANCE) -> np.ndarray:
+    """Alg. 1's polyline to the approach `goal`: level at the current height while farther than
+    `descend_distance` (horizontally) from the target, then down to the goal."""
+    position, target, goal = _vec3(position), _vec3(target), _vec3(goal)
+    waypoints = [position]
+    along = goal[:2] - target[:2]
+    reach = np.linalg.norm(along)
+    direction = -along / reach if reach > 1e-9 else _horizontal_direction(position, target, None)[:2]
+    if np.hypot(*(target - position)[:2]) > descend_distance and descend_distance > wait_distance:
+        level = target[:2] - descend_distance * direction
+        waypoints.append(np.array([level[0], level[1], position[2]]))
+    waypoints.append(goal)
+    return np.stack(waypoints)
 
 
 def approach(position: np.ndarray, target: np.ndarray, *, wait_distance: float = WAIT_DISTANCE,
@@ -122,17 +143,28 @@ def approach(position: np.ndarray, target: np.ndarray, *, wait_distance: float =
     its height. The junction is rounded, so the descent begins up to one tangent length
     (at most half the shorter adjacent leg) before D_p. Ends at rest at the goal."""
     position, target = _vec3(position), _vec3(target)
-    direction = _horizontal_direction(position, target, start_heading)
     goal = approach_goal(position, target, wait_distance, deadband_band, start_heading)
-    facing = float(np.arctan2(direction[1], direction[0]))
-    distance = np.hypot(*(target - position)[:2])
-    waypoints = [position]
-    if distance > descend_distance and descend_distance > wait_distance:
-        level = target - descend_distance * direction
-        waypoints.append(np.array([level[0], level[1], position[2]]))
-    waypoints.append(goal)
-    return fly(np.stack(waypoints), profile, dt, start_velocity=start_velocity, start_heading=start_heading,
-               heading=facing)
+    waypoints = approach_waypoints(position, target, goal, descend_distance, wait_distance)
+    return fly(waypoints, profile, dt, start_velocity=start_velocity, start_heading=start_heading,
+               heading=facing(position, target, start_heading))
+
+
+def facing(position: np.ndarray, target: np.ndarray, fallback_heading: float | None = None) -> float:
+    """The heading towards the target (eq. 5.2), horizontally."""
+    direction = _horizontal_direction(_vec3(position), _vec3(target), fallback_heading)
+    return float(np.arctan2(direction[1], direction[0]))
+
+
+def attack_waypoints(position: np.ndarray, target: np.ndarray, overshoot: float = OVERSHOOT,
+                     hit_offset: float = HIT_OFFSET, end_offset: float = END_OFFSET,
+                     heading: float | None = None) -> np.ndarray:
+    """§5.2's polyline: through the target raised by `hit_offset`, to `overshoot` beyond it along the
+    horizontal attack direction at target z + `end_offset`."""
+    position, target = _vec3(position), _vec3(target)
+    direction = _horizontal_direction(position, target, heading)
+    hit = target + np.array([0.0, 0.0, hit_offset])
+    end = target + overshoot * direction + np.array([0.0, 0.0, end_offset])
+    return np.stack([position, hit, end])
 
 
 def attack(position: np.ndarray, target: np.ndarray, *, overshoot: float = OVERSHOOT, hit_offset: float = HIT_OFFSET,
@@ -142,13 +174,9 @@ def attack(position: np.ndarray, target: np.ndarray, *, overshoot: float = OVERS
     `overshoot` beyond it along the horizontal attack direction at target z + `end_offset`,
     ending at rest, facing the target. The junction at the hit point is rounded at most
     HIT_DEVIATION from it, so the vehicle really passes through."""
-    position, target = _vec3(position), _vec3(target)
-    direction = _horizontal_direction(position, target, start_heading)
-    hit = target + np.array([0.0, 0.0, hit_offset])
-    end = target + overshoot * direction + np.array([0.0, 0.0, end_offset])
-    facing = float(np.arctan2(direction[1], direction[0]))
-    return fly(np.stack([position, hit, end]), profile, dt, start_velocity=start_velocity,
-               start_heading=start_heading, heading=facing, corner_deviation=HIT_DEVIATION)
+    waypoints = attack_waypoints(position, target, overshoot, hit_offset, end_offset, start_heading)
+    return fly(waypoints, profile, dt, start_velocity=start_velocity, start_heading=start_heading,
+               heading=facing(position, target, start_heading), corner_deviation=HIT_DEVIATION)
 
 
 def stop(position: np.ndarray, velocity: np.ndarray, profile: ConstraintProfile, dt: float = DT,

@@ -35,6 +35,7 @@ from services.voxels.replica import MapReplica
 
 SAMPLE_STEP = 0.2  # m between the points a polyline is checked at
 NO_EXEMPTION = np.array([0.0, 0.0, 0.0, 0.0])
+MAX_OFFSETS = 100_000  # voxels of the inflation kernel at most (0.5 m voxels and 2.1 m: about 300)
 
 
 def half_diagonal(voxel_size: float) -> float:
@@ -88,24 +89,34 @@ class FreeSpace:
 
     def apply_map(self, snapshot: bool, origin, shape, voxel_size: float, default_value: float,
                   indices: np.ndarray, values: np.ndarray) -> bool:
-        """One VoxelMap message; False when a delta does not fit the map held (wait for a snapshot)."""
-        if self.replica is None:
-            if not snapshot:
-                return False
-            self.replica = MapReplica(origin, shape, voxel_size, default_value)
-        if not self.replica.apply(snapshot, origin, shape, voxel_size, default_value, indices, values):
-            return False
-        if self.geometry is not self.replica.geometry:  # the first map, or a snapshot of another grid
-            self.geometry = self.replica.geometry
-            self.offsets = inflation_offsets(self.search_radius, self.geometry.voxel_size)
+        """One VoxelMap message; False when a delta does not fit the map held (wait for a snapshot).
+        ValueError (and nothing changed) for a map the planner cannot hold: a grid too large for a
+        replica, or voxels so small that the search radius spans more than MAX_OFFSETS of them."""
+        if snapshot and (self.replica is None or not self.replica.same_geometry(origin, shape, voxel_size)
+                         or float(default_value) != self.replica.default_value):
+            offsets = self._offsets(float(voxel_size))
+            replica = MapReplica(origin, shape, voxel_size, default_value)
+            replica.apply(True, origin, shape, voxel_size, default_value, indices, values)
+            self.replica, self.geometry, self.offsets = replica, replica.geometry, offsets
             self.occupied = np.zeros(self.geometry.size, dtype=np.uint8)
             self.counts = np.zeros(self.geometry.size, dtype=np.uint16)
             self._set_floor()
+            self._rebuild()
+            return True
+        if self.replica is None or not self.replica.apply(snapshot, origin, shape, voxel_size, default_value,
+                                                          indices, values):
+            return False
         if snapshot:
             self._rebuild()
         else:
             self._update(np.asarray(indices, dtype=np.int64).reshape(-1))
         return True
+
+    def _offsets(self, voxel_size: float) -> np.ndarray:
+        if not 0.0 < voxel_size < math.inf or 2.0 * self.search_radius / voxel_size + 2.0 > MAX_OFFSETS ** (1 / 3):
+            raise ValueError(f"a map of {voxel_size:.3g} m voxels: the planner's search radius of "
+                             f"{self.search_radius:.2f} m would span more than {MAX_OFFSETS} of them")
+        return inflation_offsets(self.search_radius, voxel_size)
 
     def _set_floor(self) -> None:
         g = self.geometry

@@ -40,6 +40,14 @@ the target. A target that out-accelerates the interceptor (agile's 4 m/s² manoe
 attack profile's 3) is anywhere within ½·a·t² of a prediction t s old: 8 m after 2 s. A command
 that is not renewed (the target unseen) would otherwise send the UAV on along a straight line at
 up to 8 m/s for the whole horizon.
+
+Near obstacles (commands.py, avoid.py) the caller hands in `free`, which moves the predicted
+points the UAV could not be at (too close to an obstacle) to the nearest free voxel, so the
+reference aims where the target will be *and* the UAV can fly; and, when the chase would cross an
+obstacle, a `route` round it: the virtual vehicle then first follows the route (aiming ROUTE_LOOKAHEAD
+ahead of where it is along it) and turns to the target once it nears the route's end; and a
+`barrier` that holds its speed towards the nearest obstacle to what it can still brake from
+before the clearance, so it slides along an obstacle instead of into it.
 """
 from __future__ import annotations
 
@@ -53,6 +61,7 @@ BRAKING = 0.2  # share of max_acceleration the closing speed plans to brake with
 GAIN = 4.0  # 1/s: how fast the velocity demand is taken up (then capped by max_acceleration)
 TERMINAL_GAIN = 1.2  # 1/s: the closing speed close in is at most this × the gap (a capture's relative speed)
 _MARGIN = 0.98  # of each limit, so differences of the samples stay inside it too
+ROUTE_LOOKAHEAD = 4.0  # m along a route ahead of the vehicle's nearest point on it that it aims at
 
 
 def _clip(vector: np.ndarray, limit: float) -> np.ndarray:
@@ -66,10 +75,28 @@ def _limit_velocity(velocity: np.ndarray, profile: ConstraintProfile) -> np.ndar
     return np.array([velocity[0], velocity[1], np.clip(velocity[2], -vertical, vertical)])
 
 
+def _carrot(route: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, bool]:
+    """The point ROUTE_LOOKAHEAD along the route beyond the vehicle's nearest point on it, but not
+    past the next vertex (a carrot that ran ahead round a corner would pull the vehicle across
+    it, towards the obstacle the route goes round); and whether to keep following the route
+    (False once the vehicle is that close to its end)."""
+    a, b = route[:-1], route[1:]
+    edge = b - a
+    length = np.linalg.norm(edge, axis=1)
+    along = np.clip(np.einsum("ij,ij->i", position - a, edge) / np.maximum(length**2, 1e-12), 0.0, 1.0)
+    nearest = int(np.argmin(np.linalg.norm(a + along[:, None] * edge - position, axis=1)))
+    if nearest == len(edge) - 1 and np.linalg.norm(route[-1] - position) <= ROUTE_LOOKAHEAD:
+        return route[-1], False
+    ahead = min(along[nearest] * length[nearest] + ROUTE_LOOKAHEAD, length[nearest])
+    if ahead >= length[nearest] - 1e-9 and np.linalg.norm(b[nearest] - position) < 1.0 and nearest + 1 < len(edge):
+        nearest, ahead = nearest + 1, min(ROUTE_LOOKAHEAD, length[nearest + 1])
+    return a[nearest] + ahead / max(length[nearest], 1e-12) * edge[nearest], True
+
+
 def pursuit(position, target_position, target_velocity, *, profile: ConstraintProfile, dt: float = DT,
             start_velocity=None, start_heading: float | None = None, horizon: float = 12.0,
             predicted: PredictedPath | None = None, floor: float = -np.inf,
-            trust: float = np.inf) -> Path | None:
+            trust: float = np.inf, free=None, route: np.ndarray | None = None, barrier=None) -> Path | None:
     """Close on the predicted track and fly along it for `horizon` s, then brake to rest; heading
     along the target's velocity. `predicted` (time 0 = now): the target's predicted path, else the
     line from target_position along target_velocity, followed for `trust` s and then waited at;
@@ -90,15 +117,24 @@ def pursuit(position, target_position, target_velocity, *, profile: ConstraintPr
     below = targets[:, 2] < floor
     targets[below, 2] = floor
     target_velocities[below, 2] = 0.0
+    if free is not None:
+        targets = free(targets)
+    following = route is not None and len(route) >= 2
     for k in range(steps):  # inherently sequential: a vehicle flown forward in time
-        gap = targets[k] - p
+        aim, aim_velocity = targets[k], target_velocities[k]
+        if following:
+            aim, following = _carrot(route, p)
+            aim_velocity = np.zeros(3)
+        gap = aim - p
         distance = float(np.linalg.norm(gap))
         speed = min(np.sqrt(2.0 * braking * distance), TERMINAL_GAIN * distance)
         closing = speed * gap / distance if distance > 1e-9 else np.zeros(3)
-        demand = _limit_velocity(target_velocities[k] + closing, profile)
+        demand = _limit_velocity(aim_velocity + closing, profile)
         demand[2] = max(demand[2], -np.sqrt(2.0 * braking * max(p[2] - floor, 0.0)))  # can still stop above it
         dv = _clip(GAIN * (demand - v) * dt, accel * dt)
         v_next = _limit_velocity(v + dv, profile)
+        if barrier is not None:
+            v_next = barrier(p + v_next * dt, v_next)
         p = p + 0.5 * (v + v_next) * dt
         v = v_next
         positions.append(p.copy())

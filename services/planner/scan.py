@@ -159,6 +159,24 @@ def _resume_direction(start: np.ndarray, heading: float | None, along: int, off_
     return sign if ahead >= spacing / 2 else 0
 
 
+def lawnmower_line(area: np.ndarray, height: float, spacing: float, offset: float, profile: ConstraintProfile,
+                   start: np.ndarray, start_heading: float | None = None, corner_factor: float = 2.0
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sweep's polyline from `start` (M, 3) with its speed caps at each vertex (M,) and on each
+    leg (M - 1,): see `lawnmower`."""
+    area = as_polygon(area)
+    start = np.asarray(start, dtype=np.float64).reshape(3)
+    low, high = scan_rectangle(area, offset)
+    corners = _sweep_corners(low, high, height, spacing, start, start_heading)
+    slow = profile.max_speed / max(corner_factor, 1.0)
+    outside = bool(np.any(start[:2] < low - 1e-6) or np.any(start[:2] > high + 1e-6))
+    corner_speeds = np.full(len(corners) + 1, slow)
+    corner_speeds[1] = 0.0 if outside else slow
+    segment_speeds = np.full(len(corners), np.inf)
+    segment_speeds[2::2] = slow  # the cross legs between the long lines
+    return np.vstack([start, corners]), corner_speeds, segment_speeds
+
+
 def lawnmower(area: np.ndarray, height: float, spacing: float, offset: float = 2.0,
               profile: ConstraintProfile | None = None, start: np.ndarray | None = None, dt: float = DT,
               start_heading: float | None = None, *, corner_factor: float = 2.0,
@@ -173,14 +191,7 @@ def lawnmower(area: np.ndarray, height: float, spacing: float, offset: float = 2
     area = as_polygon(area)
     if start is None:
         start = np.array([area[0, 0], area[0, 1], height])
-    start = np.asarray(start, dtype=np.float64).reshape(3)
-    low, high = scan_rectangle(area, offset)
-    corners = _sweep_corners(low, high, height, spacing, start, start_heading)
-    slow = profile.max_speed / max(corner_factor, 1.0)
-    outside = bool(np.any(start[:2] < low - 1e-6) or np.any(start[:2] > high + 1e-6))
-    corner_speeds = np.full(len(corners) + 1, slow)
-    corner_speeds[1] = 0.0 if outside else slow
-    segment_speeds = np.full(len(corners), np.inf)
-    segment_speeds[2::2] = slow  # the cross legs between the long lines
-    return fly(np.vstack([start, corners]), profile, dt, corner_speeds=corner_speeds,
-               segment_speeds=segment_speeds, start_velocity=start_velocity, start_heading=start_heading)
+    waypoints, corner_speeds, segment_speeds = lawnmower_line(area, height, spacing, offset, profile, start,
+                                                              start_heading, corner_factor)
+    return fly(waypoints, profile, dt, corner_speeds=corner_speeds, segment_speeds=segment_speeds,
+               start_velocity=start_velocity, start_heading=start_heading)

@@ -1,0 +1,205 @@
+"""Plans kept clear of what the UAV knows is occupied (services/planner/freespace.py, search.py,
+avoid.py, guard.py and commands.py), on maps made the way the mapper makes its a-priori map."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from schemas.messages import ConstraintProfile, Header, MissionCommand, Obstacle
+from services.planner import guard
+from services.planner.avoid import Airspace, Clearances, Surroundings, lead_in
+from services.planner.commands import PlannerParams, VehicleState, plan_command
+from services.planner.freespace import FreeSpace, half_diagonal
+from services.planner.search import Band, route
+from services.voxels.apriori import obstacle_voxels
+from services.voxels.grid import GridGeometry
+
+GRID = GridGeometry((-10.0, -10.0, -1.0), (160, 120, 52), 0.5)
+CLEAR = Clearances(0.4, 1.0, 0.3)
+PARAMS = PlannerParams()
+SWEEP = ConstraintProfile()
+ATTACK = ConstraintProfile(name="attack", max_speed=8.3, max_acceleration=3.0)
+GROUND = Obstacle(kind="plane", center=(0.0, 0.0, 0.0))
+
+
+def box(center, size) -> Obstacle:
+    return Obstacle(kind="box", center=tuple(map(float, center)), size=tuple(map(float, size)))
+
+
+def pole(x, y, height, radius=0.05) -> Obstacle:
+    return Obstacle(kind="cylinder", center=(float(x), float(y), 0.0), radius=radius, height=float(height))
+
+
+def space_of(*obstacles: Obstacle, seen: bool = True) -> FreeSpace:
+    """The a-priori map of the obstacles, everything else seen free (`seen`) or never seen."""
+    space = FreeSpace(CLEAR.plan + half_diagonal(GRID.voxel_size))
+    space.set_ground(0.0)
+    pinned = obstacle_voxels([GROUND, *obstacles], GRID)
+    values = np.full(GRID.size, -1000.0 if seen else -740.0, np.float32)
+    values[pinned] = np.inf
+    every = np.arange(GRID.size)
+    space.apply_map(True, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, every, values)
+    return space
+
+
+def env_of(*obstacles: Obstacle) -> Surroundings:
+    return Surroundings(space_of(*obstacles), CLEAR, Airspace(0.0, 1.0, 20.0, (0.0, 0.0), (140.0, 100.0)))
+
+
+def command(action: str, **fields) -> MissionCommand:
+    return MissionCommand(header=Header(stamp=0), command_id=1, action=action, **fields)
+
+
+def vehicle(position, velocity=(0.0, 0.0, 0.0), heading=0.0) -> VehicleState:
+    return VehicleState(np.array(position, dtype=float), np.array(velocity, dtype=float), heading, 0.0)
+
+
+def body_clearance(env: Surroundings, positions: np.ndarray) -> float:
+    return env.space.path_clearance(positions) - CLEAR.body
+
+
+WALL = box((50.0, 40.0, 5.0), (1.0, 30.0, 10.0))  # across y 25-55, 10 m tall
+
+
+def test_the_ground_is_no_obstacle_and_the_counts_follow_every_change():
+    space = space_of(WALL)
+    assert space.clearance([[20.0, 40.0, 0.1]])[0] >= space.reach  # on the ground, nothing near
+    reference = space.counts.copy()
+    cube = np.ravel_multi_index(np.mgrid[60:64, 60:64, 10:14].reshape(3, -1), GRID.shape)  # a new 2 m cube
+    space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, cube, np.zeros(len(cube), np.float32))
+    assert (space.counts != reference).any()
+    rebuilt = FreeSpace(space.search_radius)
+    rebuilt.set_ground(0.0)
+    flat = space.replica.grid.reshape(-1)
+    changed = np.flatnonzero(flat != np.float32(-740.0))
+    rebuilt.apply_map(True, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, changed, flat[changed])
+    assert np.array_equal(rebuilt.counts, space.counts)  # voxel-by-voxel updates equal a rebuild
+    space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, cube,
+                    np.full(len(cube), -1000.0, np.float32))  # freed again
+    assert np.array_equal(space.counts, reference)
+
+
+def test_a_route_goes_round_a_wall_with_the_clearance_a_plan_keeps():
+    env = env_of(WALL)
+    start, goal = np.array([35.0, 40.0, 5.0]), np.array([65.0, 40.0, 5.0])
+    assert env.conflict(np.stack([start, goal]), CLEAR.plan) is not None  # straight through the wall
+    found = route(env.space, start, goal, CLEAR.plan, env.airspace.band(), vertical_weight=2.5)
+    assert found is not None and found.searched and found.reached
+    assert np.allclose(found.points[[0, -1]], [start, goal])
+    assert env.space.path_clearance(found.points) >= CLEAR.plan - 1e-6
+    ends = found.points[1:-1]
+    assert ((ends[:, 1] < 25.0) | (ends[:, 1] > 55.0) | (ends[:, 2] > 10.0)).all()  # round an end or over
+
+
+def test_a_route_goes_over_a_low_building_when_that_is_quicker():
+    low = box((50.0, 40.0, 1.5), (6.0, 60.0, 3.0))  # a 3 m long shed across the whole way
+    env = env_of(low)
+    found = route(env.space, np.array([40.0, 40.0, 2.0]), np.array([60.0, 40.0, 2.0]), CLEAR.plan,
+                  env.airspace.band(), vertical_weight=2.5)
+    assert found is not None and found.searched
+    assert found.points[:, 2].max() >= 3.0 + CLEAR.plan - 1e-6  # over its roof
+    assert np.abs(found.points[:, 1] - 40.0).max() < 10.0  # not round its ends, 30 m away
+
+
+def test_a_sweep_line_through_a_tree_detours_and_keeps_the_margin():
+    tree = Obstacle(kind="cylinder", center=(30.0, 30.0, 0.0), radius=1.5, height=7.0)
+    env = env_of(tree)
+    scan = command("scan", area=[(0.0, 0.0), (60.0, 0.0), (60.0, 60.0), (0.0, 60.0)], height=5.0, spacing=20.0)
+    plan = plan_command(scan, vehicle((10.0, 4.0, 5.0)), PARAMS, env)
+    bare = plan_command(scan, vehicle((10.0, 4.0, 5.0)), PARAMS)
+    assert body_clearance(env, bare.path[0]) < 0  # the seed's lawnmower flies through the tree
+    assert plan.outcome == "detour" and body_clearance(env, plan.path[0]) >= CLEAR.margin
+    assert plan.clearance == pytest.approx(body_clearance(env, plan.path[0]), abs=1e-3)
+
+
+def test_an_approach_whose_line_of_sight_is_blocked_comes_from_another_side():
+    building = box((20.0, 30.0, 4.0), (10.0, 8.0, 8.0))  # between the UAV (west) and the balloon
+    balloon = np.array([28.0, 30.0, 4.5])
+    env = env_of(building, pole(28.0, 30.0, 4.0))
+    plan = plan_command(command("approach", target=tuple(balloon)), vehicle((5.0, 30.0, 5.0)), PARAMS, env)
+    assert plan.outcome == "detour" and "own line of sight is blocked" in plan.note
+    goal = plan.path[0][-1]
+    assert abs(np.hypot(*(goal - balloon)[:2]) - PARAMS.wait_distance) < 0.6
+    assert goal[2] == pytest.approx(balloon[2] + PARAMS.hit_offset, abs=0.05)  # level with the hit point
+    assert body_clearance(env, plan.path[0]) >= CLEAR.margin
+    attack = plan_command(command("attack", target=tuple(balloon), profile=ATTACK), vehicle(goal), PARAMS, env)
+    assert attack.outcome in ("clear", "clipped")  # over its own pole (the mount exemption), through it
+
+
+def test_a_balloon_in_a_walled_yard_is_blocked_and_a_wall_cuts_the_overshoot():
+    yard = [box((30.0, 33.5, 1.5), (8.0, 1.0, 3.0)), box((30.0, 26.5, 1.5), (8.0, 1.0, 3.0)),
+            box((26.5, 30.0, 1.5), (1.0, 6.0, 3.0)), box((33.5, 30.0, 1.5), (1.0, 6.0, 3.0))]
+    env = env_of(*yard, pole(30.0, 30.0, 2.5))
+    near = plan_command(command("approach", target=(30.0, 30.0, 3.0)), vehicle((30.0, 22.0, 5.0)), PARAMS, env)
+    assert near.outcome == "blocked" and "every approach" in near.note and len(near.path[0]) == 1
+    wall_behind = box((30.0, 37.5, 5.0), (20.0, 1.0, 10.0))  # its face 4.5 m beyond the balloon
+    env = env_of(wall_behind, pole(30.0, 32.5, 4.0))
+    attack = plan_command(command("attack", target=(30.0, 32.5, 4.5), profile=ATTACK), vehicle((30.0, 28.5, 4.9)),
+                          PARAMS, env)
+    assert attack.outcome == "clipped" and "overshoot cut" in attack.note
+    assert PARAMS.min_overshoot <= attack.path[0][-1, 1] - 32.5 < PARAMS.overshoot
+    assert 37.0 - attack.path[0][:, 1].max() >= CLEAR.timed  # the wall's face is at y = 37
+
+
+def test_the_guard_brakes_before_an_obstacle_that_appears_in_the_map():
+    space = space_of()
+    reference = np.stack([np.linspace(20.0, 60.0, 81), np.full(81, 40.0), np.full(81, 5.0)], axis=1)  # 5 m/s, dt 0.1
+    ahead = guard.upcoming(reference, 0, 0.1, 0, 4.0)
+    here = reference[0]
+    assert guard.check(space, ahead, here, 5.0, 1.5, CLEAR.accept, CLEAR.hard).action == "clear"
+    far = np.ravel_multi_index(np.mgrid[98:100, 94:106, 10:22].reshape(3, -1), GRID.shape)  # a wall at x 39-40
+    space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, far, np.zeros(len(far), np.float32))
+    verdict = guard.check(space, ahead, here, 5.0, 1.5, CLEAR.accept, CLEAR.hard)
+    assert verdict.action == "replan" and verdict.ahead > 10.0  # 19 m ahead: time to go round it
+    near = np.ravel_multi_index(np.mgrid[64:66, 94:106, 10:22].reshape(3, -1), GRID.shape)  # at x 22-23
+    space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, near, np.zeros(len(near), np.float32))
+    verdict = guard.check(space, ahead, here, 5.0, 1.5, CLEAR.accept, CLEAR.hard)
+    assert verdict.action == "brake" and verdict.ahead < 5.0 / 1.2 + 2.0 + 1e-6
+    assert "closer than" in verdict.reason
+
+
+def test_the_guard_brakes_for_unseen_space_ahead_but_not_for_a_drone_the_map_keeps_unknown():
+    space = space_of(seen=False)
+    seen = np.ravel_multi_index(np.mgrid[40:120, 80:120, 2:30].reshape(3, -1), GRID.shape)  # x 10-50, y 30-50
+    space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, seen, np.full(len(seen), -1000.0, np.float32))
+    reference = np.stack([np.linspace(20.0, 60.0, 81), np.full(81, 40.0), np.full(81, 5.0)], axis=1)
+    here = np.array([40.0, 40.0, 5.0])
+    ahead = guard.upcoming(reference, 0, 0.1, 4 * 10**9, 4.0)  # from x = 40: unseen from x = 50 on
+    verdict = guard.check(space, ahead, here, 5.0, 1.5, CLEAR.accept, CLEAR.hard)
+    assert verdict.action == "brake" and "not seen" in verdict.reason and verdict.where[0] >= 50.0
+    drone = np.ravel_multi_index(([91], [100], [12]), GRID.shape)  # one voxel at (35.75, 40.25, 5.25)
+    space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, drone, np.full(1, -740.0, np.float32))
+    early = guard.upcoming(reference, 0, 0.1, 2 * 10**9, 3.0)  # x 30..45, through the drone's voxel
+    assert guard.check(space, early, early[0], 5.0, 1.5, CLEAR.accept, CLEAR.hard).action == "clear"
+
+
+def test_a_replan_at_speed_keeps_the_reference_velocity_continuous():
+    env = env_of()
+    moving = vehicle((10.0, 10.0, 5.0), velocity=(5.0, 0.0, 0.0))
+    plan = plan_command(command("goto", target=(10.0, 40.0, 5.0)), moving, PARAMS, env)  # a right angle away
+    positions = plan.path[0]
+    first = (positions[1] - positions[0]) / PARAMS.dt
+    assert np.linalg.norm(first - [5.0, 0.0, 0.0]) < 0.3  # it carries on along its velocity first
+    accelerations = np.diff(positions, n=2, axis=0) / PARAMS.dt**2
+    assert np.linalg.norm(accelerations, axis=1).max() <= SWEEP.max_acceleration * 1.05
+    assert lead_in(np.zeros(3), np.array([5.0, 0.0, 0.0]), np.array([10.0, 0.0, 0.0]), SWEEP) is None
+
+
+def test_a_pursuit_round_a_mast_meets_the_drone_where_the_uav_can_fly():
+    from schemas.arrays import from_numpy
+
+    mast = pole(30.0, 30.0, 18.0, radius=0.25)
+    env = env_of(mast)
+    angle = 0.5 * math.pi + (0.5 / 3.5) * 0.25 * np.arange(1, 49)  # 0.5 m/s round the mast, from its north
+    circle = np.stack([30.0 + 3.5 * np.cos(angle), 30.0 + 3.5 * np.sin(angle), np.full(48, 7.0)], axis=1)
+    drone = command("intercept", target=(30.0, 33.5, 7.0), target_velocity=(-0.5, 0.0, 0.0), profile=ATTACK,
+                    target_path=from_numpy(circle), target_path_dt=0.25)
+    uav = vehicle((30.0, 20.0, 7.0))  # south of the mast: the drone is behind it
+    bare = plan_command(drone, uav, PARAMS)
+    assert body_clearance(env, bare.path[0]) < CLEAR.margin  # without the map it flies by the mast
+    plan = plan_command(drone, uav, PARAMS, env)
+    assert body_clearance(env, plan.path[0]) >= CLEAR.margin
+    at = np.minimum(np.arange(len(plan.path[0])) * PARAMS.dt / 0.25, 47).astype(int)
+    assert np.linalg.norm(plan.path[0] - circle[at], axis=1).min() < 1.5  # and still meets the drone
