@@ -23,7 +23,7 @@ class Entry(NamedTuple):
 
 CATALOGUE: tuple[Entry, ...] = (
     Entry("falconry/sim/clock", m.SimClock, "simulator", "every service, launcher", "1/tick (20 Hz)"),
-    Entry("falconry/sim/world", m.WorldModel, "simulator", "sensor_driver, camera, job_manager, mapper (a-priori map)", "at start, then 1 Hz"),
+    Entry("falconry/sim/world", m.WorldModel, "simulator", "sensor_driver, camera, job_manager, mapper (a-priori map), planner (ground, height limits, body radius), launcher (clearance)", "at start, then 1 Hz"),
     Entry("falconry/sim/truth", m.GroundTruth, "simulator", "sensor_driver and camera (simulated sensors only), launcher (truth log, summary), `falconry evaluate tracking` (from recordings)", "1/tick"),
     Entry("falconry/sim/events", m.SimEvent, "simulator, launcher (restarts)", "launcher", "on event"),
     Entry("falconry/sim/resume", m.GroundTruth, "launcher (queryable: the last ground truth of the run)", "a restarted simulator", "on query"),
@@ -39,7 +39,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("falconry/<uav>/camera_detections", m.Detections, "object_detect (detector \"camera\")", "job_manager (balloons), launcher (summary)", "per frame, also when empty"),
     Entry("falconry/<uav>/labels", m.LabelSet, "classifier", "mapper", "per scan"),
     Entry("falconry/<uav>/detections", m.Detections, "classifier (or the oracle detector)", "tracker, job_manager (targets; LiDAR heartbeat of the abort system), launcher (summary), `falconry evaluate tracking` (from recordings: the detection baseline)", "per scan, also when empty"),
-    Entry("falconry/<uav>/map", m.VoxelMap, "mapper", "classifier, tracker (occupied voxels)", "delta per scan (state changes), snapshot every 5 s"),
+    Entry("falconry/<uav>/map", m.VoxelMap, "mapper", "classifier, tracker (occupied voxels), planner (what to keep clear of)", "delta per scan (state changes), snapshot every 5 s"),
     Entry("falconry/<uav>/tracks", m.Tracks, "tracker", "job_manager, partners' trackers (fleet picture), launcher (summary), `falconry evaluate tracking` (from recordings)", "1/tick with tracks, else 1 Hz"),
     Entry("falconry/<uav>/command", m.MissionCommand, "job_manager", "planner", "on change, repeated every 2 s"),
     Entry("falconry/<uav>/trajectory", m.TrajectoryReference, "planner", "simulator (onboard: flight controller)", "on command, re-sent every 2 s"),

@@ -1,5 +1,6 @@
-"""planner service: plans a trajectory for every new mission command (core.py, seed 004 ch. 5)
-and publishes it as a TrajectoryReference.
+"""planner service: plans a trajectory for every new mission command (commands.py, seed 004 ch. 5),
+kept clear of what its UAV knows is occupied (avoid.py), publishes it as a TrajectoryReference and
+says what it made of it (PlanReport), and guards the reference in flight (guard.py).
 
 A command with a new id is planned from where the vehicle is meant to be: on the current
 trajectory while it follows it (`rejoin_distance`), else from the latest odometry (position,
@@ -13,6 +14,13 @@ every `republish_period` s of mission time with the same start (a restarted simu
 subscriber picks it up) and, like the seed's state machine (§3.4.2), a scan that has been
 flown to its end starts again. A job manager that has said nothing for `job_manager_timeout`
 makes it brake to a hover until it speaks again (watchdog.py).
+
+What is occupied comes from the UAV's mapper (falconry/<uav>/map: the a-priori map and what the
+LiDAR showed since); the body's radius, the ground and the height limits from the world model.
+Every tick the guard looks at the next `guard_horizon` s of the reference against the latest map:
+a conflict far enough ahead is re-planned round (the current command planned again), a near one
+is braked for when no new plan avoids it; a command the guard stopped is planned again every
+`guard_retry` s until a plan is clear.
 """
 from __future__ import annotations
 
@@ -20,14 +28,32 @@ import math
 
 import numpy as np
 
-from schemas.arrays import from_numpy
-from schemas.messages import Header, MissionCommand, Odometry, TrajectoryReference, UavStatus
+from schemas import keys
+from schemas.arrays import from_numpy, to_numpy
+from schemas.messages import (
+    DEFAULT_UAV_RADIUS,
+    Header,
+    MissionCommand,
+    Odometry,
+    PlanReport,
+    TrajectoryReference,
+    UavStatus,
+    VoxelMap,
+    WorldModel,
+)
 from services.geometry import yaw_of
-from services.planner import core
-from services.planner.commands import PlannerParams, VehicleState, plan_command, start_state
+from services.planner import core, guard
+from services.planner.avoid import Airspace, Clearances, Surroundings, mount_exemption
+from services.planner.commands import Plan, PlannerParams, VehicleState, plan_command, start_state, warm_up
+from services.planner.freespace import FreeSpace, half_diagonal
 from services.planner.watchdog import JobManagerWatchdog
 from services.runtime.clock import NS
+from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
+
+EXEMPT_ACTIONS = ("approach", "attack")  # their target's pole and balloon are passed over (avoid.py)
+RANK = {"clear": 0, "replan": 1, "brake": 2}  # guard verdicts, best first
+SAME_TARGET = 2.0  # m: an approach to a target this close to the last one's keeps its direction
 
 
 class PlannerNode(Node):
@@ -36,6 +62,7 @@ class PlannerNode(Node):
     params_type = PlannerParams
 
     def setup(self) -> None:
+        warm_up(self.params)  # compiled now, before the liveliness token: the first plan must not stall a tick
         self.position: np.ndarray | None = None
         self.velocity = np.zeros(3)
         self.heading = 0.0
@@ -45,13 +72,77 @@ class PlannerNode(Node):
         self.trajectory: TrajectoryReference | None = None
         self.trajectory_end = 0
         self.published_at = 0
+        self.exempt: np.ndarray | None = None  # the active reference's mount exemption (an approach or attack)
+        self.approached: tuple[np.ndarray, np.ndarray] | None = None  # (target, direction) of the last approach
+        self.held = False  # the guard braked the active command's reference
+        self.retry_at = 0  # mission ns of the guard's next re-plan
+        self.clearances = Clearances(DEFAULT_UAV_RADIUS, self.params.obstacle_margin, self.params.tracking_allowance)
+        self.space = self._free_space()
+        self.airspace = Airspace()
+        self._bad_input = CountedWarnings(self.log)
+        self._refused: dict[str, int] = {}
         self.trajectory_pub = self.publisher(self.topic("trajectory"), TrajectoryReference)
+        self.report_pub = self.publisher(self.topic("plan"), PlanReport)
         self.subscribe(self.topic("command"), MissionCommand, self.on_command)
         self.subscribe(self.topic("odometry"), Odometry, self.on_odometry)
         self.subscribe(self.topic("status"), UavStatus, self.on_status)
+        self.subscribe(self.topic("map"), VoxelMap, self.on_map, keep=None)
+        self.subscribe(keys.WORLD, WorldModel, self.on_world)
         timeout = self.params.job_manager_timeout
         self.watchdog = JobManagerWatchdog(int(timeout * NS)) if 0 < timeout < math.inf else None
         self.command_seq = 0
+
+    def _free_space(self) -> FreeSpace:
+        return FreeSpace(self.clearances.plan + half_diagonal(0.5))
+
+    @property
+    def env(self) -> Surroundings:
+        return Surroundings(self.space, self.clearances, self.airspace, self.params.search_margin)
+
+    # ---------------------------------------------------------------- inputs
+    def on_world(self, msg: WorldModel, key: str) -> None:
+        ground = next((o.center[2] for o in msg.obstacles if o.kind == "plane"), 0.0)
+        radius = float(msg.uav_radius.get(self.uav, DEFAULT_UAV_RADIUS))
+        arena = np.asarray(msg.arena, dtype=np.float64).reshape(-1, 2)
+        if not (math.isfinite(ground) and 0.0 < radius < 10.0 and len(arena) >= 3 and np.isfinite(arena).all()):
+            self._refuse("world models refused (ground, body radius or arena impossible)")
+            return
+        floor = max(msg.min_height, self.params.pursuit_floor)
+        self.airspace = Airspace(ground, ground + floor, ground + msg.max_height, tuple(arena.min(axis=0)),
+                                 tuple(arena.max(axis=0)))
+        self.space.set_ground(ground)
+        if radius != self.clearances.body:
+            self.clearances = Clearances(radius, self.params.obstacle_margin, self.params.tracking_allowance)
+            self.log.info("body radius %.2f m: plans keep %.2f m from occupied voxels' boxes", radius,
+                          self.clearances.plan)
+            self.space = self._rebuilt(self.space)
+
+    def _rebuilt(self, old: FreeSpace) -> FreeSpace:
+        """A free space for the new clearances, from the map the old one holds."""
+        space = self._free_space()
+        if old.ground_z is not None:
+            space.set_ground(old.ground_z)
+        if old.replica is not None:
+            r = old.replica
+            flat = r.grid.reshape(-1)
+            changed = np.flatnonzero(flat != np.float32(r.default_value))
+            space.apply_map(True, r.origin, r.shape, r.voxel_size, r.default_value, changed, flat[changed])
+        return space
+
+    def on_map(self, msg: VoxelMap, key: str) -> None:
+        try:
+            fits = self.space.apply_map(msg.snapshot, msg.origin, msg.shape, msg.voxel_size, msg.default_value,
+                                        to_numpy(msg.indices), to_numpy(msg.values))
+        except ValueError as exc:  # a geometry no replica holds, indices and values of other lengths
+            self._refuse("map messages refused (geometry or contents impossible)")
+            self.log.debug("map refused: %s", exc)
+            return
+        if not fits:
+            self._refuse("map deltas before a snapshot of their grid (waiting for one)")
+
+    def _refuse(self, what: str) -> None:
+        self._refused[what] = self._refused.get(what, 0) + 1
+        self._bad_input.update({what: self._refused[what]})
 
     def on_status(self, msg: UavStatus, key: str) -> None:
         if self.watchdog is not None and self.watchdog.heard(msg.header.stamp):
@@ -73,6 +164,7 @@ class PlannerNode(Node):
         if self.first_z is None:
             self.first_z = float(self.position[2])
 
+    # ------------------------------------------------------------------ tick
     def on_tick(self, now_ns: int) -> None:
         if self.position is None:
             return
@@ -83,38 +175,119 @@ class PlannerNode(Node):
         command = self.command
         if command is not None and command.command_id != self.planned_id:
             self.plan(now_ns, command)
-        elif (self.trajectory is not None and self.params.repeat_scan and command is not None
+        elif (self.trajectory is not None and self.params.repeat_scan and command is not None and not self.held
               and command.action == "scan" and now_ns > self.trajectory_end):
             self.plan(now_ns, command)
         elif self.trajectory is not None and now_ns - self.published_at >= int(self.params.republish_period * NS):
             self.publish(now_ns)
+        self.guard(now_ns)
 
-    def plan(self, now_ns: int, command: MissionCommand) -> None:
+    def vehicle(self, now_ns: int) -> VehicleState:
         position, velocity = start_state(self.trajectory, now_ns, self.position, self.velocity,
                                          self.params.rejoin_distance)
-        ground = self.first_z if self.first_z is not None else float(self.position[2])
+        ground = self.airspace.ground_z if self.space.ground_z is not None else \
+            (self.first_z if self.first_z is not None else float(self.position[2]))
+        return VehicleState(position, velocity, self.heading, ground, now_ns)
+
+    def make_plan(self, now_ns: int, command: MissionCommand) -> Plan:
+        prefer = None
+        if command.action == "approach" and self.approached is not None and command.target is not None and \
+                np.linalg.norm(self.approached[0] - np.asarray(command.target)) <= SAME_TARGET:
+            prefer = self.approached[1]
         try:
-            plan = plan_command(command, VehicleState(position, velocity, self.heading, ground, now_ns), self.params)
-            positions, headings = plan.path
-            if plan.note:
-                self.log.warning("command %d: %s", command.command_id, plan.note)
+            plan = plan_command(command, self.vehicle(now_ns), self.params, self.env, prefer)
         except ValueError as err:  # refused by the core: a trajectory too long, an area with no scan in it, ...
-            self.log.warning("command %d: %s; hovering", command.command_id, err)
-            positions, headings = core.hover(self.position, self.heading)
+            return Plan(core.hover(self.position, self.heading), f"{err}; hovering")
+        if plan.direction is not None:
+            self.approached = (np.asarray(command.target, dtype=np.float64), plan.direction)
+        return plan
+
+    def plan(self, now_ns: int, command: MissionCommand) -> None:
+        plan = self.make_plan(now_ns, command)
+        if plan.note:
+            self.log.warning("command %d: %s", command.command_id, plan.note)
         self.planned_id = command.command_id
+        self.held = False
+        self.adopt(now_ns, command, plan, plan.outcome)
+        positions = plan.path[0]
+        self.log.info("command %d %s: %d samples, %.1f s (%s)", command.command_id, command.action,
+                      len(positions), (len(positions) - 1) * self.params.dt, plan.outcome)
+
+    def adopt(self, now_ns: int, command: MissionCommand, plan: Plan, outcome: str) -> None:
+        positions, headings = plan.path
+        exempting = command.action in EXEMPT_ACTIONS and command.target is not None
+        if exempting:
+            target = np.asarray(command.target, dtype=np.float64)
+            distance = float(np.hypot(*(target - self.position)[:2])) if command.action == "approach" else 0.0
+            self.exempt = mount_exemption(target, self.params.mount_radius + self.params.mount_growth * distance)
+        else:
+            self.exempt = None
         self.set_trajectory(now_ns, command.command_id, positions, headings, command.profile)
-        self.log.info("command %d %s: %d samples, %.1f s", command.command_id, command.action,
-                      len(positions), (len(positions) - 1) * self.params.dt)
+        self.report(now_ns, command.command_id, command.action, outcome, plan.note or "", plan.clearance,
+                    command.target)
 
-    def set_trajectory(self, now_ns: int, command_id: int, positions: np.ndarray, headings: np.ndarray,
-                       profile) -> None:
-        dt = self.params.dt
-        self.trajectory = TrajectoryReference(header=Header(stamp=now_ns), command_id=command_id, start=now_ns, dt=dt,
-                                              positions=from_numpy(positions), headings=from_numpy(headings),
-                                              profile=profile)
-        self.trajectory_end = now_ns + int(round((len(positions) - 1) * dt * NS))
-        self.publish(now_ns)
+    def report(self, now_ns: int, command_id: int, action: str, outcome: str, note: str, clearance, target) -> None:
+        self.report_pub.put(PlanReport(header=Header(stamp=now_ns), command_id=command_id, action=action,
+                                       outcome=outcome, note=note, clearance=clearance,
+                                       target=None if target is None else tuple(float(v) for v in target)))
 
+    # ----------------------------------------------------------------- guard
+    def guard(self, now_ns: int) -> None:
+        """The guard's check of the active reference; see the module docstring."""
+        if self.trajectory is None or not self.space.known:
+            return
+        verdict = self.verdict(now_ns, self.trajectory)
+        command = self.command if self.command is not None and self.command.command_id == self.planned_id else None
+        if verdict.action == "clear":
+            if self.held and command is not None and now_ns >= self.retry_at:
+                self.retry(now_ns, command, verdict)
+            return
+        if self.held and verdict.action == "replan":
+            return  # braking already: the hold point is what it is
+        if command is not None and now_ns >= self.retry_at and self.retry(now_ns, command, verdict):
+            return
+        if verdict.action == "brake" and not self.held:
+            self.log.warning("guard: %s: braking", verdict.reason)
+            profile = self.trajectory.profile
+            positions, headings = core.stop(self.position, self.velocity, profile, self.params.dt, self.heading)
+            self.set_trajectory(now_ns, self.trajectory.command_id, positions, headings, profile)
+            self.held = True
+            self.retry_at = now_ns + int(self.params.guard_retry * NS)
+            self.report(now_ns, self.trajectory.command_id, command.action if command else "", "braked",
+                        verdict.reason, None, None if command is None else command.target)
+
+    def retry(self, now_ns: int, command: MissionCommand, verdict: guard.GuardVerdict) -> bool:
+        """Plan the command again; adopt the plan when the guard finds it clear. True when adopted."""
+        self.retry_at = now_ns + int(self.params.guard_retry * NS)
+        plan = self.make_plan(now_ns, command)
+        if plan.outcome == "blocked":
+            self.log.info("guard: re-planned command %d not taken: %s", command.command_id, plan.note)
+            return False
+        candidate = TrajectoryReference(header=Header(stamp=now_ns), command_id=command.command_id, start=now_ns,
+                                        dt=self.params.dt, positions=from_numpy(plan.path[0]),
+                                        headings=from_numpy(plan.path[1]), profile=command.profile)
+        found = self.verdict(now_ns, candidate)
+        if RANK[found.action] >= max(RANK[verdict.action], RANK["replan"]):  # clear, or nearer it than the reference is
+            self.log.info("guard: re-planned command %d not taken: %s (%s)", command.command_id, found.reason,
+                          plan.outcome)
+            return False
+        why = verdict.reason or "the way is clear again"
+        self.log.warning("guard: %s: re-planned command %d (%s)", why, command.command_id, plan.outcome)
+        self.held = False
+        self.adopt(now_ns, command, Plan(plan.path, "; ".join(filter(None, [why, plan.note])), plan.outcome,
+                                         plan.clearance), "replanned")
+        return True
+
+    def verdict(self, now_ns: int, trajectory: TrajectoryReference) -> guard.GuardVerdict:
+        p = self.params
+        ahead = guard.upcoming(to_numpy(trajectory.positions), trajectory.start, trajectory.dt, now_ns,
+                               p.guard_horizon)
+        return guard.check(self.space, ahead, self.position, float(np.linalg.norm(self.velocity)),
+                           trajectory.profile.max_acceleration, self.clearances.accept, self.clearances.hard,
+                           view=p.guard_view,
+                           slack=p.guard_slack, exempt=self.exempt)
+
+    # -------------------------------------------------------------- watchdog
     def watchdog_tripped(self, now_ns: int) -> bool:
         """Whether the job manager's silence holds the vehicle (braking at its start); a landing
         goes on to the ground whoever is silent."""
@@ -132,6 +305,16 @@ class PlannerNode(Node):
         positions, headings = core.stop(self.position, self.velocity, profile, self.params.dt, self.heading)
         self.set_trajectory(now_ns, -1, positions, headings, profile)
         self.planned_id = None
+
+    # --------------------------------------------------------------- outputs
+    def set_trajectory(self, now_ns: int, command_id: int, positions: np.ndarray, headings: np.ndarray,
+                       profile) -> None:
+        dt = self.params.dt
+        self.trajectory = TrajectoryReference(header=Header(stamp=now_ns), command_id=command_id, start=now_ns, dt=dt,
+                                              positions=from_numpy(positions), headings=from_numpy(headings),
+                                              profile=profile)
+        self.trajectory_end = now_ns + int(round((len(positions) - 1) * dt * NS))
+        self.publish(now_ns)
 
     def publish(self, now_ns: int) -> None:
         self.trajectory.header = Header(stamp=now_ns)

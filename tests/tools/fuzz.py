@@ -44,6 +44,7 @@ from schemas.messages import (
     MissionCommand,
     Obstacle,
     Odometry,
+    PlanReport,
     PointCloud,
     PointTruth,
     SimClock,
@@ -283,7 +284,8 @@ def corpus() -> dict[type, msgspec.Struct]:
         ("mapper", [PointCloud, LabelSet], [(VoxelMap, "map")]),
         ("tracker", [Detections], [(Tracks, "tracks")]),
         ("job_manager", [WorldModel, Odometry, Detections, Tracks], [(UavStatus, "status")]),
-        ("planner", [MissionCommand, Odometry], [(TrajectoryReference, "trajectory")]),
+        ("planner", [WorldModel, VoxelMap, MissionCommand, Odometry],
+         [(TrajectoryReference, "trajectory"), (PlanReport, "plan")]),
     ]
     for service, inputs, outputs in pipeline:
         wired = wire(service)
