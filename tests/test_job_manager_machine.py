@@ -256,6 +256,37 @@ def test_state_timer_forbids_the_target_and_returns_to_idle(timer, params, state
     assert rig.jm.state is State.GOING_AROUND  # the forbidden balloon is not in view any more
 
 
+def test_a_balloon_every_approach_to_which_stays_blocked_becomes_a_forbidden_zone():
+    """The planner reports each plan (PlanReport); an approach it finds blocked by obstacles for
+    blocked_time makes the balloon a forbidden zone, and a clear plan in between starts that over."""
+    rig = Rig(blocked_time=2.0).engaged()
+    rig.jm.plan_report(s(1.3), "approach", "blocked", "every approach to (30.0, 30.0, 4.0) is blocked")
+    rig.run(1.3, 2.5, detections=[BALLOON])
+    rig.jm.plan_report(s(2.5), "approach", "detour", "")  # a better estimate, a way found
+    rig.run(2.6, 4.0, detections=[BALLOON])
+    assert rig.jm.state is State.GOING_TO_TARGET and not rig.jm.zones.zones
+    rig.jm.plan_report(s(4.0), "approach", "blocked", "every approach to (30.0, 30.0, 4.0) is blocked")
+    rig.run(4.1, 5.9, detections=[BALLOON])
+    assert rig.jm.state is State.GOING_TO_TARGET
+    rig.run(6.0, 6.2, detections=[BALLOON])
+    (zone,) = rig.jm.zones.zones
+    assert zone.reason == "every approach blocked by obstacles"
+    assert np.linalg.norm(np.array(zone.center) - BALLOON) < 0.3
+    assert "every approach to the target blocked for 2 s" in [t.reason for t in rig.jm.transitions]
+    assert rig.jm.state is State.GOING_AROUND  # the forbidden balloon is no target any more
+    rig.jm.plan_report(s(6.3), "intercept", "blocked", "")  # not a static target's: nothing to forbid
+    assert rig.jm._blocked is None
+
+
+def test_an_attack_starts_only_once_the_vehicle_is_level():
+    """Still sinking onto the hit height, the vehicle would pass under its run-in's reference."""
+    rig = Rig(target_time=0.5).destroying()
+    rig.run(1.4, 2.5, detections=[BALLOON], velocity=[0.0, 0.0, -0.8])
+    assert not rig.jm.engagement.attacking
+    rig.tick(2.6, detections=[BALLOON], velocity=[0.0, 0.0, -0.2])
+    assert rig.jm.engagement.attacking and rig.last.action == "attack"
+
+
 def test_forbidden_zone_expires_after_t_f():
     rig = Rig(going_timeout=2.0).engaged()
     rig.run(1.3, 3.3, detections=[BALLOON])

@@ -2,7 +2,8 @@
 
 In: the world (arena, team, mission length), this UAV's odometry, detections (one message per
 LiDAR scan, also the abort system's heartbeat), the camera's detections (Object Detect's
-balloons, one message per frame) and tracks, every partner's status and the
+balloons, one message per frame) and tracks, its planner's reports (a target every approach to
+which is blocked by obstacles becomes a forbidden zone), every partner's status and the
 liveliness tokens (pre-flight check of this UAV's services; partners' job managers for revenge
 mode). Out: mission commands for the planner and this UAV's status for its partners. Every
 decision is the core's; the node only converts messages and logs what the core noted.
@@ -21,6 +22,7 @@ from schemas.messages import (
     Header,
     MissionCommand,
     Odometry,
+    PlanReport,
     Tracks,
     UavStatus,
     WorldModel,
@@ -75,6 +77,7 @@ class JobManagerNode(Node):
         self.subscribe(self.topic("detections"), Detections, self.on_detections)
         self.subscribe(self.topic("camera_detections"), Detections, self.on_camera_detections)
         self.subscribe(self.topic("tracks"), Tracks, self.on_tracks)
+        self.subscribe(self.topic("plan"), PlanReport, self.on_plan)
         self.subscribe(keys.ALL_STATUS, UavStatus, self.on_partner_status)
         self.on_liveliness(keys.ALL_ALIVE, self.on_alive)
 
@@ -122,6 +125,10 @@ class JobManagerNode(Node):
                                  fleet=np.array([t.source not in ("", self.uav) for t in confirmed], dtype=bool),
                                  covariances=np.array([track_position_covariance(t) for t in confirmed]).reshape(-1, 3, 3),
                                  corrected=np.array([t.last_correction for t in confirmed], dtype=np.int64))
+
+    def on_plan(self, msg: PlanReport, key: str) -> None:
+        if self.command is not None and msg.command_id == self.command.command_id:  # older commands are history
+            self.core.plan_report(msg.header.stamp, msg.action, msg.outcome, msg.note)
 
     def on_partner_status(self, msg: UavStatus, key: str) -> None:
         if msg.uav != self.uav:
