@@ -69,7 +69,7 @@ def test_clockwise_arena_is_reoriented(tmp_path):
 
 
 def test_unknown_name_lists_builtins():
-    with pytest.raises(ScenarioError, match=r"unknown scenario 'foo' \(built-in: agile, intruder, mbzirc, open, sparse, takeoff;"):
+    with pytest.raises(ScenarioError, match=r"unknown scenario 'foo' \(built-in: agile, forest, intruder, mast, mbzirc, open, sparse, street, takeoff, unmapped;"):
         load_scenario("foo")
     with pytest.raises(ScenarioError, match="not found"):
         load_scenario("/nonexistent/x.toml")
@@ -139,7 +139,8 @@ def test_points_in_non_convex_polygon():
 def test_every_builtin_loads_and_runs_a_few_steps():
     from services.simulator.core import Simulation
 
-    assert builtin_scenarios() == ["agile", "intruder", "mbzirc", "open", "sparse", "takeoff"]
+    assert builtin_scenarios() == ["agile", "forest", "intruder", "mast", "mbzirc", "open", "sparse", "street", "takeoff",
+                                  "unmapped"]
     for name in builtin_scenarios():
         s = load_scenario(name)
         sim = Simulation(s, [f"uav{i + 1}" for i in range(s.uavs)], s.seed)
