@@ -23,6 +23,7 @@ from services.planner.avoid import (
     free_overshoot,
     free_points,
     landing_line,
+    lead_in,
     mount_exemption,
     speed_barrier,
     timed,
@@ -140,12 +141,11 @@ def plan_command(command: MissionCommand, vehicle: VehicleState, params: Planner
     p, heading = vehicle.position, vehicle.heading
     dt, profile, prm = params.dt, command.profile, params
     action, target = command.action, command.target
-    if action == "takeoff":
+    if action == "takeoff":  # also the climb back to the search height in flight
         line = Polyline.of([p, [p[0], p[1], command.height]], np.zeros(2))
-        return _fly(env, line, profile, dt, vehicle, moving=False)
+        return _fly(env, line, profile, dt, vehicle)
     if action in ("land", "emergency_land"):
-        ground = target[2] if target is not None else vehicle.ground_z
-        return _fly(env, landing_line(env, p, ground, profile), profile, dt, vehicle, moving=False)
+        return _land(env, target[2] if target is not None else vehicle.ground_z, profile, dt, vehicle)
     if action == "stop":
         return _checked(env, core.stop(p, vehicle.velocity, profile, dt, heading))
     if action == "scan" and len(command.area) >= 3:
@@ -178,6 +178,19 @@ def _fly(env: Surroundings | None, line: Polyline, profile, dt: float, vehicle: 
     cleared = timed(env, led, profile, dt, start_velocity=velocity, start_heading=vehicle.heading, heading=heading,
                     corner_deviation=corner_deviation, exempt=exempt)
     return Plan(cleared.path, cleared.note or None, cleared.outcome, cleared.clearance)
+
+
+def _land(env: Surroundings | None, ground: float, profile, dt: float, vehicle: VehicleState) -> Plan:
+    """Down to the ground where the vehicle comes to a stop (a lead-in along its velocity first: a
+    landing started at sweep speed that came straight down touched down sliding, a crash), or beside
+    it where something is below (landing_line)."""
+    p = vehicle.position
+    lead = lead_in(p, vehicle.velocity, np.array([p[0], p[1], ground]), profile)
+    line = landing_line(env, p if lead is None else lead, ground, profile)
+    if lead is not None:
+        line = Polyline(np.vstack([p, line.points]), np.concatenate([[np.inf], line.corner_speeds]),
+                        np.concatenate([[np.inf], line.segment_speeds]), line.outcome, line.note)
+    return _fly(env, line, profile, dt, vehicle)
 
 
 def _checked(env: Surroundings | None, path: core.Path) -> Plan:
