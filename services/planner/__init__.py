@@ -1,8 +1,10 @@
-"""planner: turns mission commands into timed trajectory references (seed 004, ch. 5).
+"""planner: turns mission commands into timed trajectory references (seed 004, ch. 5) that keep
+clear of what the UAV knows is occupied, and guards them in flight.
 
-First version (walking skeleton): take-off, landing, hover, straight go-to and an
-axis-aligned lawnmower over the working area's bounding rectangle, every segment with a
-trapezoidal speed profile that stops at each corner. The inner rectangle of the arena
-(§5.3), corner slow-down instead of full stops, approach with deadband and attack with
-overshoot (§5.1–5.2) and interception of moving targets come with later issues.
+- core.py, timing.py, scan.py, pursuit.py, intercept.py: the seed's manoeuvres and their time
+  parameterisation;
+- freespace.py, search.py, avoid.py: the map the planner keeps from its mapper, the path search on
+  it, and each manoeuvre routed, timed and checked against it;
+- guard.py: the active reference's next seconds against the latest map, every tick;
+- commands.py: which manoeuvre a command gets; node.py wires it all to Zenoh.
 """

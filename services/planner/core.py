@@ -6,9 +6,8 @@ the whole ConstraintProfile (speed, vertical speed, acceleration, heading rate) 
 corners, which are rounded (or stopped at when sharper than 120°). The time parameterisation
 lives in timing.py, the scan in scan.py, interception in pursuit.py (close onto the predicted
 track as fast as the limits allow, re-planned on every update) and intercept.py (merge: wait on the predicted path); this
-module is the planner's single entry point and re-exports them.
-
-Later work deepens it: obstacle-aware paths (the voxel map), smoother jerk-limited profiles.
+module is the seed's geometry and re-exports them. Keeping each manoeuvre clear of obstacles is
+avoid.py's, which commands.py calls.
 """
 from __future__ import annotations
 

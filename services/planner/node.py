@@ -204,8 +204,9 @@ class PlannerNode(Node):
 
     def plan(self, now_ns: int, command: MissionCommand) -> None:
         plan = self.make_plan(now_ns, command)
-        if plan.note:
-            self.log.warning("command %d: %s", command.command_id, plan.note)
+        if plan.note:  # a fallback or a refusal is a warning; a detour or a meeting curve is news
+            log = self.log.info if plan.outcome in ("clear", "detour") else self.log.warning
+            log("command %d: %s", command.command_id, plan.note)
         self.planned_id = command.command_id
         self.held = False
         self.adopt(now_ns, command, plan, plan.outcome)
