@@ -10,7 +10,7 @@ LOCK := deploy/requirements.lock
 SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1
 CAMPAIGN_ARGS ?= --runs 20 --seed 1
 
-.PHONY: .venv sim test acceptance bench bench-tracking bench-tracking-intruder bench-interception bench-localization campaign schemas lock clean
+.PHONY: .venv sim test acceptance bench bench-tracking bench-tracking-intruder bench-interception bench-localization bench-obstacles bench-planner campaign schemas lock clean
 
 .venv: $(STAMP)
 
@@ -58,6 +58,15 @@ bench-interception: .venv
 # GNSS-denied missions on mbzirc and intruder, 3 seeds each: Table 2 of seed 003 beside KISS-ICP (about 2 h)
 bench-localization: .venv
 	$(PY) benchmarks/localization.py
+
+# every obstacle scenario (mbzirc, intruder, agile, street, forest, unmapped, mast), seeds 1-5, 2 and 3 UAVs:
+# collisions, clearance, balloons, captures (about 3 h)
+bench-obstacles: .venv
+	$(PY) benchmarks/obstacles.py
+
+# the planner's time per plan and per guard check on mbzirc's map, one core (about 10 s)
+bench-planner: .venv
+	$(PY) benchmarks/planner.py
 
 # 20 seeded runs with a random fault each (about 15 min; `make test` flies a 2-run one)
 campaign: .venv

@@ -42,7 +42,7 @@ def balloons_done(summary: dict) -> tuple[float | None, int, int]:
     kinds = summary["target_kinds"]
     balloons = [d["t"] for d in summary["destroyed"] if kinds.get(d["target"]) == "balloon"]
     total = sum(1 for k in kinds.values() if k == "balloon")
-    return (max(balloons) if len(balloons) == total else None), len(balloons), total
+    return (max(balloons) if balloons and len(balloons) == total else None), len(balloons), total
 
 
 def wrong_engagements(summary: dict) -> list[str]:
