@@ -119,3 +119,4 @@ def test_a_pursuit_follows_a_prediction_only_so_long_past_the_last_sighting():
     waited = np.array([20.0 + 4.0 * 0.5, 0.0, 6.0])  # where the prediction puts it 1.5 s past the sighting
     assert np.linalg.norm(positions[-1] - waited) < 0.3
     assert np.abs(positions[:, 0]).max() < waited[0] + 0.5  # never beyond it
+

@@ -30,7 +30,6 @@ from services.planner.avoid import (
     vertical_weight,
     with_lead_in,
 )
-from services.planner.pursuit import closing, meeting, meets
 from services.planner.search import route
 from services.tracker.view import PredictedPath
 from services.runtime.clock import NS
@@ -58,13 +57,6 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     # s past the target's last sighting a pursuit follows its prediction (at most to the path's end), then waits
     pursuit_trust: float = 1.5
     pursuit_floor: float = 1.0  # m above the ground no pursuit goes below (the job manager's lowest target height)
-    # The net (a capture: within net_radius of the drone at a relative speed of at most net_speed): a pursuit
-    # the prediction says will not meet the target so within meet_window s gives way to a meeting curve that does
-    net_radius: float = 1.0  # m
-    net_speed: float = 2.0  # m/s
-    meet_window: float = 2.5  # s
-    meet_progress: float = 1.0  # m: ... nor gain this much on it by then (it is not closing in) ...
-    meet_horizon: float = 8.0  # s: ... gives way to the earliest meeting curve within this
     rejoin_distance: float = 1.5  # m: a re-plan starts on the current trajectory while this close to it
     republish_period: float = 2.0  # s of mission time
     repeat_scan: bool = True  # sweep again once a scan trajectory has ended
@@ -355,11 +347,11 @@ def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleStat
                  floor=vehicle.ground_z + prm.pursuit_floor, trust=trust, **moving)
     known = env is not None and env.space.known
     if known:
-        plan = _pursuit_clear(env, p, target, velocity, chase, prm)
+        plan = _pursuit_clear(env, p, target, velocity, chase)
         path = None if plan is None else plan.path
     else:
-        path, note = _chase(p, target, velocity, chase, prm)
-        plan = None if path is None else Plan(path, note)
+        path = core.pursuit(p, target, velocity, **chase)
+        plan = None if path is None else Plan(path)
     if plan is not None:
         return plan
     if path is None:
@@ -375,39 +367,8 @@ def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleStat
                 "no merge onto the target is feasible; chasing its position")
 
 
-def _chase(position: np.ndarray, target: np.ndarray, velocity: np.ndarray, chase: dict, prm: PlannerParams,
-           route: np.ndarray | None = None) -> tuple[core.Path | None, str | None]:
-    """The pursuit; or, when the prediction says it will neither meet the target (within 0.8 of the
-    net's reach) within meet_window nor gain meet_progress on it by then — stuck behind a turning
-    target — the earliest meeting curve within meet_horizon (pursuit.meeting) and the pursuit on
-    from where it meets, with a note saying so. None: the target is too fast for the profile."""
-    path = core.pursuit(position, target, velocity, route=route, **chase)
-    if path is None or route is not None:
-        return path, None
-    predicted, dt = chase["predicted"], chase["dt"]
-    if meets(path[0], predicted, dt, prm.meet_window, 0.8 * prm.net_radius, 0.8 * prm.net_speed) is not None \
-            or closing(path[0], predicted, dt, prm.meet_window) >= prm.meet_progress:
-        return path, None
-    found = meeting(position, chase["start_velocity"], predicted, chase["profile"], dt, prm.meet_horizon,
-                    chase["floor"])
-    if found is None:
-        return path, None
-    curve, tau = found
-    (there,), (moving,) = predicted.state([tau])
-    later = predicted.rebased(tau, len(predicted.path), predicted.dt) if len(predicted.path) and predicted.dt > 0 \
-        else PredictedPath(there, moving)
-    on = dict(chase, predicted=later, trust=chase["trust"] - tau, horizon=max(chase["horizon"] - tau, dt),
-              start_velocity=(curve[-1] - curve[-2]) / dt if len(curve) > 1 else moving)
-    rest = core.pursuit(curve[-1], there, moving, **on)
-    if rest is None:
-        return path, None
-    positions = np.vstack([curve[:-1], rest[0]])
-    return core.steer(positions, np.full(len(positions), rest[1][-1]), chase["start_heading"],
-                      chase["profile"].max_heading_rate, dt), f"meeting the target in {tau:.1f} s: the pursuit was not closing in"
-
-
 def _pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, velocity: np.ndarray,
-                   chase: dict, prm: PlannerParams) -> Plan | None:
+                   chase: dict) -> Plan | None:
     """The pursuit near obstacles: the predicted points the UAV could not be at move to the nearest
     free voxel (free_points), its speed towards an obstacle is held to what it can brake from
     before the clearance (speed_barrier), and when an obstacle stands between the UAV and where
@@ -426,10 +387,9 @@ def _pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, 
         if found is not None and found.searched:
             way = found.points
             outcome, note = "detour", "pursuit round an obstacle between the UAV and the target"
-    path, meet = _chase(position, target, velocity, chase, prm, way)
+    path = core.pursuit(position, target, velocity, route=way, **chase)
     if path is None:
         return None
-    note = "; ".join(filter(None, [note, meet])) or None
     conflict = env.conflict(path[0], env.clearances.timed)
     if conflict is None:
         return Plan(path, note, outcome, _clearance(env, path[0]))
