@@ -26,7 +26,8 @@ from schemas.messages import (
     WorldModel,
 )
 from tests.conftest import REPO
-from tests.tools.health import health, wait_healthy
+from tests.tools.health import health
+from tests.tools.nodes import collect, start_healthy
 
 TICK_NS = 50_000_000
 BALLOON = (9.0, 1.0, 5.0)
@@ -35,13 +36,9 @@ BAD_FRAME_NS = 470_000_001  # a stamp no camera frame has
 
 def test_the_camera_frames_a_balloon_object_detect_finds_it_and_takes_new_colours_live(hub, processes):
     session, endpoint = hub
-    for service in ("camera", "object_detect"):
-        processes.start("run", service, "--uav", "uav1", "--connect", endpoint, "--exit-with-parent")
-    wait_healthy(session, [("uav1", "camera"), ("uav1", "object_detect")])
-    got: dict[str, list] = {"camera": [], "camera_jpeg": [], "camera_detections": []}
-    types = {"camera": CameraFrame, "camera_jpeg": CompressedFrame, "camera_detections": Detections}
-    subscribers = [session.declare_subscriber(keys.uav("uav1", topic), lambda s, t=topic: got[t].append(
-        msgspec.msgpack.decode(s.payload.to_bytes(), type=types[t]))) for topic in types]
+    start_healthy(processes, session, endpoint, ("camera", "object_detect"))
+    got, subscribers = collect(session, {"camera": CameraFrame, "camera_jpeg": CompressedFrame,
+                                         "camera_detections": Detections})
     colors = session.declare_publisher(keys.uav("uav1", "colors"))
     time.sleep(0.5)
 

@@ -32,6 +32,7 @@ from schemas.messages import (
 from services.sensor_driver.core import DEFAULT_MOUNT
 from tests.conftest import REPO
 from tests.tools.health import wait_healthy
+from tests.tools.nodes import collect, start_healthy
 
 TICK_NS = 50_000_000
 # The oracle started the way `falconry run oracle --uav uav1` does once the launcher treats it
@@ -141,13 +142,8 @@ def test_the_simulated_sensors_see_an_obstacle_the_survey_lacks(hub, processes):
     """An obstacle only the ground truth carries (unsurveyed): the LiDAR's rays and the camera's
     pixels meet it from the tick it appears in the truth, beside the world model's ground."""
     session, endpoint = hub
-    for service in ("sensor_driver", "camera"):
-        processes.start("run", service, "--uav", "uav1", "--connect", endpoint, "--exit-with-parent")
-    wait_healthy(session, [("uav1", "sensor_driver"), ("uav1", "camera")])
-    got: dict[str, list] = {"points": [], "points_truth": [], "camera": []}
-    types = {"points": PointCloud, "points_truth": PointTruth, "camera": CameraFrame}
-    subscribers = [session.declare_subscriber(keys.uav("uav1", topic), lambda s, t=topic: got[t].append(
-        msgspec.msgpack.decode(s.payload.to_bytes(), type=types[t]))) for topic in types]
+    start_healthy(processes, session, endpoint, ("sensor_driver", "camera"))
+    got, subscribers = collect(session, {"points": PointCloud, "points_truth": PointTruth, "camera": CameraFrame})
     time.sleep(0.5)
 
     def put(key: str, msg) -> None:

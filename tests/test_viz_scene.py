@@ -201,6 +201,17 @@ def test_world_is_drawn_once_as_static_entities_and_registers_the_team():
     assert not [log for log in scene.feed("falconry/sim/world", world()) if log.entity.startswith("world")]
 
 
+def test_obstacles_the_survey_lacks_are_drawn_once_as_truth():
+    scene = SceneBuilder()
+    scene.feed("falconry/sim/world", world())
+    wall = Obstacle(kind="box", center=(25, 20, 4), size=(20, 1, 8), name="wall")
+    truth = GroundTruth(header=Header(stamp=S), step=20, obstacles=[wall])
+    logs = entities(scene.feed("falconry/sim/truth", encode(truth)))
+    assert logs["truth/obstacles/boxes"][0].item.labels == ["wall"] and logs["truth/obstacles/boxes"][0].stamp is None
+    truth.header.stamp = 2 * S
+    assert not [log for log in scene.feed("falconry/sim/truth", encode(truth)) if log.entity.startswith("truth/obst")]
+
+
 def test_scan_keeps_every_flying_and_unknown_point_when_thinning():
     scene = SceneBuilder(ViewParams(scan_points=50, scan_period=0.5))
     points = np.random.default_rng(1).uniform(0, 30, (1000, 3)).astype(np.float32)

@@ -39,6 +39,7 @@ from schemas.messages import (
     GroundTruth,
     LabelSet,
     MissionCommand,
+    Obstacle,
     Odometry,
     PointCloud,
     ServiceHealth,
@@ -79,8 +80,8 @@ UAV_FAMILIES = (
     "tracks/tentative", "tracks/predicted", "trajectory", "working_area", "forbidden_zones", "state",
     "status", "events",
 )
-WORLD_FAMILIES = ("world/arena", "world/ground", "world/obstacles", "truth/targets", "truth/target_paths",
-                  "truth/uavs", "events")
+WORLD_FAMILIES = ("world/arena", "world/ground", "world/obstacles", "truth/obstacles", "truth/targets",
+                  "truth/target_paths", "truth/uavs", "events")
 
 MEMORY_PERIOD = 5.0  # s of mission time between memory points of one service (it changes slowly)
 EVENT_LEVELS = {"fault_injected": "WARN", "fault_started": "WARN", "fault_failed": "ERROR",
@@ -128,6 +129,7 @@ class SceneBuilder:
         self.duration = 0.0  # s, from the world model (0: unknown)
         self._origin = StampOrigin()
         self._world_key = b""
+        self._unsurveyed: list[Obstacle] = []  # the truth's obstacles drawn last
         self._target_paths: dict[str, deque] = {}
         self._target_last: dict[str, tuple[float, float, float]] = {}
         self._targets_now: np.ndarray | None = None  # (K, 3) live targets' true positions, once truth is seen
@@ -246,33 +248,37 @@ class SceneBuilder:
         low, high = arena.min(axis=0) - 10.0, arena.max(axis=0) + 10.0
         vertices, triangles = rectangle_mesh(tuple(low), tuple(high), ground)
         self._log("world/ground", draw.Mesh(vertices, triangles, (90, 110, 80, 255)), static=True)
-        self._draw_obstacles(world)
+        self._draw_obstacles(world.obstacles, "world/obstacles")
 
-    def _draw_obstacles(self, world: WorldModel) -> None:
+    def _draw_obstacles(self, obstacles: list[Obstacle], family: str) -> None:
         by_kind: dict[str, list] = {}
-        for o in world.obstacles:
+        for o in obstacles:
             by_kind.setdefault(o.kind, []).append(o)
         grey: Color = (170, 160, 150, 255)
         if boxes := by_kind.get("box"):
-            self._log("world/obstacles/boxes", draw.Boxes(
+            self._log(f"{family}/boxes", draw.Boxes(
                 np.array([o.center for o in boxes]), np.array([o.size for o in boxes]) / 2, grey,
                 [o.name for o in boxes], show_labels=False), static=True)
         if cylinders := by_kind.get("cylinder"):
-            self._log("world/obstacles/cylinders", draw.Cylinders(
+            self._log(f"{family}/cylinders", draw.Cylinders(
                 np.array([o.center for o in cylinders]) + np.array([[0, 0, o.height / 2] for o in cylinders]),
                 np.array([o.height for o in cylinders]), np.array([o.radius for o in cylinders]),
                 (120, 150, 100, 255), [o.name for o in cylinders], show_labels=False), static=True)
         if spheres := by_kind.get("sphere"):
-            self._log("world/obstacles/spheres", draw.Ellipsoids(
+            self._log(f"{family}/spheres", draw.Ellipsoids(
                 np.array([o.center for o in spheres]), np.array([[o.radius] * 3 for o in spheres]), None,
                 grey, [o.name for o in spheres], solid=True, show_labels=False), static=True)
         if cones := by_kind.get("cone"):
             vertices, triangles = merge_meshes([cone_mesh(np.asarray(o.center), o.radius, o.height) for o in cones])
-            self._log("world/obstacles/cones", draw.Mesh(vertices, triangles, (60, 120, 60, 255)), static=True)
+            self._log(f"{family}/cones", draw.Mesh(vertices, triangles, (60, 120, 60, 255)), static=True)
 
     def _on_truth(self, scope: str, truth: GroundTruth) -> None:
-        """The evaluation layer: drawn as 'truth', never what a UAV believes."""
+        """The evaluation layer: drawn as 'truth', never what a UAV believes. The obstacles the
+        mission's survey lacks (only the simulated sensors see them) are drawn once, as truth."""
         p = self.params
+        if truth.obstacles and truth.obstacles != self._unsurveyed:
+            self._unsurveyed = truth.obstacles
+            self._draw_obstacles(truth.obstacles, "truth/obstacles")
         self._targets_now = np.array([t.position for t in truth.targets if not t.destroyed]).reshape(-1, 3)
         for target in truth.targets:
             path = self._target_paths.setdefault(target.id, deque())
