@@ -38,7 +38,7 @@ from services.job_manager.areas import split_area  # noqa: E402
 from services.planner import guard  # noqa: E402
 from services.planner.avoid import Airspace, Clearances, Surroundings  # noqa: E402
 from services.planner.commands import PlannerParams, VehicleState, plan_command, warm_up  # noqa: E402
-from services.planner.freespace import FreeSpace, half_diagonal  # noqa: E402
+from services.planner.freespace import FreeSpace  # noqa: E402
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 from services.voxels.apriori import obstacle_voxels  # noqa: E402
@@ -63,7 +63,7 @@ def apriori_space(scenario, clearances: Clearances) -> FreeSpace:
     inside = ((centres[:, :2] >= arena.min(axis=0)) & (centres[:, :2] <= arena.max(axis=0))).all(axis=1)
     values[inside & (centres[:, 2] <= 20.0)] = p.free_value
     values[obstacle_voxels(sim.obstacles(), grid)] = np.inf
-    space = FreeSpace(clearances.plan + half_diagonal(p.voxel_size))
+    space = FreeSpace(clearances.plan)
     space.set_ground(scenario.ground_z)
     space.apply_map(True, grid.origin, grid.shape, grid.voxel_size, p.unknown_value, np.arange(grid.size), values)
     return space
@@ -74,7 +74,7 @@ def recorded_space(path: str, uav: str, clearances: Clearances, ground_z: float)
     from services.recorder.mcap_io import read_recording
 
     decoder = msgspec.msgpack.Decoder(VoxelMap)
-    space = FreeSpace(clearances.plan + half_diagonal(0.5))
+    space = FreeSpace(clearances.plan)
     space.set_ground(ground_z)
     for message in read_recording(path, lambda key: key == f"falconry/{uav}/map"):
         m = decoder.decode(message.payload)

@@ -274,8 +274,15 @@ def test_a_balloon_every_approach_to_which_stays_blocked_becomes_a_forbidden_zon
     assert np.linalg.norm(np.array(zone.center) - BALLOON) < 0.3
     assert "every approach to the target blocked for 2 s" in [t.reason for t in rig.jm.transitions]
     assert rig.jm.state is State.GOING_AROUND  # the forbidden balloon is no target any more
-    rig.jm.plan_report(s(6.3), "intercept", "blocked", "")  # not a static target's: nothing to forbid
-    assert rig.jm._blocked is None
+
+
+def test_a_blocked_interception_forbids_nothing():
+    """A zone cannot hold a mover; a blocked intercept report (the pursuit clipped to a stop) is no
+    reason to forbid the static target the UAV is engaged with either."""
+    rig = Rig(blocked_time=2.0).engaged()
+    rig.jm.plan_report(s(1.3), "intercept", "blocked", "")
+    rig.run(1.3, 4.0, detections=[BALLOON])
+    assert rig.jm.state is State.GOING_TO_TARGET and not rig.jm.zones.zones
 
 
 def test_an_attack_starts_only_once_the_vehicle_is_level():

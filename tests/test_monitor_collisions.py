@@ -6,7 +6,8 @@ import msgspec
 import pytest
 
 from schemas import keys
-from schemas.messages import GroundTruth, Header, MissionCommand, Obstacle, SimEvent, VehicleTruth, WorldModel
+from schemas.messages import (GroundTruth, Header, MissionCommand, Obstacle, SimEvent, TargetTruth, VehicleTruth,
+                              WorldModel)
 from services.launcher.monitor import RunMonitor
 from services.launcher.sim_cmd import WATCHED, clearance_line, collisions_line
 
@@ -25,9 +26,13 @@ def world(monitor: RunMonitor, radius=None) -> None:
         obstacles=[Obstacle(kind="plane", center=(0.0, 0.0, 0.0), name="ground"), TREE, POLE, OTHER_POLE])))
 
 
+BALLOONS = [TargetTruth(id=name, kind="balloon", position=(x, 30.0, 4.5), velocity=(0, 0, 0), radius=0.3)
+            for name, x in (("balloon2", 50.0), ("balloon9", 52.0))]
+
+
 def truth(monitor: RunMonitor, t: float, uav1, uav2=(0.0, 0.0, 0.0), airborne2=False, alive1=True) -> None:
     monitor.handle(keys.TRUTH, encode(GroundTruth(
-        header=Header(stamp=round(t * S)), step=round(t * 20), obstacles=[SHED],
+        header=Header(stamp=round(t * S)), step=round(t * 20), obstacles=[SHED], targets=BALLOONS,
         uavs=[VehicleTruth(name="uav1", position=uav1, velocity=(0, 0, 0), heading=0, airborne=True, alive=alive1),
               VehicleTruth(name="uav2", position=uav2, velocity=(0, 0, 0), heading=0, airborne=airborne2)])))
 

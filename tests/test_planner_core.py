@@ -4,6 +4,7 @@ import pytest
 from schemas.messages import ConstraintProfile
 from services.planner.core import (
     DT,
+    HIT_OFFSET,
     approach,
     approach_goal,
     attack,
@@ -219,7 +220,7 @@ def test_attack_passes_through_the_hit_point(position, velocity):
     position = np.array(position)
     positions, headings = attack(position, target, profile=ATTACK, start_velocity=velocity, dt=DT)
     check_profile(positions, headings, ATTACK)
-    assert distance_to_polyline(target + [0, 0, 0.3], positions) < 0.05
+    assert distance_to_polyline(target + [0, 0, HIT_OFFSET], positions) < 0.05
     direction = (target - position)[:2] / np.linalg.norm((target - position)[:2])
     end = np.concatenate([target[:2] + 5.0 * direction, [target[2] + 0.15]])
     assert_ends_at_rest(positions, end, ATTACK)

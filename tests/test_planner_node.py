@@ -91,7 +91,7 @@ def test_the_planner_flies_round_a_mapped_wall_and_brakes_for_one_that_appears(h
         report = latest(reports)
         assert report is not None and report.command_id == 1 and report.outcome == "detour", report
         trajectory = latest(trajectories)
-        space = FreeSpace(2.13)
+        space = FreeSpace(1.7)
         space.set_ground(0.0)
         space.apply_map(True, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, np.arange(GRID.size), values)
         positions = to_numpy(trajectory.positions)

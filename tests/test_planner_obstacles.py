@@ -9,9 +9,9 @@ import pytest
 
 from schemas.messages import ConstraintProfile, Header, MissionCommand, Obstacle
 from services.planner import guard
-from services.planner.avoid import Airspace, Clearances, Surroundings, lead_in
+from services.planner.avoid import Airspace, Clearances, Surroundings, body_clearance, lead_in
 from services.planner.commands import PlannerParams, VehicleState, plan_command
-from services.planner.freespace import FreeSpace, half_diagonal
+from services.planner.freespace import FreeSpace
 from services.planner.search import Band, route
 from services.voxels.apriori import obstacle_voxels
 from services.voxels.grid import GridGeometry
@@ -34,7 +34,7 @@ def pole(x, y, height, radius=0.05) -> Obstacle:
 
 def space_of(*obstacles: Obstacle, seen: bool = True) -> FreeSpace:
     """The a-priori map of the obstacles, everything else seen free (`seen`) or never seen."""
-    space = FreeSpace(CLEAR.plan + half_diagonal(GRID.voxel_size))
+    space = FreeSpace(CLEAR.plan)
     space.set_ground(0.0)
     pinned = obstacle_voxels([GROUND, *obstacles], GRID)
     values = np.full(GRID.size, -1000.0 if seen else -740.0, np.float32)
@@ -56,10 +56,6 @@ def vehicle(position, velocity=(0.0, 0.0, 0.0), heading=0.0) -> VehicleState:
     return VehicleState(np.array(position, dtype=float), np.array(velocity, dtype=float), heading, 0.0)
 
 
-def body_clearance(env: Surroundings, positions: np.ndarray) -> float:
-    return env.space.path_clearance(positions) - CLEAR.body
-
-
 WALL = box((50.0, 40.0, 5.0), (1.0, 30.0, 10.0))  # across y 25-55, 10 m tall
 
 
@@ -70,7 +66,7 @@ def test_the_ground_is_no_obstacle_and_the_counts_follow_every_change():
     cube = np.ravel_multi_index(np.mgrid[60:64, 60:64, 10:14].reshape(3, -1), GRID.shape)  # a new 2 m cube
     space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, cube, np.zeros(len(cube), np.float32))
     assert (space.counts != reference).any()
-    rebuilt = FreeSpace(space.search_radius)
+    rebuilt = FreeSpace(space.clearance_kept)
     rebuilt.set_ground(0.0)
     flat = space.replica.grid.reshape(-1)
     changed = np.flatnonzero(flat != np.float32(-740.0))
@@ -203,3 +199,80 @@ def test_a_pursuit_round_a_mast_meets_the_drone_where_the_uav_can_fly():
     assert body_clearance(env, plan.path[0]) >= CLEAR.margin
     at = np.minimum(np.arange(len(plan.path[0])) * PARAMS.dt / 0.25, 47).astype(int)
     assert np.linalg.norm(plan.path[0] - circle[at], axis=1).min() < 1.5  # and still meets the drone
+
+
+def test_a_path_that_starts_too_close_may_leave_but_not_close_in_or_stay():
+    space = space_of(WALL)  # its west face at x = 49.5, the voxels' boxes from there
+    near = np.array([48.3, 40.0, 5.0])  # 1.2 m from the boxes: inside the margin already
+    assert space.path_conflict(np.stack([near, [40.0, 40.0, 5.0]]), CLEAR.accept) is None  # leaving
+    assert space.path_conflict(np.stack([near, [49.3, 40.0, 5.0]]), CLEAR.accept) is not None  # closing in
+    along = space.path_conflict(np.stack([near, [48.3, 30.0, 5.0]]), CLEAR.accept)  # along the wall, 1.2 m off
+    assert along is not None and 0.2 < along < 0.5  # a conflict once ESCAPE_LENGTH (3 m) of it is flown
+    ahead = guard.upcoming(np.stack([near, [49.2, 40.0, 5.0]]), 0, 1.0, 0, 4.0)
+    assert guard.check(space, ahead, near, 1.0, 1.5, CLEAR.accept, CLEAR.hard).action != "clear"
+
+
+def test_only_the_balloons_own_mount_is_passed_over_not_a_post_beside_it():
+    balloon = np.array([30.0, 30.0, 4.5])
+    post = Obstacle(kind="cylinder", center=(31.2, 30.0, 0.0), radius=0.15, height=5.0)  # 1.2 m off the pole
+    env = env_of(pole(30.0, 30.0, 4.0), post)
+    attack = plan_command(command("attack", target=tuple(balloon), profile=ATTACK), vehicle((26.0, 30.0, 4.9)),
+                          PARAMS, env)
+    assert attack.outcome == "blocked"  # the attack line runs over the post: not the balloon's to pass
+    assert np.linalg.norm(attack.path[0][-1] - [26.0, 30.0, 4.9]) < 1e-9  # at rest where it was: braking is staying
+    clear = plan_command(command("attack", target=tuple(balloon), profile=ATTACK), vehicle((30.0, 26.0, 4.9)),
+                         PARAMS, env_of(pole(30.0, 30.0, 4.0)))
+    assert clear.outcome == "clear"  # over its own pole alone
+
+
+def test_a_blocked_plan_at_speed_brakes_instead_of_stopping_dead():
+    yard = [box((30.0, 33.5, 1.5), (8.0, 1.0, 3.0)), box((30.0, 26.5, 1.5), (8.0, 1.0, 3.0)),
+            box((26.5, 30.0, 1.5), (1.0, 6.0, 3.0)), box((33.5, 30.0, 1.5), (1.0, 6.0, 3.0))]
+    env = env_of(*yard, pole(30.0, 30.0, 2.5))
+    moving = vehicle((30.0, 15.0, 5.0), velocity=(0.0, 3.0, 0.0))
+    plan = plan_command(command("approach", target=(30.0, 30.0, 3.0)), moving, PARAMS, env)
+    assert plan.outcome == "blocked"
+    first = (plan.path[0][1] - plan.path[0][0]) / PARAMS.dt
+    assert np.linalg.norm(first - [0.0, 3.0, 0.0]) < 0.2  # the reference carries on at its speed ...
+    assert np.linalg.norm(plan.path[0][-1] - plan.path[0][-2]) < 0.02  # ... and comes to rest
+
+
+def test_a_pursuit_towards_an_obstacle_at_speed_slides_within_the_profile():
+    env = env_of(WALL)
+    drone = command("intercept", target=(55.0, 40.0, 5.0), target_velocity=(0.0, 0.0, 0.0), profile=ATTACK)
+    plan = plan_command(drone, vehicle((30.0, 40.0, 5.0), velocity=(8.0, 0.0, 0.0)), PARAMS, env)
+    positions = plan.path[0]
+    accelerations = np.diff(positions, n=2, axis=0) / PARAMS.dt**2
+    assert np.linalg.norm(accelerations, axis=1).max() <= ATTACK.max_acceleration * 1.02
+    assert body_clearance(env, positions) >= CLEAR.margin
+
+
+def test_the_map_survives_repeated_voxels_and_refuses_a_message_whose_lengths_differ():
+    space = space_of()
+    before = space.counts.copy()
+    one = np.ravel_multi_index(([60], [60], [10]), GRID.shape)
+    twice = np.concatenate([one, one])
+    space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, twice, np.zeros(2, np.float32))
+    space.apply_map(False, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, twice, np.full(2, -1000.0, np.float32))
+    assert np.array_equal(space.counts, before)  # counted once, freed once
+    grid = space.replica.grid.copy()
+    with pytest.raises(ValueError, match="indices and 1 values"):
+        space.apply_map(True, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, twice, np.zeros(1, np.float32))
+    assert np.array_equal(space.replica.grid, grid) and np.array_equal(space.counts, before)
+
+
+def test_the_guardian_replans_on_a_conflict_brakes_when_none_helps_and_retries_while_holding():
+    keeper = guard.Guardian(retry_ns=10**9)
+    far, near = guard.GuardVerdict("replan", "far"), guard.GuardVerdict("brake", "near")
+    assert not keeper.wants_replan(0, guard.CLEAR, True)  # nothing to do
+    assert keeper.wants_replan(0, far, True) and not keeper.wants_replan(0, far, False)
+    keeper.tried(0)
+    assert not keeper.wants_replan(5 * 10**8, near, True)  # at most once a second
+    assert keeper.must_brake(near) and not keeper.must_brake(far)
+    assert keeper.takes(near, far) and keeper.takes(far, guard.CLEAR) and not keeper.takes(far, far)
+    keeper.hold(10**9)
+    assert not keeper.must_brake(near)  # braking already
+    assert not keeper.wants_replan(3 * 10**9, far, True)  # the hold point is what it is
+    assert keeper.wants_replan(3 * 10**9, guard.CLEAR, True)  # the way may be clear: plan again
+    keeper.release()
+    assert not keeper.held

@@ -29,6 +29,7 @@ from services import evaluation
 from services.geometry import pairwise_gaps
 from services.runtime.clock import StampOrigin, seconds
 from services.simulator import contact
+from services.simulator.specs import pole_name
 from services.tracker.view import track_positions
 
 _LENGTH = struct.Struct("<I")
@@ -288,8 +289,9 @@ class RunMonitor:
         """The index of the balloon pole an attack on `target` goes for, if any."""
         if target is None:
             return None
+        names = {pole_name(tid) for tid, (kind, _) in self.targets.items() if kind == "balloon"}
         poles = [(math.dist(o.center[:2], target[:2]), k) for k, o in enumerate(self._solids)
-                 if o.kind == "cylinder" and o.name.endswith("_pole")]
+                 if o.kind == "cylinder" and o.name in names]
         nearest = min(poles, default=None)
         return nearest[1] if nearest is not None and nearest[0] <= ATTACKED_POLE_WITHIN else None
 

@@ -84,6 +84,17 @@ class Airspace:
         return Band(self.low, self.high, self.box_low, self.box_high)
 
 
+def airspace_of(arena, min_height: float, max_height: float, ground_z: float, floor: float) -> Airspace:
+    """The airspace of a world model: above `floor` (and the mission's min_height) over the ground,
+    below its max_height, in its arena's box. ValueError: a world no plan can be made in."""
+    arena = np.asarray(arena, dtype=np.float64).reshape(-1, 2)
+    if len(arena) < 3 or not np.isfinite(arena).all() or not math.isfinite(ground_z) \
+            or not min_height < max_height < math.inf:
+        raise ValueError(f"an arena of {len(arena)} vertices, ground {ground_z} m, heights {min_height}-{max_height} m")
+    return Airspace(ground_z, ground_z + max(min_height, floor), ground_z + max_height,
+                    tuple(map(float, arena.min(axis=0))), tuple(map(float, arena.max(axis=0))))
+
+
 @dataclass(frozen=True)
 class Surroundings:
     """What a plan is made against: the map, the distances to keep, the airspace."""
@@ -193,12 +204,12 @@ def clear_legs(env: Surroundings, line: Polyline, weight: float, exempt: np.ndar
         found = route(env.space, here, goal, need, band, weight, env.search_margin, exempt)
         if found is None:
             outcome = "blocked" if i == 1 else "clipped"
-            notes.append(f"no free way from {_fmt(here)} to {_fmt(goal)}")
+            notes.append(f"no free way from {fmt(here)} to {fmt(goal)}")
             return _polyline(points, corners, segments, outcome, notes)
         inner = found.points[1:]
         detoured |= found.searched
         if not found.reached:
-            notes.append(f"{_fmt(goal)} is too close to an obstacle: flying to {_fmt(inner[-1])} instead")
+            notes.append(f"{fmt(goal)} is too close to an obstacle: flying to {fmt(inner[-1])} instead")
         points.extend(inner)
         corners.extend([line.segment_speeds[i - 1]] * (len(inner) - 1) + [line.corner_speeds[i]])
         segments.extend([line.segment_speeds[i - 1]] * len(inner))
@@ -239,13 +250,12 @@ def timed(env: Surroundings | None, line: Polyline, profile: ConstraintProfile, 
         path = fly(line.points, profile, dt, corner_deviation=tight, **kwargs)
         conflict = env.conflict(path[0], need, exempt)
     if conflict is None:
-        return Cleared(path, line.outcome, line.note, _body_clearance(env, path[0], exempt))
+        return Cleared(path, line.outcome, line.note, body_clearance(env, path[0], exempt))
     clipped = clip(env, path, conflict, profile, dt, exempt)
     where = path[0][min(int(conflict) + 1, len(path[0]) - 1)]
     note = "; ".join(filter(None, [line.note, f"stops short: the reference would pass closer than {need:.1f} m "
-                                              f"to an obstacle near {_fmt(where)}"]))
-    return Cleared(clipped, "clipped" if len(clipped[0]) > 1 else "blocked", note,
-                   _body_clearance(env, clipped[0], exempt))
+                                              f"to an obstacle near {fmt(where)}"]))
+    return Cleared(clipped, "clipped", note, body_clearance(env, clipped[0], exempt))
 
 
 def clip(env: Surroundings, path: Path, conflict: float, profile: ConstraintProfile, dt: float,
@@ -260,7 +270,9 @@ def clip(env: Surroundings, path: Path, conflict: float, profile: ConstraintProf
         tail = braking(positions[k], velocity, accel, dt)
         if env.conflict(np.vstack([positions[k:k + 1], tail]), need, exempt) is None:
             return np.vstack([positions[:k + 1], tail]), np.concatenate([headings[:k + 1], np.full(len(tail), headings[k])])
-    return positions[:1].copy(), headings[:1].copy()
+    velocity = (positions[1] - positions[0]) / dt if len(positions) > 1 else np.zeros(3)
+    tail = braking(positions[0], velocity, accel, dt)  # too late to stay clear: brake at once, the best left
+    return np.vstack([positions[:1], tail]), np.full(len(tail) + 1, headings[0])
 
 
 def braking(position: np.ndarray, velocity: np.ndarray, accel: float, dt: float) -> np.ndarray:
@@ -273,7 +285,8 @@ def braking(position: np.ndarray, velocity: np.ndarray, accel: float, dt: float)
     return position + (speed * t - 0.5 * accel * t**2)[:, None] * (velocity / speed)
 
 
-def _body_clearance(env: Surroundings, positions: np.ndarray, exempt: np.ndarray | None) -> float | None:
+def body_clearance(env: Surroundings, positions: np.ndarray, exempt: np.ndarray | None = None) -> float | None:
+    """m from the body to the nearest occupied box along the polyline (None: none within reach)."""
     reach = env.space.path_clearance(positions, exempt)
     return None if reach >= env.space.reach else round(reach - env.clearances.body, 3)
 
@@ -290,16 +303,18 @@ def free_overshoot(env: Surroundings, target: np.ndarray, direction: np.ndarray,
     return max(conflict * overshoot - SAMPLE_STEP, 0.0)
 
 
-def speed_barrier(env: Surroundings, deceleration: float):
-    """A velocity filter for a vehicle flown forward in time (the pursuit): the speed towards the
-    nearest occupied box is held to what braking at `deceleration` can still stop before the plan's
-    clearance — √(2·a·(d − clearance)) — so the reference slides along an obstacle instead of into
-    it, and never closes in below the clearance (a control barrier on the distance)."""
+def speed_barrier(env: Surroundings, deceleration: float, top_speed: float):
+    """A filter on the velocity a vehicle flown forward in time (the pursuit) asks for: its speed
+    towards the nearest occupied box is held to what braking at `deceleration` can still stop before
+    the plan's clearance — √(2·a·(d − clearance)) — so the reference slides along an obstacle
+    instead of into it and never closes in below the clearance (a control barrier on the distance).
+    It looks as far as a vehicle at `top_speed` needs to brake, so the limit tightens gradually and
+    never asks for more than `deceleration`."""
     need = env.clearances.plan
-    watch = need + 2.0  # m: beyond this nothing is near enough to matter in a step
+    watch = need + top_speed**2 / (2.0 * deceleration) + 1.0
 
     def limit(position: np.ndarray, velocity: np.ndarray) -> np.ndarray:
-        distance, away = env.space.nearest(position)
+        distance, away = env.space.nearest(position, watch)
         if distance >= watch or not away.any():
             return velocity
         toward = -float(np.dot(velocity, away))
@@ -355,9 +370,9 @@ def landing_line(env: Surroundings | None, position: np.ndarray, ground_z: float
             column = np.stack([spot, [spot[0], spot[1], ground_z]])
             if env.free(spot, need) and env.conflict(column, need) is None:  # the way there is routed like any leg
                 return Polyline(np.vstack([position, column]), np.zeros(3), np.full(2, np.inf), "detour",
-                                f"landing {radius:.0f} m aside: something is below {_fmt(position)}")
+                                f"landing {radius:.0f} m aside: something is below {fmt(position)}")
     return Polyline(line.points, line.corner_speeds, line.segment_speeds, "clipped",
-                    f"no clear column to land in within {env.search_margin:g} m of {_fmt(position)}")
+                    f"no clear column to land in within {env.search_margin:g} m of {fmt(position)}")
 
 
 def directions_around(first: np.ndarray, count: int) -> np.ndarray:
@@ -369,5 +384,6 @@ def directions_around(first: np.ndarray, count: int) -> np.ndarray:
     return np.array([[math.cos(angle + t), math.sin(angle + t), 0.0] for t in turns])
 
 
-def _fmt(v) -> str:
+def fmt(v) -> str:
+    """A point for a note: (x, y, z) to a decimetre."""
     return f"({v[0]:.1f}, {v[1]:.1f}, {v[2]:.1f})"

@@ -17,8 +17,10 @@ from services.planner import core
 from services.planner.avoid import (
     Polyline,
     Surroundings,
+    body_clearance,
     clear_legs,
     clip,
+    fmt,
     directions_around,
     free_overshoot,
     free_points,
@@ -45,11 +47,7 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     descend_distance: float = 11.0  # [D_p] m from the target inside which the approach descends to it
     deadband: float = 0.5  # [D_f] m: line-of-sight changes smaller than this are ignored
     overshoot: float = 5.0  # [d_o] m beyond the target where an attack ends
-    # [o_h] m above the target centre the attack passes through. Seed 004 flew 0.3 m; a 0.4 m body
-    # passing a balloon whose centre floats 0.5 m over its pole's top then keeps 0.1 m from the top
-    # plus the estimate's height error (a camera-found balloon's came out 0.1 m low on mbzirc):
-    # 0.4 m keeps 0.2 m from the pole and 0.2 m inside the needle's reach (balloon radius + 0.3 m)
-    hit_offset: float = 0.4
+    hit_offset: float = core.HIT_OFFSET  # [o_h] m above the target centre the attack passes through (core.py: why 0.4)
     end_offset: float = 0.15  # [o_o] m above the target height where the attack ends
     merge_acceleration: float = 1.5  # m/s² along a moving target's path when merging onto it
     follow_time: float = 4.0  # s flown alongside a moving target after the merge
@@ -65,9 +63,12 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     obstacle_margin: float = 1.0  # m the body keeps from it
     tracking_allowance: float = 0.3  # m more a plan keeps: the vehicle's tracking error and rounded corners
     # m round a balloon: the map's voxels below it are its pole and itself, which its attack passes over
-    # (the pole's voxels reach 0.35 m from its axis, the estimate's error at attack range is decimetres)
-    mount_radius: float = 1.5
-    mount_growth: float = 0.1  # m more per m away from the balloon while approaching: a far sighting's error
+    # (the pole's voxels reach 0.35 m from its axis, the estimate's error at attack range is decimetres);
+    # anything else that near is passed over too, so it is kept small
+    mount_radius: float = 0.8
+    # m more per m away from the balloon when an approach chooses its side: a far sighting is metres off
+    # (the guard and the attack itself use mount_radius alone)
+    mount_growth: float = 0.1
     min_overshoot: float = 2.0  # m beyond a balloon an attack cut short by an obstacle still needs to brake in
     approach_directions: int = 24  # directions round a balloon an approach tries, its own first
     search_margin: float = 15.0  # m round a blocked leg's ends that a route search may use
@@ -94,6 +95,26 @@ class Plan:
     outcome: str = "clear"  # a PlanReport outcome: what obstacles made of it
     clearance: float | None = None  # m from the body to the nearest known obstacle along it (None: none near)
     direction: np.ndarray | None = None  # an approach's: the horizontal unit vector it will attack along
+
+
+class ApproachMemory:
+    """The side the last approach to a target took, so that the next approach to it — the job
+    manager sends one whenever its estimate moves 0.3 m — keeps that side instead of swinging
+    round the balloon. A target farther than `same_target` from the last is another one."""
+
+    def __init__(self, same_target: float = 2.0) -> None:
+        self.same_target = same_target
+        self.target: np.ndarray | None = None
+        self.direction: np.ndarray | None = None
+
+    def prefer(self, command: MissionCommand) -> np.ndarray | None:
+        if command.action != "approach" or command.target is None or self.target is None:
+            return None
+        return self.direction if np.linalg.norm(self.target - np.asarray(command.target)) <= self.same_target else None
+
+    def remember(self, command: MissionCommand, plan: Plan) -> None:
+        if plan.direction is not None and command.target is not None:
+            self.target, self.direction = np.asarray(command.target, dtype=np.float64), plan.direction
 
 
 def unplannable(command: MissionCommand) -> str | None:
@@ -193,15 +214,37 @@ def _land(env: Surroundings | None, ground: float, profile, dt: float, vehicle: 
     return _fly(env, line, profile, dt, vehicle)
 
 
+def _halt(vehicle: VehicleState, profile, dt: float) -> core.Path:
+    """Where a blocked plan leaves the vehicle: braking to a hold along its velocity (a hover where
+    it is would be a reference velocity dropping to zero at speed)."""
+    return core.stop(vehicle.position, vehicle.velocity, profile, dt, vehicle.heading)
+
+
 def _checked(env: Surroundings | None, path: core.Path) -> Plan:
     """A path that cannot be changed (braking): only its clearance is reported."""
     if env is None or not env.space.known:
         return Plan(path)
     conflict = env.conflict(path[0], env.clearances.accept)
-    clearance = env.space.path_clearance(path[0])
     return Plan(path, None if conflict is None else "braking comes closer than the margin to an obstacle",
-                "clear" if conflict is None else "clipped",
-                None if clearance >= env.space.reach else round(clearance - env.clearances.body, 3))
+                "clear" if conflict is None else "blocked", body_clearance(env, path[0]))
+
+
+def _clipped(env: Surroundings, path: core.Path, profile, dt: float, note: str | None = None,
+             outcome: str = "clear") -> Plan:
+    """A path made elsewhere (a pursuit, a merge), flown as far as it stays clear (avoid.clip)."""
+    conflict = env.conflict(path[0], env.clearances.timed)
+    if conflict is None:
+        return Plan(path, note, outcome, body_clearance(env, path[0]))
+    path = clip(env, path, conflict, profile, dt)
+    return Plan(path, "; ".join(filter(None, [note, f"clipped before an obstacle near {fmt(path[0][-1])}"])),
+                "clipped", body_clearance(env, path[0]))
+
+
+def approach_exemption(target: np.ndarray, position: np.ndarray, params: PlannerParams) -> np.ndarray:
+    """The mount exemption an approach chooses its side with: mount_radius grown by mount_growth per
+    metre between the vehicle and the balloon, horizontally (a far sighting is metres off)."""
+    distance = float(np.hypot(*(np.asarray(target) - np.asarray(position))[:2]))
+    return mount_exemption(target, params.mount_radius + params.mount_growth * distance)
 
 
 def _approach(target: np.ndarray, vehicle: VehicleState, profile, params: PlannerParams,
@@ -220,7 +263,7 @@ def _approach(target: np.ndarray, vehicle: VehicleState, profile, params: Planne
         line = Polyline.of(core.approach_waypoints(p, target, goal, prm.descend_distance, prm.wait_distance))
         return _fly(env, line, profile, dt, vehicle, heading=core.facing(p, target, vehicle.heading))
     distance = float(np.hypot(*(target - p)[:2]))
-    exempt = mount_exemption(target, prm.mount_radius + prm.mount_growth * distance)
+    exempt = approach_exemption(target, p, prm)
     own = target - goal
     own[2] = 0.0
     first = own / max(float(np.linalg.norm(own)), 1e-9)
@@ -249,7 +292,7 @@ def _approach(target: np.ndarray, vehicle: VehicleState, profile, params: Planne
             notes.insert(0, "no attack line is clear from this far yet")
         note = "; ".join(filter(None, notes)) or None
         return Plan(plan.path, note, "detour" if note else plan.outcome, plan.clearance, direction)
-    return Plan(core.hover(p, vehicle.heading), f"every approach to {_fmt(target)} is blocked by obstacles "
+    return Plan(_halt(vehicle, profile, dt), f"every approach to {fmt(target)} is blocked by obstacles "
                 f"({len(lines)} of {len(directions)} directions with a clear attack line, none with a way there)",
                 "blocked")
 
@@ -273,7 +316,7 @@ def _attack(target: np.ndarray, vehicle: VehicleState, profile, params: PlannerP
         overshoot = free_overshoot(env, target, direction, prm.hit_offset, prm.overshoot, prm.end_offset, exempt)
         hit = target + np.array([0.0, 0.0, prm.hit_offset])
         if overshoot < prm.min_overshoot or env.conflict(np.stack([p, hit]), env.clearances.accept, exempt) is not None:
-            return Plan(core.hover(p, vehicle.heading), f"the attack on {_fmt(target)} is blocked by obstacles",
+            return Plan(_halt(vehicle, profile, prm.dt), f"the attack on {fmt(target)} is blocked by obstacles",
                         "blocked")
         if overshoot < prm.overshoot:
             note = f"overshoot cut to {overshoot:.1f} m by an obstacle beyond the target"
@@ -289,10 +332,10 @@ def warm_up(params: PlannerParams) -> int:
     kernels (numba, cached on disk after a machine's first run) are ready before the first real
     command (see classifier/core.py, `warm_up`, for why). Returns the samples planned."""
     from services.planner.avoid import Airspace, Clearances
-    from services.planner.freespace import FreeSpace, half_diagonal
+    from services.planner.freespace import FreeSpace
 
     clearances = Clearances(0.4, params.obstacle_margin, params.tracking_allowance)
-    space = FreeSpace(clearances.plan + half_diagonal(0.5))
+    space = FreeSpace(clearances.plan)
     space.set_ground(0.0)
     shape = (40, 40, 20)
     wall = np.ravel_multi_index(np.mgrid[20:22, 10:30, 2:14].reshape(3, -1), shape)
@@ -358,7 +401,7 @@ def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleStat
         path = core.intercept(p, target, velocity, profile=profile, dt=dt, merge_acceleration=prm.merge_acceleration,
                               follow_time=prm.follow_time, **moving)
     if path is not None:
-        return _checked(env, path) if known else Plan(path)
+        return _clipped(env, path, profile, dt) if known else Plan(path)
     if known:
         return _fly(env, Polyline.of(core.approach_waypoints(p, target, target, prm.descend_distance, 0.0)), profile,
                     dt, vehicle, heading=core.facing(p, target, vehicle.heading))
@@ -376,7 +419,7 @@ def _pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, 
     clipped. None: no pursuit fits the profile (the target is too fast)."""
     profile = chase["profile"]
     chase = dict(chase, free=lambda points: free_points(env, points),
-                 barrier=speed_barrier(env, 0.5 * profile.max_acceleration))
+                 barrier=speed_barrier(env, 0.5 * profile.max_acceleration, profile.max_speed))
     outcome, note, way = "clear", None, None
     ahead = min(float(np.linalg.norm(target - position)) / max(profile.max_speed, 1e-6), max(chase["trust"], 0.0))
     (there,), _ = chase["predicted"].state([ahead])
@@ -388,20 +431,6 @@ def _pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, 
             way = found.points
             outcome, note = "detour", "pursuit round an obstacle between the UAV and the target"
     path = core.pursuit(position, target, velocity, route=way, **chase)
-    if path is None:
-        return None
-    conflict = env.conflict(path[0], env.clearances.timed)
-    if conflict is None:
-        return Plan(path, note, outcome, _clearance(env, path[0]))
-    path = clip(env, path, conflict, profile, chase["dt"])
-    return Plan(path, "; ".join(filter(None, [note, "pursuit clipped before an obstacle"])), "clipped",
-                _clearance(env, path[0]))
+    return None if path is None else _clipped(env, path, profile, chase["dt"], note, outcome)
 
 
-def _clearance(env: Surroundings, positions: np.ndarray) -> float | None:
-    reach = env.space.path_clearance(positions)
-    return None if reach >= env.space.reach else round(reach - env.clearances.body, 3)
-
-
-def _fmt(v) -> str:
-    return f"({v[0]:.1f}, {v[1]:.1f}, {v[2]:.1f})"

@@ -13,14 +13,18 @@ pursuit floor keep flight above it. A box lower than one voxel (0.5 m) is left o
 Three questions:
 - `clearance(points)`: the distance from each point to the nearest occupied voxel's box (m);
 - `path_conflict(positions, need)`: the first point of a polyline (densified to SAMPLE_STEP) that
-  is closer than `need` to an occupied box, as a fraction of the polyline's vertex index;
+  is closer than `need` to an occupied box, as a fraction of the polyline's vertex index. A
+  polyline that starts closer than `need` (the vehicle is there already) may leave: it conflicts
+  only where it comes closer than it started, or where it is not clear ESCAPE_LENGTH along;
 - `blocked(low, high)`: the search grid over a box of voxels — a voxel is blocked when an occupied
   box lies closer than `search_radius` to its centre, kept as a count per voxel that each map
   message updates where it changed (services/voxels/clearance.py).
-A point anywhere in a voxel that is not blocked is at least search_radius − HALF_DIAGONAL from
-every occupied box, so the search is run with search_radius = the plans' clearance + HALF_DIAGONAL,
-and a polyline through free voxel centres keeps that clearance along its whole length (every point
-of a segment between neighbouring centres lies in the closed cube of one of them).
+A point anywhere in a voxel that is not blocked is at least search_radius − half the voxel's
+diagonal from every occupied box, so the search radius is the plans' `clearance` + half the map's
+voxel diagonal (+ half a sample step, so that a check at the plans' clearance can trust a free
+voxel without measuring), and a polyline through free voxel centres keeps that clearance along
+its whole length (every point of a segment between neighbouring centres lies in the closed cube of
+one of them).
 """
 from __future__ import annotations
 
@@ -35,7 +39,10 @@ from services.voxels.replica import MapReplica
 
 SAMPLE_STEP = 0.2  # m between the points a polyline is checked at
 NO_EXEMPTION = np.array([0.0, 0.0, 0.0, 0.0])
-MAX_OFFSETS = 100_000  # voxels of the inflation kernel at most (0.5 m voxels and 2.1 m: about 300)
+MAX_OFFSETS = 100_000  # voxels of the inflation kernel at most (0.5 m voxels and 2.2 m: about 300)
+ESCAPE_LENGTH = 3.0  # m along which a polyline that starts too close must be clear again
+ESCAPE_TOLERANCE = 0.05  # m it may come closer than it started (the box distance is not smooth)
+NEIGHBOURS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
 def half_diagonal(voxel_size: float) -> float:
@@ -60,10 +67,12 @@ def densify(positions: np.ndarray, step: float = SAMPLE_STEP) -> tuple[np.ndarra
 
 class FreeSpace:
     """The planner's copy of its UAV's map, with the occupancy and search grids derived from it.
-    Until a map arrives nothing is known to be occupied."""
+    `clearance` is what plans keep from occupied boxes (the search radius follows from it and the
+    map's voxel size). Until a map arrives nothing is known to be occupied."""
 
-    def __init__(self, search_radius: float, reach: float = 4.0) -> None:
-        self.search_radius = float(search_radius)
+    def __init__(self, clearance: float, reach: float = 4.0) -> None:
+        self.clearance_kept = float(clearance)
+        self.search_radius = self.clearance_kept
         self.reach = float(reach)  # m: how far clearance is looked for (farther counts as `reach`)
         self.replica: MapReplica | None = None
         self.geometry: GridGeometry | None = None
@@ -90,14 +99,19 @@ class FreeSpace:
     def apply_map(self, snapshot: bool, origin, shape, voxel_size: float, default_value: float,
                   indices: np.ndarray, values: np.ndarray) -> bool:
         """One VoxelMap message; False when a delta does not fit the map held (wait for a snapshot).
-        ValueError (and nothing changed) for a map the planner cannot hold: a grid too large for a
-        replica, or voxels so small that the search radius spans more than MAX_OFFSETS of them."""
+        ValueError, and nothing changed, for a map the planner cannot hold: indices and values of
+        other lengths, a grid too large for a replica, or voxels so small that the search radius
+        spans more than MAX_OFFSETS of them."""
+        indices = np.asarray(indices, dtype=np.int64).reshape(-1)
+        values = np.asarray(values, dtype=np.float32).reshape(-1)
+        if len(indices) != len(values):
+            raise ValueError(f"a map message with {len(indices)} indices and {len(values)} values")
         if snapshot and (self.replica is None or not self.replica.same_geometry(origin, shape, voxel_size)
                          or float(default_value) != self.replica.default_value):
-            offsets = self._offsets(float(voxel_size))
+            radius, offsets = self._inflation(float(voxel_size))
             replica = MapReplica(origin, shape, voxel_size, default_value)
             replica.apply(True, origin, shape, voxel_size, default_value, indices, values)
-            self.replica, self.geometry, self.offsets = replica, replica.geometry, offsets
+            self.replica, self.geometry, self.offsets, self.search_radius = replica, replica.geometry, offsets, radius
             self.occupied = np.zeros(self.geometry.size, dtype=np.uint8)
             self.counts = np.zeros(self.geometry.size, dtype=np.uint16)
             self._set_floor()
@@ -109,14 +123,18 @@ class FreeSpace:
         if snapshot:
             self._rebuild()
         else:
-            self._update(np.asarray(indices, dtype=np.int64).reshape(-1))
+            self._update(np.unique(indices))  # a voxel listed twice is counted once
         return True
 
-    def _offsets(self, voxel_size: float) -> np.ndarray:
-        if not 0.0 < voxel_size < math.inf or 2.0 * self.search_radius / voxel_size + 2.0 > MAX_OFFSETS ** (1 / 3):
+    def _inflation(self, voxel_size: float) -> tuple[float, np.ndarray]:
+        """The search radius for this voxel size and its kernel's offsets."""
+        if not 0.0 < voxel_size < math.inf:
+            raise ValueError(f"a map of {voxel_size:.3g} m voxels")
+        radius = self.clearance_kept + half_diagonal(voxel_size) + 0.5 * SAMPLE_STEP
+        if 2.0 * radius / voxel_size + 2.0 > MAX_OFFSETS ** (1 / 3):
             raise ValueError(f"a map of {voxel_size:.3g} m voxels: the planner's search radius of "
-                             f"{self.search_radius:.2f} m would span more than {MAX_OFFSETS} of them")
-        return inflation_offsets(self.search_radius, voxel_size)
+                             f"{radius:.2f} m would span more than {MAX_OFFSETS} of them")
+        return radius, inflation_offsets(radius, voxel_size)
 
     def _set_floor(self) -> None:
         g = self.geometry
@@ -153,14 +171,16 @@ class FreeSpace:
         return box_clearance(points, self.occupied, np.asarray(g.shape, dtype=np.int64), g.corner, g.voxel_size,
                              self.reach, NO_EXEMPTION if exempt is None else np.asarray(exempt, dtype=np.float64))
 
-    def nearest(self, point: np.ndarray) -> tuple[float, np.ndarray]:
-        """(distance, away): how far the point is from the nearest occupied box (`reach` at most), and
-        the unit vector pointing away from it (zero when none is within reach)."""
+    def nearest(self, point: np.ndarray, reach: float | None = None) -> tuple[float, np.ndarray]:
+        """(distance, away): how far the point is from the nearest occupied box (`reach` at most, the
+        space's own by default), and the unit vector pointing away from it (zero when none is within
+        reach)."""
+        reach = self.reach if reach is None else float(reach)
         if self.geometry is None:
-            return self.reach, np.zeros(3)
+            return reach, np.zeros(3)
         g = self.geometry
         return nearest_box(np.asarray(point, dtype=np.float64).reshape(3), self.occupied,
-                           np.asarray(g.shape, dtype=np.int64), g.corner, g.voxel_size, self.reach)
+                           np.asarray(g.shape, dtype=np.int64), g.corner, g.voxel_size, reach)
 
     def _maybe_near(self, points: np.ndarray) -> np.ndarray:
         """(N,) True where a point's voxel is blocked or outside the grid: only those need the exact
@@ -174,16 +194,15 @@ class FreeSpace:
 
     def path_conflict(self, positions: np.ndarray, need: float, exempt: np.ndarray | None = None) -> float | None:
         """The first place along the polyline (N, 3) closer than `need` to an occupied box, as a
-        fractional vertex index; None when it is clear all along. A polyline that starts too close
-        (the vehicle is there already) conflicts only where it comes closer still before it is
-        clear: leaving is what it should do."""
+        fractional vertex index; None when it is clear all along. One that starts closer than
+        `need` conflicts where it comes closer than it started, or is not clear ESCAPE_LENGTH on."""
         if self.geometry is None or len(positions) == 0:
             return None
         points, where = densify(positions)
         limit = need + 0.5 * SAMPLE_STEP
-        start = self._escape(points, limit, exempt)
-        if start < 0:
-            return 0.0
+        start, conflict = self._escape(points, limit, exempt)
+        if conflict is not None:
+            return float(where[conflict])
         points, where = points[start:], where[start:]
         fast_ok = self.search_radius - half_diagonal(self.geometry.voxel_size) >= limit
         check = self._maybe_near(points) if fast_ok else np.ones(len(points), dtype=bool)
@@ -194,19 +213,24 @@ class FreeSpace:
                              g.voxel_size, limit, NO_EXEMPTION if exempt is None else np.asarray(exempt, dtype=np.float64))
         return None if first < 0 else float(where[first])
 
-    def _escape(self, points: np.ndarray, limit: float, exempt: np.ndarray | None) -> int:
-        """Index of the first point clear of `limit` when the polyline starts closer than it and
-        moves away (0 when it starts clear); -1 when it comes closer before it is clear."""
-        head = self.clearance(points[:1], exempt)
-        if head[0] >= limit:
-            return 0
+    def _escape(self, points: np.ndarray, limit: float, exempt: np.ndarray | None) -> tuple[int, int | None]:
+        """(index of the first point clear of `limit`, None) for a polyline that starts closer and
+        leaves (0 when it starts clear); (_, index of the conflict) when it comes closer than it
+        started before it is clear, or is still not clear ESCAPE_LENGTH along."""
+        head = self.clearance(points[:1], exempt)[0]
+        if head >= limit:
+            return 0, None
         distances = self.clearance(points, exempt)
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(points, axis=0), axis=1))])
         clear = np.flatnonzero(distances >= limit)
         end = int(clear[0]) if len(clear) else len(points)
-        leading = distances[:end]
-        if np.any(np.diff(leading) < -0.02):  # closing in on what it is already too close to
-            return -1
-        return end
+        closer = np.flatnonzero(distances[:end] < head - ESCAPE_TOLERANCE)
+        if len(closer):
+            return end, int(closer[0])
+        stuck = np.flatnonzero(along[:end] > ESCAPE_LENGTH)
+        if len(stuck):
+            return end, int(stuck[0])
+        return end, None
 
     def path_clearance(self, positions: np.ndarray, exempt: np.ndarray | None = None) -> float:
         """The smallest clearance along the polyline (densified), `reach` at most."""
@@ -232,20 +256,17 @@ class FreeSpace:
         26 neighbours neither (off the map counts as unseen). A lone unknown voxel is not: the map
         keeps the voxels of a flying object at the unknown value (seed 000's g_unk), and a drone is
         not a region the LiDAR has failed to look into."""
-        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        if self.geometry is None:
-            return np.zeros(len(points), dtype=bool)
-        g = self.geometry
-        voxels = g.voxel_of(points)
         out = self.unknown(points)
-        for row in np.flatnonzero(out):
-            v = voxels[row]
-            if not g.inside(v[None])[0]:
-                continue
-            low = np.maximum(v - 1, 0)
-            high = np.minimum(v + 2, np.asarray(g.shape))
-            block = self.replica.states.reshape(g.shape)[low[0]:high[0], low[1]:high[1], low[2]:high[2]]
-            out[row] = np.count_nonzero(block == STATE_UNKNOWN) - 1 >= 0.5 * (block.size - 1)
+        if self.geometry is None or not out.any():
+            return out
+        g = self.geometry
+        voxels = g.voxel_of(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        rows = np.flatnonzero(out & g.inside(voxels))
+        around = voxels[rows][:, None, :] + NEIGHBOURS[None]  # (R, 27, 3)
+        inside = np.all((around >= 0) & (around < np.asarray(g.shape)), axis=2)
+        flats = np.ravel_multi_index(tuple(np.clip(around, 0, np.asarray(g.shape) - 1).transpose(2, 0, 1)), g.shape)
+        unknown = (self.replica.states[flats] == STATE_UNKNOWN) | ~inside  # off the map: never seen
+        out[rows] = unknown.sum(axis=1) - 1 >= 0.5 * (len(NEIGHBOURS) - 1)
         return out
 
     def blocked(self, low: np.ndarray, high: np.ndarray) -> np.ndarray:

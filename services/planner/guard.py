@@ -99,3 +99,49 @@ def _unseen_in_view(space: FreeSpace, points: np.ndarray, along: np.ndarray, veh
         return None
     unseen = space.unseen(points[candidates])
     return int(candidates[np.argmax(unseen)]) if unseen.any() else None
+
+
+RANK = {"clear": 0, "replan": 1, "brake": 2}  # verdicts, best first
+
+
+class Guardian:
+    """What to do with the guard's verdicts, as state over the ticks (pure: times in, decisions out).
+
+    A verdict other than clear asks for the command to be planned again, at most once every `retry`
+    ns; the new plan is taken when the guard finds it better than the active reference (clear, or a
+    re-plan where the reference would brake). A brake verdict that no new plan answers stops the
+    vehicle: it holds (braking to rest) and the command is planned again every `retry` ns until a
+    plan is clear. A command planned blocked holds the same way."""
+
+    def __init__(self, retry_ns: int) -> None:
+        self.retry_ns = retry_ns
+        self.held = False  # the vehicle is braking or holding for the command
+        self.retry_at = 0  # mission ns of the next re-plan allowed
+
+    def wants_replan(self, now: int, verdict: GuardVerdict, has_command: bool) -> bool:
+        """Whether to plan the command again now (then call `tried`)."""
+        if not has_command or now < self.retry_at:
+            return False
+        if verdict.action == "clear":
+            return self.held
+        return not (self.held and verdict.action == "replan")  # holding already: the hold is what it is
+
+    def tried(self, now: int) -> None:
+        self.retry_at = now + self.retry_ns
+
+    @staticmethod
+    def takes(current: GuardVerdict, candidate: GuardVerdict) -> bool:
+        """Whether a new plan with verdict `candidate` replaces the reference with verdict `current`."""
+        return RANK[candidate.action] < max(RANK[current.action], RANK["replan"])
+
+    def must_brake(self, verdict: GuardVerdict) -> bool:
+        return verdict.action == "brake" and not self.held
+
+    def hold(self, now: int) -> None:
+        """The vehicle brakes to a hold for the command (the guard braked it, or it was planned blocked)."""
+        self.held = True
+        self.retry_at = now + self.retry_ns
+
+    def release(self) -> None:
+        """A new plan was taken."""
+        self.held = False

@@ -43,17 +43,16 @@ from schemas.messages import (
 )
 from services.geometry import yaw_of
 from services.planner import core, guard
-from services.planner.avoid import Airspace, Clearances, Surroundings, mount_exemption
-from services.planner.commands import Plan, PlannerParams, VehicleState, plan_command, start_state, warm_up
-from services.planner.freespace import FreeSpace, half_diagonal
+from services.planner.avoid import Airspace, Clearances, Surroundings, airspace_of, mount_exemption
+from services.planner.commands import (ApproachMemory, Plan, PlannerParams, VehicleState, plan_command, start_state,
+                                       warm_up)
+from services.planner.freespace import FreeSpace
 from services.planner.watchdog import JobManagerWatchdog
 from services.runtime.clock import NS
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 
 EXEMPT_ACTIONS = ("approach", "attack")  # their target's pole and balloon are passed over (avoid.py)
-RANK = {"clear": 0, "replan": 1, "brake": 2}  # guard verdicts, best first
-SAME_TARGET = 2.0  # m: an approach to a target this close to the last one's keeps its direction
 
 
 class PlannerNode(Node):
@@ -73,9 +72,8 @@ class PlannerNode(Node):
         self.trajectory_end = 0
         self.published_at = 0
         self.exempt: np.ndarray | None = None  # the active reference's mount exemption (an approach or attack)
-        self.approached: tuple[np.ndarray, np.ndarray] | None = None  # (target, direction) of the last approach
-        self.held = False  # the guard braked the active command's reference
-        self.retry_at = 0  # mission ns of the guard's next re-plan
+        self.approached = ApproachMemory()
+        self.guardian = guard.Guardian(int(self.params.guard_retry * NS))
         self.clearances = Clearances(DEFAULT_UAV_RADIUS, self.params.obstacle_margin, self.params.tracking_allowance)
         self.space = self._free_space()
         self.airspace = Airspace()
@@ -93,7 +91,7 @@ class PlannerNode(Node):
         self.command_seq = 0
 
     def _free_space(self) -> FreeSpace:
-        return FreeSpace(self.clearances.plan + half_diagonal(0.5))
+        return FreeSpace(self.clearances.plan)
 
     @property
     def env(self) -> Surroundings:
@@ -103,13 +101,14 @@ class PlannerNode(Node):
     def on_world(self, msg: WorldModel, key: str) -> None:
         ground = next((o.center[2] for o in msg.obstacles if o.kind == "plane"), 0.0)
         radius = float(msg.uav_radius.get(self.uav, DEFAULT_UAV_RADIUS))
-        arena = np.asarray(msg.arena, dtype=np.float64).reshape(-1, 2)
-        if not (math.isfinite(ground) and 0.0 < radius < 10.0 and len(arena) >= 3 and np.isfinite(arena).all()):
-            self._refuse("world models refused (ground, body radius or arena impossible)")
+        try:
+            if not 0.0 < radius < math.inf:
+                raise ValueError(f"a body radius of {radius} m")
+            self.airspace = airspace_of(msg.arena, msg.min_height, msg.max_height, ground, self.params.pursuit_floor)
+        except ValueError as exc:
+            self._refuse("world models refused (ground, heights, body radius or arena impossible)")
+            self.log.debug("world refused: %s", exc)
             return
-        floor = max(msg.min_height, self.params.pursuit_floor)
-        self.airspace = Airspace(ground, ground + floor, ground + msg.max_height, tuple(arena.min(axis=0)),
-                                 tuple(arena.max(axis=0)))
         self.space.set_ground(ground)
         if radius != self.clearances.body:
             self.clearances = Clearances(radius, self.params.obstacle_margin, self.params.tracking_allowance)
@@ -175,7 +174,7 @@ class PlannerNode(Node):
         command = self.command
         if command is not None and command.command_id != self.planned_id:
             self.plan(now_ns, command)
-        elif (self.trajectory is not None and self.params.repeat_scan and command is not None and not self.held
+        elif (self.trajectory is not None and self.params.repeat_scan and command is not None and not self.guardian.held
               and command.action == "scan" and now_ns > self.trajectory_end):
             self.plan(now_ns, command)
         elif self.trajectory is not None and now_ns - self.published_at >= int(self.params.republish_period * NS):
@@ -190,25 +189,23 @@ class PlannerNode(Node):
         return VehicleState(position, velocity, self.heading, ground, now_ns)
 
     def make_plan(self, now_ns: int, command: MissionCommand) -> Plan:
-        prefer = None
-        if command.action == "approach" and self.approached is not None and command.target is not None and \
-                np.linalg.norm(self.approached[0] - np.asarray(command.target)) <= SAME_TARGET:
-            prefer = self.approached[1]
         try:
-            plan = plan_command(command, self.vehicle(now_ns), self.params, self.env, prefer)
+            plan = plan_command(command, self.vehicle(now_ns), self.params, self.env, self.approached.prefer(command))
         except ValueError as err:  # refused by the core: a trajectory too long, an area with no scan in it, ...
-            return Plan(core.hover(self.position, self.heading), f"{err}; hovering")
-        if plan.direction is not None:
-            self.approached = (np.asarray(command.target, dtype=np.float64), plan.direction)
+            return Plan(core.stop(self.position, self.velocity, command.profile, self.params.dt, self.heading),
+                        f"{err}; braking to a hold", "blocked")
+        self.approached.remember(command, plan)
         return plan
 
     def plan(self, now_ns: int, command: MissionCommand) -> None:
         plan = self.make_plan(now_ns, command)
-        if plan.note:  # a fallback or a refusal is a warning; a detour or a meeting curve is news
+        if plan.note:  # a fallback or a refusal is a warning; a detour is news
             log = self.log.info if plan.outcome in ("clear", "detour") else self.log.warning
             log("command %d: %s", command.command_id, plan.note)
         self.planned_id = command.command_id
-        self.held = False
+        self.guardian.release()
+        if plan.outcome == "blocked":
+            self.guardian.hold(now_ns)  # planned again every guard_retry s: the way may clear
         self.adopt(now_ns, command, plan, plan.outcome)
         positions = plan.path[0]
         self.log.info("command %d %s: %d samples, %.1f s (%s)", command.command_id, command.action,
@@ -217,12 +214,7 @@ class PlannerNode(Node):
     def adopt(self, now_ns: int, command: MissionCommand, plan: Plan, outcome: str) -> None:
         positions, headings = plan.path
         exempting = command.action in EXEMPT_ACTIONS and command.target is not None
-        if exempting:
-            target = np.asarray(command.target, dtype=np.float64)
-            distance = float(np.hypot(*(target - self.position)[:2])) if command.action == "approach" else 0.0
-            self.exempt = mount_exemption(target, self.params.mount_radius + self.params.mount_growth * distance)
-        else:
-            self.exempt = None
+        self.exempt = mount_exemption(np.asarray(command.target), self.params.mount_radius) if exempting else None
         self.set_trajectory(now_ns, command.command_id, positions, headings, command.profile)
         self.report(now_ns, command.command_id, command.action, outcome, plan.note or "", plan.clearance,
                     command.target)
@@ -234,47 +226,38 @@ class PlannerNode(Node):
 
     # ----------------------------------------------------------------- guard
     def guard(self, now_ns: int) -> None:
-        """The guard's check of the active reference; see the module docstring."""
+        """The guard's check of the active reference, acted on as the Guardian decides (guard.py)."""
         if self.trajectory is None or not self.space.known:
             return
         verdict = self.verdict(now_ns, self.trajectory)
         command = self.command if self.command is not None and self.command.command_id == self.planned_id else None
-        if verdict.action == "clear":
-            if self.held and command is not None and now_ns >= self.retry_at:
-                self.retry(now_ns, command, verdict)
-            return
-        if self.held and verdict.action == "replan":
-            return  # braking already: the hold point is what it is
-        if command is not None and now_ns >= self.retry_at and self.retry(now_ns, command, verdict):
-            return
-        if verdict.action == "brake" and not self.held:
+        if self.guardian.wants_replan(now_ns, verdict, command is not None):
+            self.guardian.tried(now_ns)
+            if self.replan(now_ns, command, verdict):
+                return
+        if self.guardian.must_brake(verdict):
             self.log.warning("guard: %s: braking", verdict.reason)
             profile = self.trajectory.profile
             positions, headings = core.stop(self.position, self.velocity, profile, self.params.dt, self.heading)
             self.set_trajectory(now_ns, self.trajectory.command_id, positions, headings, profile)
-            self.held = True
-            self.retry_at = now_ns + int(self.params.guard_retry * NS)
+            self.guardian.hold(now_ns)
             self.report(now_ns, self.trajectory.command_id, command.action if command else "", "braked",
                         verdict.reason, None, None if command is None else command.target)
 
-    def retry(self, now_ns: int, command: MissionCommand, verdict: guard.GuardVerdict) -> bool:
-        """Plan the command again; adopt the plan when the guard finds it clear. True when adopted."""
-        self.retry_at = now_ns + int(self.params.guard_retry * NS)
+    def replan(self, now_ns: int, command: MissionCommand, verdict: guard.GuardVerdict) -> bool:
+        """Plan the command again; take the plan when the Guardian finds it better. True when taken."""
         plan = self.make_plan(now_ns, command)
-        if plan.outcome == "blocked":
-            self.log.info("guard: re-planned command %d not taken: %s", command.command_id, plan.note)
-            return False
         candidate = TrajectoryReference(header=Header(stamp=now_ns), command_id=command.command_id, start=now_ns,
                                         dt=self.params.dt, positions=from_numpy(plan.path[0]),
                                         headings=from_numpy(plan.path[1]), profile=command.profile)
         found = self.verdict(now_ns, candidate)
-        if RANK[found.action] >= max(RANK[verdict.action], RANK["replan"]):  # clear, or nearer it than the reference is
-            self.log.info("guard: re-planned command %d not taken: %s (%s)", command.command_id, found.reason,
-                          plan.outcome)
+        if plan.outcome == "blocked" or not self.guardian.takes(verdict, found):
+            self.log.info("guard: re-planned command %d not taken: %s (%s)", command.command_id,
+                          found.reason or plan.note, plan.outcome)
             return False
         why = verdict.reason or "the way is clear again"
         self.log.warning("guard: %s: re-planned command %d (%s)", why, command.command_id, plan.outcome)
-        self.held = False
+        self.guardian.release()
         self.adopt(now_ns, command, Plan(plan.path, "; ".join(filter(None, [why, plan.note])), plan.outcome,
                                          plan.clearance), "replanned")
         return True

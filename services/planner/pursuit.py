@@ -46,8 +46,9 @@ points the UAV could not be at (too close to an obstacle) to the nearest free vo
 reference aims where the target will be *and* the UAV can fly; and, when the chase would cross an
 obstacle, a `route` round it: the virtual vehicle then first follows the route (aiming ROUTE_LOOKAHEAD
 ahead of where it is along it) and turns to the target once it nears the route's end; and a
-`barrier` that holds its speed towards the nearest obstacle to what it can still brake from
-before the clearance, so it slides along an obstacle instead of into it.
+`barrier` on the velocity it asks for, which holds its speed towards the nearest obstacle to what
+it can still brake from before the clearance, so it slides along an obstacle instead of into it
+(the acceleration limit still applies to the filtered demand: the reference never jumps).
 """
 from __future__ import annotations
 
@@ -131,10 +132,10 @@ def pursuit(position, target_position, target_velocity, *, profile: ConstraintPr
         closing = speed * gap / distance if distance > 1e-9 else np.zeros(3)
         demand = _limit_velocity(aim_velocity + closing, profile)
         demand[2] = max(demand[2], -np.sqrt(2.0 * braking * max(p[2] - floor, 0.0)))  # can still stop above it
+        if barrier is not None:
+            demand = barrier(p, demand)
         dv = _clip(GAIN * (demand - v) * dt, accel * dt)
         v_next = _limit_velocity(v + dv, profile)
-        if barrier is not None:
-            v_next = barrier(p + v_next * dt, v_next)
         p = p + 0.5 * (v + v_next) * dt
         v = v_next
         positions.append(p.copy())

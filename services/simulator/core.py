@@ -42,7 +42,7 @@ import numpy as np
 from schemas.messages import Obstacle
 from services.simulator import contact
 from services.simulator.imu import Imu, ImuParams, ImuSamples, TickMotion
-from services.simulator.specs import NS, POLE_RADIUS, Scenario
+from services.simulator.specs import NS, POLE_RADIUS, Scenario, pole_name
 from services.simulator.targets import Balloons, Drones, TargetState
 from services.simulator.vehicles import Fleet, OdometryReading, VehicleState, make_reference
 
@@ -274,6 +274,6 @@ class Simulation:
                 radius=float(o.radius), height=float(o.height), name=o.name, color=tuple(o.color or look.obstacle)))
         for tid, b in zip(s.balloon_ids(), s.balloons):
             static.append(Obstacle(kind="cylinder", center=(float(b.pole[0]), float(b.pole[1]), self.ground_z),
-                                   radius=POLE_RADIUS, height=float(b.height), name=f"{tid}_pole",
+                                   radius=POLE_RADIUS, height=float(b.height), name=pole_name(tid),
                                    color=tuple(look.pole)))
         return static, unsurveyed

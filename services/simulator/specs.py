@@ -14,6 +14,11 @@ from schemas.messages import DEFAULT_UAV_RADIUS, ConstraintProfile, FaultCommand
 
 MAX_UAVS = 3  # the largest team the command line accepts (--uavs 2|3)
 POLE_RADIUS = 0.05
+
+
+def pole_name(balloon: str) -> str:
+    """The name of a balloon's pole among the world's static obstacles (its balloon's target id + '_pole')."""
+    return f"{balloon}_pole"
 NS = 1_000_000_000
 
 Vec3 = tuple[float, float, float]

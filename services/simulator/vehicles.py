@@ -6,8 +6,8 @@ it (PX4's offboard trajectory setpoint, MRS's MPC tracker), with the position te
 demand capped to what can still be braked within the acceleration limit (so a far-away step does
 not overshoot). v_ref and a_ref are the samples' central differences, interpolated between
 samples. Without the feed-forward the vehicle lagged every acceleration of its reference and
-overshot every stop: 4.6 m past the end of a 20 m goto at 5 m/s and 1.5 m/s², 3.4 m at 8.3 m/s
-and 3 m/s², into whatever a plan had stopped short of. The acceleration norm is clipped to max_acceleration,
+overshot every stop: 2.4 m past the end of a 20 m goto at 5 m/s and 1.5 m/s², 3.1 m at 8.3 m/s
+and 3 m/s², into whatever a plan had stopped short of (with it: 0.01 m and none). The acceleration norm is clipped to max_acceleration,
 then horizontal speed to max_speed and vertical speed to max_vertical_speed (together the
 Euclidean projection onto a convex set, so the clip never adds acceleration). Heading turns at
 most max_heading_rate towards the reference heading. The limits are the reference's profile,
