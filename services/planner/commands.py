@@ -41,6 +41,11 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     """Seed 004 Table 3.1 symbols in brackets."""
 
     dt: float = core.DT  # s between trajectory samples
+    # of the command profile's acceleration a plan uses: the rest is the flight controller's, to make up its
+    # tracking error (planned at the limit, the vehicle cannot: a pursuit re-planned every tick ran 1.8 m
+    # behind its reference, into a crown the reference went round, agile seed 4). The reference still
+    # carries the command's profile, the vehicle's limits
+    control_share: float = 0.85
     scan_offset: float = 2.0  # m kept inside the working area's inner rectangle
     corner_factor: float = 2.0  # [c_f] the scan's cross legs and corners fly at max_speed / c_f
     wait_distance: float = 4.0  # [d_b] m from the target where an approach ends
@@ -117,6 +122,11 @@ class ApproachMemory:
             self.target, self.direction = np.asarray(command.target, dtype=np.float64), plan.direction
 
 
+def planning_profile(profile: ConstraintProfile, params: PlannerParams) -> ConstraintProfile:
+    """The profile plans are made within: the command's, its acceleration cut to control_share."""
+    return msgspec.structs.replace(profile, max_acceleration=profile.max_acceleration * params.control_share)
+
+
 def unplannable(command: MissionCommand) -> str | None:
     """Why the numbers of a command cannot be planned from (None: they can)."""
     profile = command.profile
@@ -160,7 +170,7 @@ def plan_command(command: MissionCommand, vehicle: VehicleState, params: Planner
     if (problem := unplannable(command)) is not None:
         return Plan(core.hover(vehicle.position, vehicle.heading), f"{problem}; hovering")
     p, heading = vehicle.position, vehicle.heading
-    dt, profile, prm = params.dt, command.profile, params
+    dt, profile, prm = params.dt, planning_profile(command.profile, params), params
     action, target = command.action, command.target
     if action == "takeoff":  # also the climb back to the search height in flight
         line = Polyline.of([p, [p[0], p[1], command.height]], np.zeros(2))
@@ -381,7 +391,7 @@ def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleStat
     the predicted path) is the fallback when no blend fits the profile; chasing the position is
     the last resort. With a map (`_pursuit_clear`) the pursuit aims where the target will be *and*
     the UAV can fly, and slides along obstacles instead of into them."""
-    p, prm, profile, dt = vehicle.position, params, command.profile, params.dt
+    p, prm, profile, dt = vehicle.position, params, planning_profile(command.profile, params), params.dt
     moving = dict(start_velocity=vehicle.velocity, start_heading=vehicle.heading)
     velocity = np.asarray(command.target_velocity or (0.0, 0.0, 0.0), dtype=np.float64)
     predicted = predicted_path(command, target, velocity, vehicle.now_ns)
