@@ -6,7 +6,9 @@ import pytest
 
 from schemas.messages import Obstacle, TargetTruth
 from services.lidar.models import lidar_model
-from services.oracle.core import MAX_PENDING, OracleParams, ScanPairs, detect, scan_rng
+from schemas.voxels import BACKGROUND, FLYING
+from services.oracle.core import MAX_PENDING, OracleParams, ScanPairs, detect, label, scan_rng
+from services.voxels.grid import GridGeometry
 from services.sensor_driver.core import primitives_from_obstacles, scan
 
 NAN = np.nan
@@ -33,6 +35,22 @@ def test_centroid_count_and_extent_without_noise():
     single = detect(points, hits, OracleParams(min_points=1, sigma=0.0), scan_rng(0, "uav1"))
     assert single.targets.tolist() == [1, 2] and single.point_counts.tolist() == [3, 1]
     assert np.allclose(single.positions[1], [9, 9, 9]) and single.extents[1] == 0.0
+
+
+def test_label_sets_are_a_perfect_classifiers_for_the_mapper():
+    """Returns on a target make a flying object's voxel (weight inf), the rest background voxels
+    weighted by their returns; no return and a return outside the map make none."""
+    points, hits = synthetic_scan()
+    geometry = GridGeometry((-1.0, -1.0, -1.0), (20, 20, 20), 0.5)  # x, y, z in [-1, 9): (9, 9, 9) is outside
+    slot = np.full(geometry.size, -1, np.int32)
+    labels = label(points, hits, geometry, slot)
+    assert len(labels.points) == 6 and labels.point_labels.tolist() == [FLYING] * 3 + [BACKGROUND, FLYING, BACKGROUND]
+    by_voxel = {tuple(v): (int(k), float(w)) for v, k, w in zip(labels.voxels, labels.voxel_labels, labels.voxel_weights)}
+    assert by_voxel == {(4, 2, 2): (FLYING, np.inf), (4, 1, 2): (FLYING, np.inf), (12, 12, 2): (BACKGROUND, 1.0),
+                        (2, 2, 0): (BACKGROUND, 1.0)}
+    assert np.all(slot == -1)  # the scratch is left as found
+    with pytest.raises(ValueError):
+        label(points, hits[:, :2], geometry, slot)
 
 
 def test_noise_is_gaussian_seeded_by_stamp_and_uav():

@@ -45,11 +45,12 @@ import msgspec
 import numpy as np
 
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
-from services.classifier.kernels import cluster_stats, downsample, group_by, label_sets
+from services.classifier.kernels import cluster_stats, downsample, group_by
 from services.lidar.uncertainty import hit_probability, point_covariance
 from services.voxels.grid import GridGeometry
 from services.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
 from services.voxels.replica import MapReplica, geometry_of
+from services.voxels.labels import label_sets
 
 
 class ClassifierParams(msgspec.Struct, forbid_unknown_fields=True):

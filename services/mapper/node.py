@@ -25,7 +25,7 @@ PENDING = 8  # scans waiting for their other half; older ones are dropped (count
 
 class MapperNode(Node):
     service = "mapper"
-    upstream = ("sensor_driver", "classifier")
+    upstream = ("sensor_driver", "classifier", "oracle")  # whichever labels the scans
     params_type = MapperParams
 
     def setup(self) -> None:

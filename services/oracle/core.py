@@ -1,8 +1,7 @@
-"""Oracle detector core: one detection per target that returned at least `min_points` points.
-
-First version (issue 3; see __init__.py). Pure: numpy in, numpy out; the noise comes from an
-RNG the caller seeds (`scan_rng`: from the scan stamp and the UAV, so a run is reproducible
-and a replayed scan gives the same detections).
+"""Oracle detector core: one detection per target that returned at least `min_points` points, and
+the label sets a perfect classifier would hand the mapper. Pure: numpy in, numpy out; the noise
+comes from an RNG the caller seeds (`scan_rng`: from the scan stamp and the UAV, so a run is
+reproducible and a replayed scan gives the same detections).
 
 A detection is the centroid of the target's returns (float64) plus N(0, sigma²·I) noise, with
 covariance sigma²·I, the number of points and the extent (largest side of their axis-aligned
@@ -16,6 +15,10 @@ from typing import Any
 
 import msgspec
 import numpy as np
+
+from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
+from services.voxels.grid import GridGeometry
+from services.voxels.labels import label_sets
 
 RNG_SALT = zlib.crc32(b"oracle")
 MAX_PENDING = 8  # scans waiting for their other half; older ones are dropped
@@ -68,6 +71,42 @@ def detect(points: np.ndarray, hits: np.ndarray, params: OracleParams, rng: np.r
         extents=(highest[keep] - lowest[keep]).max(axis=1, initial=0.0).astype(np.float32),
         targets=ids[keep].astype(np.int32),
     )
+
+
+@dataclass
+class OracleLabels:
+    """What the classifier's LabelSet carries, from the truth of each ray."""
+    points: np.ndarray  # float32 (N, 3) the scan's valid returns
+    point_labels: np.ndarray  # uint8 (N,) FLYING on a target, BACKGROUND on the static world
+    voxels: np.ndarray  # int32 (M, 3) map voxels holding returns
+    voxel_labels: np.ndarray  # uint8 (M,)
+    voxel_weights: np.ndarray  # float32 (M,) eq. 16-18: returns per voxel, inf for flying objects
+
+
+def label(points: np.ndarray, hits: np.ndarray, geometry: GridGeometry, slot: np.ndarray) -> OracleLabels:
+    """The label sets of seed 000 eq. 16-18 as a classifier that never errs would make them: a return
+    on a target is a flying object's, any other return the background's. With them the mapper learns
+    free and occupied space in an oracle run as in a classifier run, so what flies on the map (the
+    planner, its guard) flies the same. `slot`: int32 scratch over the map's voxels, all -1."""
+    points = np.asarray(points)
+    hits = np.asarray(hits)
+    if points.shape[:-1] != hits.shape or points.shape[-1:] != (3,):
+        raise ValueError(f"points {points.shape} and hit ids {hits.shape} do not describe the same rays")
+    flat = points.reshape(-1, 3).astype(np.float64)
+    valid = np.isfinite(flat).all(axis=1)
+    xyz = flat[valid]
+    point_labels = np.where(hits.reshape(-1)[valid] >= 1, FLYING, BACKGROUND).astype(np.uint8)
+    voxels, voxel_labels, voxel_weights, _ = label_sets(
+        xyz, point_labels, geometry.corner, geometry.voxel_size, np.asarray(geometry.shape), slot,
+        BACKGROUND, FLYING, UNKNOWN)
+    return OracleLabels(xyz.astype(np.float32), point_labels, voxels, voxel_labels, voxel_weights)
+
+
+def warm_up() -> int:
+    """Compile the label-set pass now (a fresh numba cache takes seconds), not on the first scan."""
+    geometry = GridGeometry((0.0, 0.0, 0.0), (2, 2, 2), 0.5)
+    points = np.array([[0.2, 0.2, 0.2], [0.7, 0.2, 0.2], [np.nan, 0.0, 0.0]], dtype=np.float32)
+    return len(label(points, np.array([0, 1, -1]), geometry, np.full(geometry.size, -1, np.int32)).voxels)
 
 
 @dataclass
