@@ -29,7 +29,8 @@ moves its samples. The IMU measures whatever the vehicle does, alive or not: res
 ground (landed, or dead and fallen) it reads +g along body z, a dead one falling 0, and the
 impact a spike of the velocity it lost within one sub-step.
 
-Later issues deepen it: wind on the UAVs, attitude dynamics.
+The UAVs feel no wind and have no attitude dynamics (vehicles.py: a point mass tracking its
+reference within the profile's limits).
 """
 from __future__ import annotations
 

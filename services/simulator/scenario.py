@@ -4,7 +4,7 @@ A scenario is a TOML file; built-in ones live in services/simulator/scenarios/ a
 their file stem (`mbzirc`). Unknown fields and wrong types are rejected with a one-line
 `ScenarioError` naming the field, e.g. ``mbzirc.toml: balloons[2].height: expected float, got str``.
 Lists are indexed from 0 in messages. Units: metres, seconds, radians; x east, y north, z up.
-Later issues add wind acting on UAVs and drones.
+The wind sways the balloons only: UAVs and drones fly as in still air.
 
 Top-level fields
   name            str, required. Shown in logs and the world model.

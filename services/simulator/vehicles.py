@@ -1,18 +1,19 @@
 """The team's UAVs: point masses tracking their trajectory references, and their odometry.
 
-Control: a PD law on the time-sampled reference with the reference's acceleration fed forward,
-a = a_ref + kp (p_ref - p̂) + kd (v_ref - v), as a flight controller's trajectory setpoint carries
-it (PX4's offboard trajectory setpoint, MRS's MPC tracker), with the position term's velocity
-demand capped to what can still be braked within the acceleration limit (so a far-away step does
-not overshoot). v_ref and a_ref are the samples' central differences, interpolated between
-samples. Without the feed-forward the vehicle lagged every acceleration of its reference and
-overshot every stop: 2.4 m past the end of a 20 m goto at 5 m/s and 1.5 m/s², 3.1 m at 8.3 m/s
-and 3 m/s², into whatever a plan had stopped short of (with it: 0.01 m and none). The acceleration norm is clipped to max_acceleration,
-then horizontal speed to max_speed and vertical speed to max_vertical_speed (together the
-Euclidean projection onto a convex set, so the clip never adds acceleration). Heading turns at
-most max_heading_rate towards the reference heading. The limits are the reference's profile,
-capped by the airframe's envelope (the larger of the scenario's sweeping and attack profiles).
-A vehicle resting on the ground does not slide; a killed one falls ballistically and stops.
+Control: a PD law on the time-sampled reference with the reference's acceleration fed forward, a =
+a_ref + kp (p_ref - p̂) + kd (v_ref - v), as a flight controller's trajectory setpoint carries it
+(PX4's offboard trajectory setpoint, MRS's MPC tracker), with the position term's velocity demand
+capped to what can still be braked within the acceleration limit (so a far-away step does not
+overshoot). v_ref and a_ref are the samples' central differences, interpolated between samples.
+Without the feed-forward the vehicle lagged every acceleration of its reference and overshot every
+stop: 2.4 m past the end of a 20 m goto at 5 m/s and 1.5 m/s², 3.1 m at 8.3 m/s and 3 m/s², into
+whatever a plan had stopped short of (with it: 0.01 m and none). The acceleration norm is clipped to
+max_acceleration, then horizontal speed to max_speed and vertical speed to max_vertical_speed
+(together the Euclidean projection onto a convex set, so the clip never adds acceleration). Heading
+turns at most max_heading_rate towards the reference heading. The limits are the reference's
+profile, capped by the airframe's envelope (the larger of the scenario's sweeping and attack
+profiles). A vehicle resting on the ground does not slide; a killed one falls ballistically and
+stops.
 
 Odometry: p̂ = p + offset + noise. `jump_odometry` adds to the offset (a relocalisation error);
 an airborne UAV's controller closes its loop on p + offset, so after a jump the vehicle really
