@@ -9,14 +9,14 @@ classifier in a run (`falconry sim --detector oracle`); it never reads GroundTru
 """
 from __future__ import annotations
 
-from schemas.arrays import from_numpy, to_numpy
 import numpy as np
 
+from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, PointTruth, VoxelMap
 from services.oracle.core import OracleParams, ScanPairs, detect, label, scan_rng, warm_up
+from services.runtime.node import Node
 from services.voxels.grid import GridGeometry
 from services.voxels.replica import MapReplica, geometry_of
-from services.runtime.node import Node
 
 
 class OracleNode(Node):
