@@ -60,18 +60,21 @@ def test_clearance_is_the_bodys_closest_approach_to_any_obstacle_and_an_attacked
     assert closest() == ((0.4, "tree2", 2.0), {"m": 0.1, "to": "balloon2_pole", "t": 4.0})
     truth(monitor, 4.5, (51.3, 30.0, 2.5))  # balloon9's pole is no exception: 0.65 m from it, 0.25 m
     assert closest()[0] == (0.25, "balloon9_pole", 4.5)
-    command(monitor, 5.0, "scan")
+    command(monitor, 5.0, "scan")  # the balloon is down: the UAV leaves its pole's top under another command
+    truth(monitor, 5.1, (50.0, 30.0, 4.45))  # still over it: the attack's pass, not yet 1 m clear
+    assert closest() == ((0.25, "balloon9_pole", 4.5), {"m": 0.05, "to": "balloon2_pole", "t": 5.1})
+    truth(monitor, 5.2, (50.0, 30.0, 6.0))  # 1.6 m over the pole's top: the pass is over
     truth(monitor, 5.5, (50.0, 30.0, 4.5))  # over balloon2's pole again, no longer attacking it
-    assert closest() == ((0.1, "balloon2_pole", 5.5), {"m": 0.1, "to": "balloon2_pole", "t": 4.0})
+    assert closest() == ((0.1, "balloon2_pole", 5.5), {"m": 0.05, "to": "balloon2_pole", "t": 5.1})
     truth(monitor, 6.0, (80.0, 2.45, 2.0), uav2=(10.0, 31.0, 3.0), airborne2=True)  # the shed: the truth's only
     truth(monitor, 7.0, (10.0, 30.0, 3.0), alive1=False)  # dead (it crashed): no longer measured
-    assert closest() == ((0.05, "shed", 6.0), {"m": 0.1, "to": "balloon2_pole", "t": 4.0})
+    assert closest() == ((0.05, "shed", 6.0), {"m": 0.05, "to": "balloon2_pole", "t": 5.1})
     # uav2 flew at one tick only, 1 m from the tree's axis: 0.2 m inside its bark, less its 0.5 m body
     assert closest("uav2") == ((-0.7, "tree2", 6.0), None)
     summary = monitor.summary()
     assert summary["collisions"] == []
-    assert clearance_line(summary["clearance"]["uav1"]) == ("0.05 m to shed at t=6.0 s; in attacks 0.10 m to "
-                                                            "balloon2_pole at t=4.0 s")
+    assert clearance_line(summary["clearance"]["uav1"]) == ("0.05 m to shed at t=6.0 s; in attacks 0.05 m to "
+                                                            "balloon2_pole at t=5.1 s")
     assert clearance_line(summary["clearance"]["uav2"]) == "-0.70 m to tree2 at t=6.0 s"
 
 

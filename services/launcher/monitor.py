@@ -8,7 +8,10 @@ model's and the truth's unsurveyed ones (not the ground): the closest approach, 
 when. While the UAV's latest mission command is an attack, the pole of the balloon attacked (the
 `<balloon>_pole` whose axis is horizontally nearest the command's target, within
 ATTACKED_POLE_WITHIN) is measured apart, as its `attack_pole`: an attack flies close over that
-pole's top by design."""
+pole's top by design. The pass does not end with the command: a command that follows an attack
+(a stop once the balloon is down, a yield) starts where the attack left the UAV, over the pole's
+top, so the pole stays the attack's until the UAV is first PASS_CLEAR from it (street seed 2: a
+yield 0.05 s after the hit, 0.50 m from the pole's top 0.2 s later)."""
 from __future__ import annotations
 
 import hashlib
@@ -36,6 +39,7 @@ _LENGTH = struct.Struct("<I")
 DETECTED_WITHIN = 1.5  # m between a detection and a target's true position for "first detected"
 NEAREST_PERIOD = 0.25  # s of mission time between samples of each UAV's distance to its nearest partner
 ATTACKED_POLE_WITHIN = 1.5  # m from an attack command's target to the axis of the pole it attacks
+PASS_CLEAR = 1.0  # m (the obstacle margin) from the attacked pole that ends an attack's pass over it
 
 
 def write_record(stream: BinaryIO, payload: bytes) -> None:
@@ -82,6 +86,7 @@ class UavSummary:
     engagements: list[evaluation.Engagement] = field(default_factory=list)
     last_action: str = ""  # of the job manager's latest command
     attacking: tuple[float, float, float] | None = None  # the target of the latest command, an attack
+    leaving: tuple[float, float, float] | None = None  # the target of an attack whose pole the UAV is still over
     team_view: tuple | None = None  # (working area x-range, fallen partners) last reported
     clearance: tuple[float, str, float] | None = None  # (m, obstacle, mission time) of the closest approach
     attack_pole: tuple[float, str, float] | None = None  # the same to the pole of the balloon it attacked
@@ -195,6 +200,8 @@ class RunMonitor:
         u = self._uav(uav)
         previous, action = u.last_action, command.action
         u.last_action = action
+        if action != "attack" and u.attacking is not None:
+            u.leaving = u.attacking
         u.attacking = tuple(command.target) if action == "attack" and command.target is not None else None
         if action not in ("attack", "intercept") or command.target is None or action == previous:
             return
@@ -276,7 +283,9 @@ class RunMonitor:
         gaps = contact.signed_distance(np.array([v.position for v in flying]), self._shapes) - radius[:, None]
         for v, row in zip(flying, gaps):
             u = self._uav(v.name)
-            pole = self._attacked_pole(u.attacking)
+            pole = self._attacked_pole(u.attacking or u.leaving)
+            if u.attacking is None and (pole is None or row[pole] >= PASS_CLEAR):
+                u.leaving, pole = None, None  # the pass is over: the pole is an obstacle like any other
             if pole is not None:
                 u.attack_pole = _closer(u.attack_pole, (float(row[pole]), self._shapes.names[pole], t))
                 row = row.copy()
