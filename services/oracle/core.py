@@ -87,7 +87,9 @@ def label(points: np.ndarray, hits: np.ndarray, geometry: GridGeometry, slot: np
     """The label sets of seed 000 eq. 16-18 as a classifier that never errs would make them: a return
     on a target is a flying object's, any other return the background's. With them the mapper learns
     free and occupied space in an oracle run as in a classifier run, so what flies on the map (the
-    planner, its guard) flies the same. `slot`: int32 scratch over the map's voxels, all -1."""
+    planner, its guard) flies the same. One difference: a balloon is a target here, so its voxels are
+    kept unknown, where the classifier calls a tethered balloon background (rule A, its pole) and the
+    planner leaves it out by its mount. `slot`: int32 scratch over the map's voxels, all -1."""
     points = np.asarray(points)
     hits = np.asarray(hits)
     if points.shape[:-1] != hits.shape or points.shape[-1:] != (3,):
