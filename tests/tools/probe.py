@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import threading
 
@@ -45,13 +46,22 @@ def main() -> None:
     try:
         sys.stdin.read()  # the test closes stdin to stop the probe
     finally:
+        # The launcher tears the namespace's links down as the run ends, so a close may wait on a
+        # dead link for Zenoh's whole timeout: give it a moment, then leave regardless.
+        closer = threading.Thread(target=_close, args=(session, handles), daemon=True)
+        closer.start()
+        closer.join(timeout=3.0)
+        sys.stdout.flush()
+        os._exit(0)
+
+
+def _close(session, handles) -> None:
+    try:
         for handle in handles:
             handle.undeclare()
-        try:
-            session.close()
-        except Exception:  # noqa: BLE001 - a session whose radio was cut may not close in time; we exit anyway
-            pass
-
+        session.close()
+    except Exception:  # noqa: BLE001 - a session whose radio was cut may fail to close; we exit anyway
+        pass
 
 if __name__ == "__main__":
     main()

@@ -21,10 +21,13 @@ def wait_for_port(port: int, timeout: float = 20.0) -> None:
     raise AssertionError(f"nothing listens on {port}")
 
 
-def join_run(port: int):
-    """A session of our own on a running `falconry sim` (like a partner or a ground station)."""
+def join_run(port: int, gossip_connect: bool = True):
+    """A session of our own on a running `falconry sim` (like a partner or a ground station).
+    gossip_connect=False keeps it on the hub alone, like a ground station behind the radio: no
+    direct links to peers in UAV namespaces, whose teardown would leave its close waiting."""
     wait_for_port(port)
-    return open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"], shared_memory=False))
+    return open_session(ZenohSettings(connect=[f"tcp/127.0.0.1:{port}"], shared_memory=False,
+                                      gossip_connect=gossip_connect))
 
 
 def processes_mentioning(text: str) -> list[int]:
