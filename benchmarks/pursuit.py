@@ -33,8 +33,9 @@ from services.simulator.paths import DronePath  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 from services.simulator.specs import DroneSpec  # noqa: E402
 from services.simulator.vehicles import Fleet, make_reference  # noqa: E402
-from services.tracker.core import TrackerParams  # noqa: E402
-from services.tracker.filters.models import manoeuvre_path  # noqa: E402
+from services.tracker.core import TURN_MIN_SPEED, TrackerParams  # noqa: E402
+from services.tracker.filters.models import turning_path  # noqa: E402
+from services.tracker.filters.turning import TurnHistory  # noqa: E402
 from services.tracker.view import PredictedPath  # noqa: E402
 
 NS = 1_000_000_000
@@ -53,20 +54,27 @@ class Outcome:
 
 
 def prediction(path: DronePath, t: float, latency: float, noise: float, rng: np.random.Generator,
-               manoeuvre_time: float) -> PredictedPath:
+               tracker: TrackerParams) -> PredictedPath:
     """What the tracker would say at t: the state `latency` s old, its acceleration by a 0.1 s
-    difference, carried to t by the manoeuvre model, with white position noise."""
+    difference and its turn from the window of states before (TurnHistory), carried to t by the
+    published trajectory's model (turning_path), with white position noise."""
     seen = t - latency
     p, v = path.state(seen)
     _, v_before = path.state(seen - 0.1)
     mean = np.concatenate([p + rng.normal(0.0, noise, 3), v, (v - v_before) / 0.1])
-    points = manoeuvre_path(mean, 0.25, 8 + int(latency / 0.25) + 1, manoeuvre_time)
+    history = TurnHistory(tracker.turn_window, TURN_MIN_SPEED, tracker.max_turn_rate if tracker.max_turn_rate > 0 else 0.0)
+    for earlier in seen - np.arange(round(tracker.turn_window / 0.1), -1, -1) * 0.1:  # the scans of the window
+        p_then, v_then = path.state(earlier)
+        history.add(earlier, p_then + rng.normal(0.0, noise, 3), v_then)
+    turn = history.turn() if tracker.max_turn_rate > 0 else None
+    points = turning_path(mean, 0.25, 8 + int(latency / 0.25) + 1, tracker.manoeuvre_time, turn)
     return PredictedPath(mean[:3], v, points, 0.25).rebased(latency, 8, 0.25)
 
 
 def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args, rng) -> Outcome:
     path = DronePath(spec, scenario, seed, index)
-    jm, tracker, planner = JobManagerParams(), TrackerParams(), PlannerParams()
+    jm, planner = JobManagerParams(), PlannerParams()
+    tracker = TrackerParams() if args.max_turn_rate is None else TrackerParams(max_turn_rate=args.max_turn_rate)
     profile = ConstraintProfile(name="attack", max_speed=jm.attack_speed, max_acceleration=jm.attack_acceleration)
     limits = np.array([profile.max_speed, profile.max_acceleration, profile.max_heading_rate, profile.max_vertical_speed])
     fleet = Fleet(scenario, ["uav1"], seed)
@@ -79,7 +87,7 @@ def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args,
     closest = (np.inf, 0.0)
     while t < start + args.limit:
         if t >= next_plan - 1e-9:
-            predicted = prediction(path, t, args.latency, args.noise, rng, tracker.manoeuvre_time)
+            predicted = prediction(path, t, args.latency, args.noise, rng, tracker)
             p, v = start_state(sent, int(round(t * NS)), fleet.position[0].copy(), fleet.velocity[0].copy(),
                                planner.rejoin_distance)
             plan = pursuit_law.pursuit(p, predicted.position, predicted.velocity, profile=profile, dt=planner.dt,
@@ -116,12 +124,20 @@ def main() -> int:
     parser.add_argument("--period", type=float, default=0.3, help="s between re-plans (default 0.3)")
     parser.add_argument("--limit", type=float, default=60.0, help="s a pursuit may take (default 60, the goal)")
     parser.add_argument("--braking", type=float, help=f"override pursuit.BRAKING ({pursuit_law.BRAKING})")
+    parser.add_argument("--lead-speed", type=float, help=f"override pursuit.LEAD_SPEED ({pursuit_law.LEAD_SPEED} m/s)")
+    parser.add_argument("--lead-max", type=float, help=f"override pursuit.LEAD_MAX ({pursuit_law.LEAD_MAX} s)")
+    parser.add_argument("--max-turn-rate", type=float,
+                        help="override the tracker's max_turn_rate (1.5 rad/s; 0: Singer's straight-on prediction)")
     parser.add_argument("--terminal", type=float, help=f"override pursuit.TERMINAL_GAIN ({pursuit_law.TERMINAL_GAIN} 1/s)")
     args = parser.parse_args()
     if args.braking is not None:
         pursuit_law.BRAKING = args.braking
     if args.terminal is not None:
         pursuit_law.TERMINAL_GAIN = args.terminal
+    if args.lead_speed is not None:
+        pursuit_law.LEAD_SPEED = args.lead_speed
+    if args.lead_max is not None:
+        pursuit_law.LEAD_MAX = args.lead_max
     try:
         scenario = load_scenario(args.scenario)
     except (OSError, ValueError) as error:

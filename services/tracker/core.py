@@ -80,9 +80,13 @@ from services.classifier.core import half_width_across, surface_offset
 from services.geometry import is_covariance
 from services.tracker.filters import FILTERS, FilterParams, make_filter
 from services.tracker.filters.base import NS, Estimate, InnovationStatistics
-from services.tracker.filters.models import covariance_at_least, manoeuvre_path, manoeuvre_state, uncertainty_radius
+from services.tracker.filters.models import (covariance_at_least, manoeuvre_path, manoeuvre_state, turning_path,
+                                            uncertainty_radius)
+from services.tracker.filters.turning import Turn, TurnHistory
 from services.tracker.kernels import points_near
 from services.voxels.kernels import clusters_near_occupied, euclidean_clusters
+
+TURN_MIN_SPEED = 1.0  # m/s: slower, a track's heading is noise and its trajectory does not turn
 
 
 class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -135,6 +139,12 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     # s an estimated acceleration is expected to last in the published trajectory (Singer's model,
     # filters/models.py: manoeuvre_path); inf extrapolates the constant acceleration of eq. 27
     manoeuvre_time: float = 1.0
+    # The published trajectory turns at the rate the last turn_window s of corrected headings
+    # show (filters/turning.py, models.py: turning_path), at most max_turn_rate (rad/s; 0: never,
+    # Singer's straight-on extrapolation alone). A 4 m circle at 3.2 m/s is 0.8 rad/s, agile's
+    # manoeuvrer turns at up to 4 m/s² / 3 m/s = 1.3 rad/s.
+    turn_window: float = 1.0
+    max_turn_rate: float = 1.5
     alive_period: float = 1.0  # s; the node sends an empty Tracks at least this often
     fleet: bool = True  # join the partners' tracks into the published picture (fleet.py)
     partner_timeout: float = 1.0  # s without a partner's tracks before they are left out
@@ -143,9 +153,11 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
         if self.filter not in FILTERS:
             raise msgspec.ValidationError(f"filter must be one of {', '.join(FILTERS)}, not {self.filter!r}")
         for name in ("radius_min", "radius_confidence", "radius_max", "cluster_distance", "cloud_noise",
-                     "trajectory_step", "manoeuvre_time", "moving_speed", "max_half_width"):
+                     "trajectory_step", "manoeuvre_time", "moving_speed", "max_half_width", "turn_window"):
             if not getattr(self, name) > 0:
                 raise msgspec.ValidationError(f"{name} must be positive")
+        if not self.max_turn_rate >= 0:
+            raise msgspec.ValidationError("max_turn_rate must be at least 0")
         if not (self.reidentify_time >= 0 and self.stitch_time >= 0 and self.stitch_speed >= 0):
             raise msgspec.ValidationError("reidentify_time, stitch_time and stitch_speed must be at least 0")
         if not 0.0 <= self.surface_bias <= 1.0:
@@ -183,6 +195,7 @@ class _Track:
     stitch_checked: bool = False  # a lost identity was looked for when it was confirmed (or it took one at birth)
     corroborated: bool = False  # a partner's confirmed track of its target confirmed it (`corroborate`)
     reidentified: bool = False  # it took a confirmed lost track's identity back at birth
+    turn: TurnHistory | None = None  # its last corrections, for how it turns
 
 
 @dataclass(frozen=True)
@@ -247,6 +260,7 @@ class TrackEstimate:
     last_correction: int = 0  # ns, when a scan or a detection last corrected it
     primary: bool = False
     half_width: float = 0.0  # m, the target's half-width across the line of sight: the widest its returns were
+    turn: Turn | None = None  # how its trajectory turns (None: it does not)
 
     @property
     def position(self) -> np.ndarray:
@@ -310,6 +324,7 @@ class TrackerCore:
             track.estimate, track.half_width = update.estimate, update.half_width
             if update.innovation is not None:
                 track.corrected = update.estimate
+                self._turned(track)
                 track.statistics.add(update.innovation)
         self._drop_diverged()
         dropped = [t.id for t in self._tracks if self.radius(t.estimate) > self.params.radius_max]
@@ -452,6 +467,7 @@ class TrackerCore:
             return -1
         track = _Track(self._next_id, tentative.estimate, tentative.corrected, 1, stamp, tentative.statistics,
                        tentative.half_width)
+        self._turned(track)
         lost = self._lost_identity(tentative.estimate)
         if lost is not None:  # the same target back in sight: its identity and its detections
             track.id, track.detections, track.stitch_checked = lost.id, lost.detections + 1, True
@@ -497,7 +513,15 @@ class TrackerCore:
         track.estimate = replayed.estimate if replayed.estimate.stamp >= track.estimate.stamp else \
             self.filter.predictor.predict(replayed.estimate, track.estimate.stamp)
         track.corrected, track.half_width = replayed.corrected, replayed.half_width
+        self._turned(track)
         track.statistics.merge(replayed.statistics)  # these clouds did not correct it when they first came
+
+    def _turned(self, track: _Track) -> None:
+        """The track's last correction into its turn rate's history."""
+        p = self.params
+        if track.turn is None:
+            track.turn = TurnHistory(p.turn_window, TURN_MIN_SPEED, p.max_turn_rate)
+        track.turn.add(track.corrected.stamp / NS, track.corrected.mean[:3], track.corrected.mean[3:6])
 
     # ----------------------------------------------------------- bookkeeping
     def _drop_diverged(self) -> None:
@@ -623,6 +647,7 @@ class TrackerCore:
             now = predict(track.estimate, now_ns)
             coasted = max(now.stamp - track.corrected.stamp, 0) / NS
             state = manoeuvre_state(track.corrected.mean, coasted, p.manoeuvre_time)
+            turn = None if track.turn is None or p.max_turn_rate <= 0 else track.turn.turn()
             out.append(TrackEstimate(
                 id=track.id,
                 state=state,
@@ -631,12 +656,13 @@ class TrackerCore:
                 confirmed=self._confirmed(track),
                 uncertainty_radius=self.radius(now),
                 last_detection=track.last_detection,
-                trajectory=self._trajectory(state) if trajectory else np.zeros((0, 3)),
+                trajectory=published_trajectory(state, p, turn) if trajectory else np.zeros((0, 3)),
                 updates=track.statistics.updates,
                 mean_nis=track.statistics.mean_nis,
                 last_innovation=track.statistics.last_residual,
                 last_correction=track.corrected.stamp,
                 half_width=track.half_width,
+                turn=turn,
             ))
         confirmed = [e for e in out if e.confirmed]
         if confirmed:
@@ -644,10 +670,13 @@ class TrackerCore:
             out = [replace(e, primary=e is best) for e in out]
         return out
 
-    def _trajectory(self, state: np.ndarray) -> np.ndarray:
-        p = self.params
-        return manoeuvre_path(state, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step),
-                              p.manoeuvre_time)
+
+
+def published_trajectory(state: np.ndarray, params: TrackerParams, turn: Turn | None = None) -> np.ndarray:
+    """(K, 3) the positions published with a track of this state: every trajectory_step s up to
+    trajectory_horizon, its horizontal motion the coordinated turn `turn` (turning_path)."""
+    return turning_path(state, params.trajectory_step, int(params.trajectory_horizon / params.trajectory_step),
+                        params.manoeuvre_time, turn)
 
 
 def warm_up(params: TrackerParams) -> int:

@@ -25,8 +25,7 @@ from schemas.messages import Detections, Header, PointCloud, Track, Tracks, Voxe
 from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
-from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, warm_up
-from services.tracker.filters.models import manoeuvre_path
+from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, published_trajectory, warm_up
 from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
                                     partner_number, sound_partner_track)
 from services.voxels.replica import MapReplica
@@ -156,7 +155,7 @@ class TrackerNode(Node):
         """A fleet track as sent; an own track unfused keeps its trajectory (from its own state) and statistics."""
         p = self.params
         trajectory = own.trajectory if own is not None and not track.fused_with else \
-            manoeuvre_path(track.mean, p.trajectory_step, int(p.trajectory_horizon / p.trajectory_step), p.manoeuvre_time)
+            published_trajectory(track.mean, p, None if own is None else own.turn)
         return Track(
             id=track.id,
             state=from_numpy(track.mean),

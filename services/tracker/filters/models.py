@@ -10,6 +10,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from services.tracker.filters.base import NS
+from services.tracker.filters.turning import Turn
 
 STATE_SIZE = 9
 # Eq. 30: the measurement (a cluster centroid) is the position.
@@ -105,6 +106,33 @@ def manoeuvre_path(mean: np.ndarray, step: float, count: int, manoeuvre_time: fl
         tau = manoeuvre_time
         reach = tau * tau * (np.exp(-t / tau) - 1.0 + t / tau)
     return (m[:3] + m[3:6] * t + m[6:9] * reach).reshape(-1, 3)
+
+
+def turning_path(mean: np.ndarray, step: float, count: int, manoeuvre_time: float, turn: Turn | None) -> np.ndarray:
+    """(count, 3) predicted positions every `step` s ahead of a position-velocity-acceleration
+    state turning as `turn` says (filters/turning.py): horizontally a coordinated turn from its
+    heading now at a constant rate and the state's horizontal speed, vertically manoeuvre_path.
+    Without a turn, manoeuvre_path. On a 4 m circle at 3.2 m/s Singer's model alone, straight on
+    after τ, is 2.7 m off 2 s ahead even with the true acceleration; the turn keeps the circle.
+
+    The speed is held through the turn: there the filter's acceleration is a lagging mix of the
+    centripetal part and noise (0.8 m/s² along the track on the mast's circle, which the drone
+    never had; faded in as Singer's model would, it put the prediction 1.0 m off 2 s ahead
+    instead of 0.2 m)."""
+    m = np.asarray(mean, dtype=np.float64).reshape(-1)
+    straight = manoeuvre_path(m, step, count, manoeuvre_time)
+    if turn is None:
+        return straight
+    t = step * np.arange(1, count + 1, dtype=np.float64)
+    speed = float(np.hypot(m[3], m[4]))
+    # the arc of radius speed/ω from the heading now, in closed form
+    rate = turn.rate
+    along = speed * np.sin(rate * t) / rate
+    across = speed * (1.0 - np.cos(rate * t)) / rate
+    out = straight.copy()
+    out[:, 0] = m[0] + along * np.cos(turn.heading) - across * np.sin(turn.heading)
+    out[:, 1] = m[1] + along * np.sin(turn.heading) + across * np.cos(turn.heading)
+    return out
 
 
 def manoeuvre_state(mean: np.ndarray, elapsed: float, manoeuvre_time: float) -> np.ndarray:
