@@ -74,6 +74,7 @@ TERMINAL_GAIN = 1.2  # 1/s: the closing speed close in is at most this × the ga
 _MARGIN = 0.98  # of each limit, so differences of the samples stay inside it too
 LEAD_SPEED = 3.0  # m/s: a UAV trailing by d m aims d / LEAD_SPEED s further along the prediction ... (see above)
 LEAD_MAX = 1.5  # s: ... at most
+ROUTE_BRAKING = 0.5  # share of max_acceleration a route round an obstacle is flown to brake with at its end
 ROUTE_LOOKAHEAD = 4.0  # m along a route ahead of the vehicle's nearest point on it that it aims at
 
 
@@ -94,22 +95,23 @@ def _behind(position: np.ndarray, target: np.ndarray, velocity: np.ndarray) -> f
     return 0.0 if speed < 1e-6 else max(0.0, float((target - position) @ velocity) / speed)
 
 
-def _carrot(route: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, bool]:
+def _carrot(route: np.ndarray, position: np.ndarray) -> tuple[np.ndarray, bool, float]:
     """The point ROUTE_LOOKAHEAD along the route beyond the vehicle's nearest point on it, but not
     past the next vertex (a carrot that ran ahead round a corner would pull the vehicle across
-    it, towards the obstacle the route goes round); and whether to keep following the route
-    (False once the vehicle is that close to its end)."""
+    it, towards the obstacle the route goes round); whether to keep following the route (False
+    once the vehicle is that close to its end); and how much of the route is left from there, m."""
     a, b = route[:-1], route[1:]
     edge = b - a
     length = np.linalg.norm(edge, axis=1)
     along = np.clip(np.einsum("ij,ij->i", position - a, edge) / np.maximum(length**2, 1e-12), 0.0, 1.0)
     nearest = int(np.argmin(np.linalg.norm(a + along[:, None] * edge - position, axis=1)))
     if nearest == len(edge) - 1 and np.linalg.norm(route[-1] - position) <= ROUTE_LOOKAHEAD:
-        return route[-1], False
+        return route[-1], False, float(np.linalg.norm(route[-1] - position))
+    left = float(length[nearest:].sum() - along[nearest] * length[nearest])
     ahead = min(along[nearest] * length[nearest] + ROUTE_LOOKAHEAD, length[nearest])
     if ahead >= length[nearest] - 1e-9 and np.linalg.norm(b[nearest] - position) < 1.0 and nearest + 1 < len(edge):
         nearest, ahead = nearest + 1, min(ROUTE_LOOKAHEAD, length[nearest + 1])
-    return a[nearest] + ahead / max(length[nearest], 1e-12) * edge[nearest], True
+    return a[nearest] + ahead / max(length[nearest], 1e-12) * edge[nearest], True, left
 
 
 def pursuit(position, target_position, target_velocity, *, profile: ConstraintProfile, dt: float = DT,
@@ -144,12 +146,16 @@ def pursuit(position, target_position, target_velocity, *, profile: ConstraintPr
     for k in range(steps):  # inherently sequential: a vehicle flown forward in time
         lead = min(int(round(_behind(p, targets[k], target_velocities[k]) / (LEAD_SPEED * dt))), lead_steps)
         aim, aim_velocity = targets[k + lead], target_velocities[k + lead]
+        to_go = None
         if following:
-            aim, following = _carrot(route, p)
+            aim, following, to_go = _carrot(route, p)
             aim_velocity = np.zeros(3)
         gap = aim - p
         distance = float(np.linalg.norm(gap))
-        speed = min(np.sqrt(2.0 * braking * distance), TERMINAL_GAIN * distance)
+        if to_go is None:
+            speed = min(np.sqrt(2.0 * braking * distance), TERMINAL_GAIN * distance)
+        else:  # round a still obstacle: brake for the route's end only, not for the carrot running ahead
+            speed = np.sqrt(2.0 * ROUTE_BRAKING * accel * to_go)
         closing = speed * gap / distance if distance > 1e-9 else np.zeros(3)
         demand = _limit_velocity(aim_velocity + closing, profile)
         demand[2] = max(demand[2], -np.sqrt(2.0 * braking * max(p[2] - floor, 0.0)))  # can still stop above it
