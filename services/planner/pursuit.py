@@ -55,7 +55,9 @@ Near obstacles (commands.py, avoid.py) the caller hands in `free`, which moves t
 points the UAV could not be at (too close to an obstacle) to the nearest free voxel, so the
 reference aims where the target will be *and* the UAV can fly; and, when the chase would cross an
 obstacle, a `route` round it: the virtual vehicle then first follows the route (aiming ROUTE_LOOKAHEAD
-ahead of where it is along it) and turns to the target once it nears the route's end; and a
+ahead of where it is along it, as fast as it can brake before the route's end at ROUTE_BRAKING
+of a_max: the obstacle stands still, and braking for the carrot itself held it to 2 m/s while
+mast's eight ran round the tower at 5) and turns to the target once it nears the route's end; and a
 `barrier` on the velocity it asks for, which holds its speed towards the nearest obstacle to what
 it can still brake from before the clearance, so it slides along an obstacle instead of into it
 (the acceleration limit still applies to the filtered demand: the reference never jumps).
