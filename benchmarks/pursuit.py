@@ -66,7 +66,7 @@ def prediction(path: DronePath, t: float, latency: float, noise: float, rng: np.
     for earlier in seen - np.arange(round(tracker.turn_window / 0.1), -1, -1) * 0.1:  # the scans of the window
         p_then, v_then = path.state(earlier)
         history.add(earlier, p_then + rng.normal(0.0, noise, 3), v_then)
-    turn = history.turn() if tracker.max_turn_rate > 0 else None
+    turn = history.turn(seen) if tracker.max_turn_rate > 0 else None
     points = turning_path(mean, 0.25, 8 + int(latency / 0.25) + 1, tracker.manoeuvre_time, turn)
     return PredictedPath(mean[:3], v, points, 0.25).rebased(latency, 8, 0.25)
 

@@ -504,7 +504,7 @@ def _chase_the_circler(start_bearing: float, limit: float = 20.0) -> float | Non
                 history.add(then, *path.state(then))
             (p, v), (_, before) = path.state(seen), path.state(seen - 0.1)
             mean = np.concatenate([p, v, (v - before) / 0.1])
-            ahead = PredictedPath(p, v, turning_path(mean, 0.25, 9, tracker.manoeuvre_time, history.turn()), 0.25)
+            ahead = PredictedPath(p, v, turning_path(mean, 0.25, 9, tracker.manoeuvre_time, history.turn(seen)), 0.25)
             predicted = ahead.rebased(0.2, 8, 0.25)
             now = int(round(t * NS))
             p0, v0 = start_state(sent, now, fleet.position[0].copy(), fleet.velocity[0].copy(), planner.rejoin_distance)

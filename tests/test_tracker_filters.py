@@ -417,3 +417,28 @@ def test_a_measurement_at_the_edge_of_the_particle_cloud_does_not_collapse_it():
     particles = update.estimate.memory.particles
     assert len(np.unique(particles[:, 0])) == len(particles)  # no identical copies
     assert np.sqrt(np.diag(update.estimate.covariance)[:3]).min() > 0.02
+
+
+def test_the_turn_history_sees_a_turn_not_a_straight_line_and_turns_on_while_coasting():
+    from services.tracker.filters.turning import TurnHistory
+    rate, speed = 0.8, 3.2
+    circling = TurnHistory(window=1.0, min_speed=1.0, max_rate=1.5)
+    straight = TurnHistory(window=1.0, min_speed=1.0, max_rate=1.5)
+    rng = np.random.default_rng(2)
+    for k in range(15):
+        t = 0.1 * k
+        heading = rate * t
+        circling.add(t, 4.0 * np.array([np.sin(heading), -np.cos(heading), 0.0]),
+                     speed * np.array([np.cos(heading), np.sin(heading), 0.0]))
+        straight.add(t, np.array([speed * t, 0.0, 5.0]) + rng.normal(0.0, 0.05, 3), [speed, rng.normal(0.0, 0.1), 0.0])
+    assert straight.turn(1.4) is None  # noise is no turn
+    now = circling.turn(1.4)
+    assert abs(now.rate - rate) < 1e-6 and abs(now.heading - rate * 1.4) < 1e-6
+    assert abs(circling.turn(1.9).heading - rate * 1.9) < 1e-6  # coasting half a second, still turning
+    circling.add(1.05, np.zeros(3), [speed, 0.0, 0.0])  # rewound to an earlier correction: later ones go
+    times = [sample[0] for sample in circling._samples]
+    assert times[-1] == 1.05 and max(times[:-1]) == pytest.approx(1.0) and min(times) >= 0.4
+    slow = TurnHistory(window=1.0, min_speed=1.0, max_rate=1.5)
+    for k in range(10):
+        slow.add(0.1 * k, np.zeros(3), [0.5, 0.0, 0.0])
+    assert slow.turn(0.9) is None  # hovering: its heading is noise

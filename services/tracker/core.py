@@ -647,7 +647,7 @@ class TrackerCore:
             now = predict(track.estimate, now_ns)
             coasted = max(now.stamp - track.corrected.stamp, 0) / NS
             state = manoeuvre_state(track.corrected.mean, coasted, p.manoeuvre_time)
-            turn = None if track.turn is None or p.max_turn_rate <= 0 else track.turn.turn()
+            turn = None if track.turn is None or p.max_turn_rate <= 0 else track.turn.turn(now.stamp / NS)
             out.append(TrackEstimate(
                 id=track.id,
                 state=state,
@@ -669,7 +669,6 @@ class TrackerCore:
             best = max(confirmed, key=lambda e: (e.detections, -e.id))
             out = [replace(e, primary=e is best) for e in out]
         return out
-
 
 
 def published_trajectory(state: np.ndarray, params: TrackerParams, turn: Turn | None = None) -> np.ndarray:

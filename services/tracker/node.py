@@ -25,7 +25,8 @@ from schemas.messages import Detections, Header, PointCloud, Track, Tracks, Voxe
 from services.runtime.clock import to_ns
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
-from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, published_trajectory, warm_up
+from services.tracker.core import (OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, published_trajectory,
+                                   warm_up)
 from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
                                     partner_number, sound_partner_track)
 from services.voxels.replica import MapReplica

@@ -61,9 +61,10 @@ class TurnHistory:
         while self._samples[0][0] < seconds - self.window:
             self._samples.popleft()
 
-    def turn(self) -> Turn | None:
-        """None until MIN_SAMPLES corrections over at least MIN_SPAN s are known, and for a
-        turn slower than MIN_RATE."""
+    def turn(self, now: float) -> Turn | None:
+        """The turn at `now` (s; a track coasting since its last correction has turned on at the
+        same rate); None until MIN_SAMPLES corrections over at least MIN_SPAN s are known, and
+        for a turn slower than MIN_RATE."""
         if len(self._samples) < MIN_SAMPLES:
             return None
         t, heading, x, y = np.array(self._samples).T
@@ -75,4 +76,5 @@ class TurnHistory:
         rate = float(np.clip(centred @ (heading - heading.mean()) / (centred @ centred), -self.max_rate, self.max_rate))
         if abs(rate) < MIN_RATE:
             return None
-        return Turn(rate, float(np.arctan2(y[-1] - y[0], x[-1] - x[0])) + 0.5 * rate * span)
+        coasted = max(now - t[-1], 0.0)
+        return Turn(rate, float(np.arctan2(y[-1] - y[0], x[-1] - x[0])) + rate * (0.5 * span + coasted))
