@@ -159,6 +159,29 @@ def test_an_engaged_uav_has_priority_over_a_sweeping_one():
     assert rig.last.action == "goto"  # uav1 outranks by order, but uav2 is attacking
 
 
+def test_an_engaged_uav_brakes_rather_than_fly_into_the_partner_yielding_to_it():
+    """unmapped, every seed: the circler's interceptor, with priority, flew at 3 m/s into the
+    partner that had yielded to it and was still braking, before it could climb."""
+    rig = Rig().engaged()  # uav1 on BALLOON, at HOME
+    toward = (BALLOON - HOME) * [1.0, 1.0, 0.0]
+    toward = 4.0 * toward / np.linalg.norm(toward)
+    partner = HOME + toward  # 4 m ahead, on the way to the balloon, at the same height
+    flying(rig, "uav2", 1.25, position=partner)
+    rig.tick(1.3, detections=[BALLOON], velocity=0.5 * toward)  # 2 m/s towards it
+    assert rig.last.action == "stop" and rig.last.profile == "attack"
+    assert "giving way to uav2" in rig.jm.notes[-1]
+    rig.tick(1.4, detections=[BALLOON], velocity=np.zeros(3))  # stopped: still held, not released
+    assert rig.last.action == "stop"
+    flying(rig, "uav2", 1.45, position=partner + [0.0, 0.0, 2.6])  # it climbed out of the way
+    rig.tick(1.5, detections=[BALLOON])
+    assert rig.last.action == "approach" and "clear: engaging again" in " ".join(rig.jm.notes[-3:])
+    # moving away from a partner, or a sweeping UAV: nothing to give way to
+    away = Rig().engaged()
+    flying(away, "uav2", 1.25, position=HOME + toward)
+    away.tick(1.3, detections=[BALLOON], velocity=-0.5 * toward)
+    assert away.last.action == "approach"
+
+
 def test_an_engaged_uav_drops_its_target_when_a_closer_partner_claims_it():
     rig = Rig().engaged()  # uav1 on BALLOON, 14 m away
     flying(rig, "uav2", 1.25, position=BALLOON + [3.0, 0, 1.0], state="GOING_TO_TARGET", target=BALLOON)

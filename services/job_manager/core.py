@@ -175,6 +175,8 @@ class JobManager:
         self._stopping = False
         self._climbed = False
         self._yield: tuple[str, tuple[float, float, float]] | None = None
+        self._giving_way_to: str | None = None  # the partner this engaged UAV brakes for (team.py)
+        self._giving_way_height = 0.0
         self._sent_target: np.ndarray | None = None
         self._sent_prediction: PredictedPath | None = None  # of a mover, with _sent_at
         self._sent_at = 0
@@ -354,7 +356,8 @@ class JobManager:
         target, reason = self._next_state(now_ns, position, velocity, airborne, services_ready, stamp)
         if target is not self.state:
             self._enter(target, now_ns, reason, position)
-        decision = self._yielding(now_ns, position) or self._decision_for(now_ns, position)
+        decision = (self._yielding(now_ns, position) or self._giving_way(position, velocity)
+                    or self._decision_for(now_ns, position))
         decision = self._within_positioning(decision, position)
         if decision == self._decision:
             return None
@@ -748,6 +751,25 @@ class JobManager:
         # for its whole braking distance (4.7 m/s: 8.7 m at the sweeping profile's, 4.3 m at the attack's)
         return MissionDecision("goto", height=self._yield[1][2], spacing=p.scan_spacing, target=self._yield[1],
                                profile="attack")
+
+    def _giving_way(self, position: np.ndarray, velocity: np.ndarray) -> MissionDecision | None:
+        """Giving way (team.py): an engaged UAV brakes to a hover rather than fly into a partner."""
+        p, before = self.params, self._giving_way_to
+        partner = None if self.team is None or self.state not in MISSION_STATES else self.team.give_way_to(
+            position, velocity, self.state.value, p.safety_distance, p.vertical_separation, p.separation_hysteresis,
+            before)
+        self._giving_way_to = None if partner is None else partner.name
+        if partner is None:
+            if before is not None:
+                self.notes.append(f"{before} is clear: engaging again")
+                self._sent_target = None  # re-issue the mission command
+            return None
+        if before != partner.name:
+            self.notes.append(f"giving way to {partner.name} ({np.linalg.norm(partner.position - position):.1f} m "
+                              f"apart, {partner.position[2] - position[2]:+.1f} m above): braking to a hover")
+            self._giving_way_height = float(position[2])
+        # the attack profile's braking, as a yield's; one decision for the whole hold, not one per tick
+        return MissionDecision("stop", height=self._giving_way_height, spacing=p.scan_spacing, profile="attack")
 
     def _decision_for(self, now: int, position: np.ndarray) -> MissionDecision:
         p, state = self.params, self.state

@@ -31,6 +31,13 @@ Rules (docs/architecture.md, "Mission"):
   `vertical_separation` above the partner, until the distance exceeds safety_distance +
   `separation_hysteresis`. Priority: a UAV engaging a target (GOING_TO_TARGET, DESTROYING) over
   one that is not, then the team order.
+- **Giving way**: the UAV with priority does not yield, but it must not fly into the one yielding
+  to it, which brakes from its own speed before it can climb. An engaged UAV moving towards a
+  partner closer than `safety_distance` (faster than GIVE_WAY_SPEED) that is less than
+  `vertical_separation` - GIVE_WAY_SLACK above or below it brakes to a hover, until the partner is
+  that far above or below or beyond safety_distance + `separation_hysteresis`. On unmapped's
+  first 20 s the interceptor of the circler, aiming ahead along its circle, flew into the partner
+  yielding to it on every seed at 3 m/s.
 """
 from __future__ import annotations
 
@@ -40,6 +47,8 @@ import numpy as np
 
 NS = 1_000_000_000
 ENGAGED_STATES = ("GOING_TO_TARGET", "DESTROYING")
+GIVE_WAY_SPEED = 0.5  # m/s towards a partner: slower, a hovering UAV is not flying into it
+GIVE_WAY_SLACK = 0.5  # m: the yielding partner climbs to vertical_separation; this much short of it is clear
 
 
 @dataclass
@@ -185,6 +194,28 @@ class Team:
                     continue  # I keep it; the partner yields by the same rule
             keep.append(p.target)
         return np.array(keep, dtype=np.float64).reshape(-1, 3)
+
+    def give_way_to(self, my_position: np.ndarray, my_velocity: np.ndarray, my_state: str, safety_distance: float,
+                    vertical_separation: float, hysteresis: float, giving_way_to: str | None) -> Partner | None:
+        """The partner an engaged UAV must brake for now (None: no one); see the module docstring."""
+        if my_state not in ENGAGED_STATES:
+            return None
+        best, best_distance = None, np.inf
+        for p in self.partners.values():
+            if p.fallen_reason or not p.airborne or p.position is None:
+                continue
+            offset = p.position - my_position
+            distance = float(np.linalg.norm(offset))
+            if abs(offset[2]) >= vertical_separation - GIVE_WAY_SLACK:
+                continue
+            if p.name == giving_way_to:
+                if distance >= safety_distance + hysteresis:
+                    continue
+            elif distance >= safety_distance or float(my_velocity @ offset) <= GIVE_WAY_SPEED * distance:
+                continue
+            if distance < best_distance:
+                best, best_distance = p, distance
+        return best
 
     def yield_to(self, my_position: np.ndarray, my_state: str, safety_distance: float,
                  hysteresis: float, yielding_to: str | None) -> Partner | None:
