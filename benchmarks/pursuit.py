@@ -62,7 +62,7 @@ def prediction(path: DronePath, t: float, latency: float, noise: float, rng: np.
     p, v = path.state(seen)
     _, v_before = path.state(seen - 0.1)
     mean = np.concatenate([p + rng.normal(0.0, noise, 3), v, (v - v_before) / 0.1])
-    history = TurnHistory(tracker.turn_window, TURN_MIN_SPEED, tracker.max_turn_rate if tracker.max_turn_rate > 0 else 0.0)
+    history = TurnHistory(tracker.turn_window, TURN_MIN_SPEED, tracker.max_turn_rate)
     for earlier in seen - np.arange(round(tracker.turn_window / 0.1), -1, -1) * 0.1:  # the scans of the window
         p_then, v_then = path.state(earlier)
         history.add(earlier, p_then + rng.normal(0.0, noise, 3), v_then)
