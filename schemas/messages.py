@@ -311,6 +311,7 @@ class UavStatus(msgspec.Struct, kw_only=True):
     flying_normally: bool
     airborne: bool
     position: Vec3
+    velocity: Vec3 = (0.0, 0.0, 0.0)  # m/s, from the odometry, as `position`: partners predict separation with it
     working_area: list[Point2] = []
     target: Vec3 | None = None
     fallen_partners: list[str] = []  # partners this UAV's job manager counts as fallen (revenge mode)

@@ -7,13 +7,14 @@ import pytest
 
 from services.geometry import polygon_area
 from services.job_manager.core import State
+from services.job_manager.team import breach_time
 from tests.test_job_manager_machine import BALLOON, HOME, Rig, s
 
 
 def flying(rig: Rig, name: str, t: float, position=(70.0, 30.0, 5.0), state: str = "GOING_AROUND", target=None,
-           normally: bool = True) -> None:
+           normally: bool = True, velocity=(0.0, 0.0, 0.0)) -> None:
     rig.jm.partner_status(name, s(t), flying_normally=normally, airborne=True, position=position, state=state,
-                          target=target)
+                          target=target, velocity=velocity)
 
 
 def x_range(area: np.ndarray) -> tuple[float, float]:
@@ -180,6 +181,77 @@ def test_an_engaged_uav_brakes_rather_than_fly_into_the_partner_yielding_to_it()
     flying(away, "uav2", 1.25, position=HOME + toward)
     away.tick(1.3, detections=[BALLOON], velocity=-0.5 * toward)
     assert away.last.action == "approach"
+
+
+def test_breach_time_is_when_a_partner_first_comes_within_the_radius():
+    assert breach_time(np.array([20.0, 0, 0]), np.array([-5.0, 0, 0]), 5.0) == pytest.approx(3.0)
+    assert breach_time(np.array([3.0, 0, 0]), np.array([5.0, 0, 0]), 5.0) == 0.0  # inside already
+    assert breach_time(np.array([20.0, 0, 0]), np.array([5.0, 0, 0]), 5.0) == np.inf  # going away
+    assert breach_time(np.array([20.0, 6.0, 0]), np.array([-5.0, 0, 0]), 5.0) == np.inf  # passes 6 m aside
+    assert breach_time(np.array([20.0, 0, 0]), np.zeros(3), 5.0) == np.inf
+    # passing 3 m aside: the 5 m circle is entered 4 m before the closest point
+    assert breach_time(np.array([20.0, 3.0, 0]), np.array([-4.0, 0, 0]), 5.0) == pytest.approx(4.0)
+
+
+def test_a_head_on_meeting_is_resolved_before_the_safety_distance_is_broken():
+    """street seed 4: uav2 sweeping south at 4.5 m/s and uav1 intercepting north at 3 m/s met
+    head-on; both acted only at 5 m, with about 6 m of braking between them."""
+    south, north = np.array([0.0, -4.5, 0.0]), np.array([0.0, 3.0, 0.0])
+    far = Rig(uav="uav2").airborne()  # sweeping, uav1 engaged 25 m ahead: (25 - 5) / 7.5 = 2.7 s to the breach
+    far.tick(1.1, velocity=south)
+    flying(far, "uav1", 1.1, position=HOME + [0.0, -25.0, 0.0], state="GOING_TO_TARGET", velocity=north)
+    far.tick(1.2)
+    assert far.last.action == "goto" and far.last.target == (HOME[0], HOME[1], HOME[2] + 3.0)
+    assert "yielding to uav1 (24.7 m apart)" in " ".join(far.jm.notes)  # carried on 0.1 s at 3 m/s
+    early = Rig(uav="uav2").airborne()  # 30 m: 3.3 s to the breach, later than the 3 s lookahead
+    early.tick(1.1, velocity=south)
+    flying(early, "uav1", 1.2, position=HOME + [0.0, -30.0, 0.0], state="GOING_TO_TARGET", velocity=north)
+    early.tick(1.2)
+    assert early.last.action == "scan"
+    aside = Rig(uav="uav2").airborne()  # the same speeds on lines 6 m apart: no conflict
+    aside.tick(1.1, velocity=south)
+    flying(aside, "uav1", 1.2, position=HOME + [6.0, -15.0, 0.0], state="GOING_TO_TARGET", velocity=north)
+    aside.tick(1.2)
+    assert aside.last.action == "scan"
+
+
+def test_an_engaged_uav_gives_way_to_a_partner_it_will_meet_and_a_yield_lasts_until_it_has_passed():
+    rig = Rig().engaged()  # uav1 on BALLOON, at HOME
+    toward = (BALLOON - HOME) * [1.0, 1.0, 0.0]
+    toward = toward / np.linalg.norm(toward)
+    flying(rig, "uav2", 1.25, position=HOME + 15.0 * toward, velocity=-4.5 * toward)  # sweeping at it
+    rig.tick(1.3, detections=[BALLOON], velocity=3.0 * toward)  # (15 - 0.2·4.5 - 5) / 7.5 = 1.2 s
+    assert rig.last.action == "stop" and "giving way to uav2" in rig.jm.notes[-1]
+    # the partner (yielding) hovers 1 m above the way: still held; 2.6 m above: clear
+    flying(rig, "uav2", 1.35, position=HOME + 6.0 * toward + [0.0, 0.0, 1.0])
+    rig.tick(1.4, detections=[BALLOON], velocity=1.0 * toward)
+    assert rig.last.action == "stop"
+    flying(rig, "uav2", 1.45, position=HOME + 6.0 * toward + [0.0, 0.0, 2.6])
+    rig.tick(1.5, detections=[BALLOON])
+    assert rig.last.action == "approach"
+    # the yielding side: held (above the way) while the engaged partner passes below, released once it is past
+    low = Rig(uav="uav2").airborne()
+    low.tick(1.1)
+    flying(low, "uav1", 1.1, position=HOME + [0.0, -12.0, 0.0], state="GOING_TO_TARGET", velocity=(0.0, 3.0, 0.0))
+    low.tick(1.2)
+    hold = low.last
+    assert hold.action == "goto"
+    for t, y in ((2.0, -6.0), (3.0, -3.0), (4.0, 0.0), (5.0, 3.0), (6.0, 6.0)):
+        flying(low, "uav1", t, position=HOME + [0.0, y, 0.0], state="GOING_TO_TARGET", velocity=(0.0, 3.0, 0.0))
+        low.tick(t, position=HOME + [0.0, 0.0, 3.0])
+        assert low.last == hold, f"released at t = {t}"
+    flying(low, "uav1", 7.0, position=HOME + [0.0, 10.0, 0.0], state="GOING_TO_TARGET", velocity=(0.0, 3.0, 0.0))
+    low.tick(7.0, position=HOME + [0.0, 0.0, 3.0])
+    assert low.last.action == "scan"
+
+
+def test_a_silent_partner_is_carried_on_at_its_velocity():
+    rig = Rig(uav="uav2").airborne()
+    rig.tick(1.1)
+    # heard 1 s ago 40 m away closing at 10 m/s: 30 m now, (30 - 5) / 10 = 2.5 s to the breach
+    flying(rig, "uav1", 0.2, position=HOME + [40.0, 0.0, 0.0], velocity=(-10.0, 0.0, 0.0))
+    rig.tick(1.2)
+    assert rig.last.action == "goto" and "yielding to uav1 (30.0 m apart)" in " ".join(rig.jm.notes)
 
 
 def test_an_engaged_uav_drops_its_target_when_a_closer_partner_claims_it():

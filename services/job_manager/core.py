@@ -45,7 +45,7 @@ from services.job_manager.areas import grown_part, split_area
 from services.job_manager.params import JobManagerParams
 from services.job_manager.sightings import ConfirmedTracks, Sightings
 from services.job_manager.targets import NS, ForbiddenZones, TargetFilter, usable_detections
-from services.job_manager.team import Team
+from services.job_manager.team import Mover, SeparationRule, Team
 from services.tracker.view import PredictedPath
 
 
@@ -299,10 +299,10 @@ class JobManager:
             self._blocked = None
 
     def partner_status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool = True,
-                       position=(0.0, 0.0, 0.0), state: str = "", target=None) -> None:
+                       position=(0.0, 0.0, 0.0), state: str = "", target=None, velocity=(0.0, 0.0, 0.0)) -> None:
         if self.team is not None and name != self.uav:
             self.team.status(name, stamp, flying_normally=flying_normally, airborne=airborne,
-                             position=position, state=state, target=target)
+                             position=position, state=state, target=target, velocity=velocity)
 
     def partner_token(self, name: str, alive: bool, stamp: int) -> None:
         if self.team is not None and name != self.uav:
@@ -356,7 +356,7 @@ class JobManager:
         target, reason = self._next_state(now_ns, position, velocity, airborne, services_ready, stamp)
         if target is not self.state:
             self._enter(target, now_ns, reason, position)
-        decision = (self._yielding(now_ns, position) or self._giving_way(position, velocity)
+        decision = (self._yielding(now_ns, position, velocity) or self._giving_way(now_ns, position, velocity)
                     or self._decision_for(now_ns, position))
         decision = self._within_positioning(decision, position)
         if decision == self._decision:
@@ -727,14 +727,14 @@ class JobManager:
         return ""
 
     # -------------------------------------------------------------- decisions
-    def _yielding(self, now: int, position: np.ndarray) -> MissionDecision | None:
+    def _yielding(self, now: int, position: np.ndarray, velocity: np.ndarray) -> MissionDecision | None:
         """Separation rule (team.py): hold position and climb above the partner while too close."""
         p = self.params
         if self.team is None or self.state not in MISSION_STATES:
             self._yield = None
             return None
         current = self._yield[0] if self._yield else None
-        partner = self.team.yield_to(position, self.state.value, p.safety_distance, p.separation_hysteresis, current)
+        partner = self.team.yield_to(now, Mover(position, velocity, self.state.value), self._separation, current)
         if partner is None:
             if self._yield is not None:
                 self.notes.append(f"separation from {current} restored")
@@ -746,18 +746,18 @@ class JobManager:
                     float(max(position[2], partner.position[2] + p.vertical_separation)))
             self._yield = (partner.name, spot)
             self.notes.append(f"yielding to {partner.name} "
-                              f"({np.linalg.norm(partner.position - position):.1f} m apart): holding at {self._fmt(spot)}")
+                              f"({np.linalg.norm(self.team.position_now(partner, now) - position):.1f} m apart): "
+                              f"holding at {self._fmt(spot)}")
         # with the attack profile's acceleration: the vehicle's momentum carries it on towards the partner
         # for its whole braking distance (4.7 m/s: 8.7 m at the sweeping profile's, 4.3 m at the attack's)
         return MissionDecision("goto", height=self._yield[1][2], spacing=p.scan_spacing, target=self._yield[1],
                                profile="attack")
 
-    def _giving_way(self, position: np.ndarray, velocity: np.ndarray) -> MissionDecision | None:
+    def _giving_way(self, now: int, position: np.ndarray, velocity: np.ndarray) -> MissionDecision | None:
         """Giving way (team.py): an engaged UAV brakes to a hover rather than fly into a partner."""
-        p, before = self.params, self._giving_way_to
+        before = self._giving_way_to
         partner = None if self.team is None or self.state not in MISSION_STATES else self.team.give_way_to(
-            position, velocity, self.state.value, p.safety_distance, p.vertical_separation, p.separation_hysteresis,
-            before)
+            now, Mover(position, velocity, self.state.value), self._separation, before)
         self._giving_way_to = None if partner is None else partner.name
         if partner is None:
             if before is not None:
@@ -765,11 +765,19 @@ class JobManager:
                 self._sent_target = None  # re-issue the mission command
             return None
         if before != partner.name:
-            self.notes.append(f"giving way to {partner.name} ({np.linalg.norm(partner.position - position):.1f} m "
-                              f"apart, {partner.position[2] - position[2]:+.1f} m above): braking to a hover")
+            offset = self.team.position_now(partner, now) - position
+            self.notes.append(f"giving way to {partner.name} ({np.linalg.norm(offset):.1f} m apart, "
+                              f"{offset[2]:+.1f} m above): braking to a hover")
             self._giving_way_height = float(position[2])
         # the attack profile's braking, as a yield's; one decision for the whole hold, not one per tick
-        return MissionDecision("stop", height=self._giving_way_height, spacing=p.scan_spacing, profile="attack")
+        return MissionDecision("stop", height=self._giving_way_height, spacing=self.params.scan_spacing,
+                               profile="attack")
+
+    @property
+    def _separation(self) -> SeparationRule:
+        p = self.params
+        return SeparationRule(p.safety_distance, p.vertical_separation, p.separation_hysteresis,
+                              p.separation_lookahead)
 
     def _decision_for(self, now: int, position: np.ndarray) -> MissionDecision:
         p, state = self.params, self.state

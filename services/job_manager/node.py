@@ -133,7 +133,8 @@ class JobManagerNode(Node):
     def on_partner_status(self, msg: UavStatus, key: str) -> None:
         if msg.uav != self.uav:
             self.core.partner_status(msg.uav, msg.header.stamp, flying_normally=msg.flying_normally,
-                                     airborne=msg.airborne, position=msg.position, state=msg.state, target=msg.target)
+                                     airborne=msg.airborne, position=msg.position, state=msg.state, target=msg.target,
+                                     velocity=msg.velocity)
 
     def on_alive(self, key: str, alive: bool) -> None:
         parsed = keys.parse_alive(key)
@@ -229,6 +230,7 @@ class JobManagerNode(Node):
             flying_normally=self.core.flying_normally,
             airborne=self.position is not None and self.core.is_airborne(position[2]),
             position=(float(position[0]), float(position[1]), float(position[2])),
+            velocity=(float(self.velocity[0]), float(self.velocity[1]), float(self.velocity[2])),
             working_area=[] if area is None else [(float(x), float(y)) for x, y in area],
             target=self.core.target,
             fallen_partners=[] if self.core.team is None else self.core.team.fallen,

@@ -52,6 +52,10 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     safety_distance: float = 5.0  # m: closer than this to a partner, the lower-priority UAV yields
     vertical_separation: float = 3.0  # m above the partner a yielding UAV climbs to
     separation_hysteresis: float = 2.0  # m beyond safety_distance before a yield ends
+    # s: a partner predicted (both at their current velocities) to come within safety_distance this
+    # soon is treated as one already there. Two UAVs closing at 10 m/s (two sweeps head-on) brake from
+    # 5 m/s in 1.7 s (attack profile) and a yielding one climbs clear in about 1.5 s more
+    separation_lookahead: float = 3.0
     sweeping_speed: float = 5.0  # m/s, constraint profile "sweeping" (scan, approach, climbs)
     sweeping_acceleration: float = 1.5  # m/s²
     attack_speed: float = 8.3  # m/s, constraint profile "attack" (attack, intercept)

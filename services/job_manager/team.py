@@ -26,11 +26,17 @@ Rules (docs/architecture.md, "Mission"):
 - **One chaser per target**: a partner's claimed target (its status `target`) filters out my
   detections within `claim_radius` of it — unless I claim the same target and am closer to it
   (ties: the UAV earlier in the team order keeps it).
-- **Separation**: when an active, airborne partner is closer than `safety_distance`, the
+- **Separation**: when an active, airborne partner is closer than `safety_distance`, or will be
+  within `separation_lookahead` seconds at both UAVs' current velocities (`breach_time`), the
   lower-priority UAV yields: it holds its horizontal position and climbs to
   `vertical_separation` above the partner, until the distance exceeds safety_distance +
-  `separation_hysteresis`. Priority: a UAV engaging a target (GOING_TO_TARGET, DESTROYING) over
-  one that is not, then the team order.
+  `separation_hysteresis` and is not predicted to fall below it within the lookahead. Priority:
+  a UAV engaging a target (GOING_TO_TARGET, DESTROYING) over one that is not, then the team
+  order. A partner's position is its last status's, carried on at its velocity to now (at most
+  for `lost_link_time`: beyond that it is unaccounted, a no-fly column). Reacting only inside
+  the safety distance was too late: on street (seed 4) a sweeping UAV at 4.5 m/s and an
+  interceptor at 3 m/s met head-on; two braking distances at those speeds plus a tick are
+  about 6 m.
 - **Giving way**: the UAV with priority does not yield, but it must not fly into the one yielding
   to it, which brakes from its own speed before it can climb. An engaged UAV moving towards a
   partner closer than `safety_distance` (faster than GIVE_WAY_SPEED) that is less than
@@ -65,6 +71,7 @@ class Partner:
     target: np.ndarray | None = None
     fallen_reason: str = ""  # "" while active
     landed_seen: bool = False  # its last status said it is on the ground
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))  # its last status's, m/s
 
 
 @dataclass(frozen=True)
@@ -88,7 +95,7 @@ class Team:
 
     # ---------------------------------------------------------------- inputs
     def status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool, position, state: str,
-               target) -> None:
+               target, velocity=(0.0, 0.0, 0.0)) -> None:
         p = self.partners.get(name)
         if p is None:
             return
@@ -98,6 +105,7 @@ class Team:
         p.flying_normally = flying_normally
         p.was_flying |= flying_normally
         p.position = np.asarray(position, dtype=np.float64).reshape(3)
+        p.velocity = np.asarray(velocity, dtype=np.float64).reshape(3)
         p.airborne = airborne
         p.landed_seen = not airborne
         p.state = state
@@ -195,46 +203,85 @@ class Team:
             keep.append(p.target)
         return np.array(keep, dtype=np.float64).reshape(-1, 3)
 
-    def give_way_to(self, my_position: np.ndarray, my_velocity: np.ndarray, my_state: str, safety_distance: float,
-                    vertical_separation: float, hysteresis: float, giving_way_to: str | None) -> Partner | None:
-        """The partner an engaged UAV must brake for now (None: no one); see the module docstring."""
-        if my_state not in ENGAGED_STATES:
-            return None
-        best, best_distance = None, np.inf
+    def position_now(self, p: Partner, now: int) -> np.ndarray:
+        """A partner's last reported position carried on at its velocity to `now` (at most for
+        lost_link_time: a partner silent longer is unaccounted)."""
+        age = min(max(now - (p.heard if p.heard is not None else now), 0), self.lost_link_ns) / NS
+        return p.position + p.velocity * age
+
+    def _near(self, now: int, me: Mover, rule: SeparationRule, radius: float) -> list[tuple[Partner, np.ndarray, float]]:
+        """(partner, its offset from me now, distance) of every active airborne partner closer than
+        `radius` now or predicted to be within rule.lookahead."""
+        found = []
         for p in self.partners.values():
             if p.fallen_reason or not p.airborne or p.position is None:
                 continue
-            offset = p.position - my_position
+            offset = self.position_now(p, now) - me.position
             distance = float(np.linalg.norm(offset))
-            if abs(offset[2]) >= vertical_separation - GIVE_WAY_SLACK:
+            if distance < radius or breach_time(offset, p.velocity - me.velocity, radius) <= rule.lookahead:
+                found.append((p, offset, distance))
+        return found
+
+    def give_way_to(self, now: int, me: Mover, rule: SeparationRule, giving_way_to: str | None) -> Partner | None:
+        """The partner an engaged UAV must brake for now (None: no one); see the module docstring."""
+        if me.state not in ENGAGED_STATES:
+            return None
+        best, best_distance = None, np.inf
+        for p, offset, distance in self._near(now, me, rule, rule.safety_distance + rule.hysteresis):
+            if abs(offset[2]) >= rule.vertical_separation - GIVE_WAY_SLACK:
                 continue
-            if p.name == giving_way_to:
-                if distance >= safety_distance + hysteresis:
+            if p.name != giving_way_to:
+                # a new hold: only while flying towards it, inside the safety distance now or ahead
+                ahead = breach_time(offset, p.velocity - me.velocity, rule.safety_distance) <= rule.lookahead
+                if not ahead or float(me.velocity @ offset) <= GIVE_WAY_SPEED * distance:
                     continue
-            elif distance >= safety_distance or float(my_velocity @ offset) <= GIVE_WAY_SPEED * distance:
-                continue
             if distance < best_distance:
                 best, best_distance = p, distance
         return best
 
-    def yield_to(self, my_position: np.ndarray, my_state: str, safety_distance: float,
-                 hysteresis: float, yielding_to: str | None) -> Partner | None:
+    def yield_to(self, now: int, me: Mover, rule: SeparationRule, yielding_to: str | None) -> Partner | None:
         """The partner this UAV must give way to now (None: no one)."""
         order = self.members.index(self.me)
-        engaged = my_state in ENGAGED_STATES
-        best = None
-        for p in self.partners.values():
-            if p.fallen_reason or not p.airborne or p.position is None:
-                continue
-            limit = safety_distance + (hysteresis if p.name == yielding_to else 0.0)
-            if np.linalg.norm(p.position - my_position) >= limit:
-                continue
+        engaged = me.state in ENGAGED_STATES
+        best, best_distance = None, np.inf
+        for p, offset, distance in self._near(now, me, rule, rule.safety_distance + rule.hysteresis):
+            if p.name != yielding_to:
+                if breach_time(offset, p.velocity - me.velocity, rule.safety_distance) > rule.lookahead:
+                    continue
             theirs = p.state in ENGAGED_STATES
-            if theirs != engaged:
-                outranked = theirs
-            else:
-                outranked = self.members.index(p.name) < order
-            if outranked and (best is None or np.linalg.norm(p.position - my_position)
-                              < np.linalg.norm(best.position - my_position)):
-                best = p
+            outranked = theirs if theirs != engaged else self.members.index(p.name) < order
+            if outranked and distance < best_distance:
+                best, best_distance = p, distance
         return best
+
+
+@dataclass(frozen=True)
+class Mover:
+    """This UAV as the separation rules see it."""
+    position: np.ndarray
+    velocity: np.ndarray
+    state: str
+
+
+@dataclass(frozen=True)
+class SeparationRule:
+    safety_distance: float  # m
+    vertical_separation: float  # m a yielding UAV climbs above its partner
+    hysteresis: float  # m beyond safety_distance before a yield or a hold ends
+    lookahead: float  # s: a predicted breach this soon counts as one now
+
+
+def breach_time(offset: np.ndarray, relative_velocity: np.ndarray, radius: float) -> float:
+    """Seconds until a partner at `offset` moving at `relative_velocity` (both relative to this
+    UAV, constant) first comes closer than `radius`: 0 when it already is, inf when it never will."""
+    gap = float(offset @ offset) - radius * radius
+    if gap < 0.0:
+        return 0.0
+    closing = float(offset @ relative_velocity)
+    speed2 = float(relative_velocity @ relative_velocity)
+    if closing >= 0.0 or speed2 == 0.0:
+        return np.inf
+    discriminant = closing * closing - speed2 * gap
+    if discriminant < 0.0:
+        return np.inf
+    return (-closing - np.sqrt(discriminant)) / speed2
