@@ -28,7 +28,10 @@ from schemas.arrays import from_numpy  # noqa: E402
 from schemas.messages import ConstraintProfile, Header, TrajectoryReference  # noqa: E402
 from services.job_manager.params import JobManagerParams  # noqa: E402
 from services.planner import pursuit as pursuit_law  # noqa: E402
-from services.planner.commands import PlannerParams, start_state  # noqa: E402
+from services.planner.avoid import Airspace, Clearances, Surroundings  # noqa: E402
+from services.planner.commands import PlannerParams, pursuit_clear, start_state  # noqa: E402
+from services.simulator import contact  # noqa: E402
+from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.paths import DronePath  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 from services.simulator.specs import DroneSpec  # noqa: E402
@@ -51,6 +54,27 @@ class Outcome:
     captured_after: float | None  # s; None: not within the limit
     closest: float  # m
     relative_at_closest: float  # m/s
+    clearance: float = np.inf  # m: the UAV body's closest approach to a static obstacle (--obstacles)
+    nearest: str = ""  # ... to which
+
+
+@dataclass(frozen=True)
+class World:
+    """The scenario's obstacles as the planner knows them (its a-priori map) and as the body meets them."""
+    env: Surroundings
+    solids: contact.Shapes
+    body: float  # m, the UAV's radius
+
+
+def world(scenario) -> World:
+    from planner import apriori_space  # benchmarks/planner.py: the a-priori map as a mapper pins it
+    params = PlannerParams()
+    clearances = Clearances(0.4, params.obstacle_margin, params.tracking_allowance)
+    arena = np.asarray(scenario.arena)
+    airspace = Airspace(scenario.ground_z, scenario.ground_z + max(scenario.min_height, 1.0),
+                        scenario.ground_z + scenario.max_height, tuple(arena.min(axis=0)), tuple(arena.max(axis=0)))
+    solids = contact.shapes(Simulation(scenario, ["uav1"], 1).obstacles())
+    return World(Surroundings(apriori_space(scenario, clearances), clearances, airspace), solids, clearances.body)
 
 
 def prediction(path: DronePath, t: float, latency: float, noise: float, rng: np.random.Generator,
@@ -71,7 +95,20 @@ def prediction(path: DronePath, t: float, latency: float, noise: float, rng: np.
     return PredictedPath(mean[:3], v, points, 0.25).rebased(latency, 8, 0.25)
 
 
-def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args, rng) -> Outcome:
+def start_point(target: np.ndarray, scenario, rng, obstacles: World | None) -> np.ndarray:
+    """START_DISTANCE from the drone on a random bearing, START_HEIGHT up, and clear of every obstacle."""
+    for _ in range(100):
+        bearing = rng.uniform(0.0, 2.0 * np.pi)
+        point = np.array([target[0] + START_DISTANCE * np.cos(bearing), target[1] + START_DISTANCE * np.sin(bearing),
+                          scenario.ground_z + START_HEIGHT])
+        if obstacles is None or len(obstacles.solids) == 0 or \
+                contact.signed_distance(point, obstacles.solids).min() > obstacles.env.clearances.plan:
+            return point
+    raise ValueError("no start clear of the obstacles 12 m from the drone")
+
+
+def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args, rng,
+           obstacles: World | None = None) -> Outcome:
     path = DronePath(spec, scenario, seed, index)
     jm, planner = JobManagerParams(), PlannerParams()
     tracker = TrackerParams() if args.max_turn_rate is None else TrackerParams(max_turn_rate=args.max_turn_rate)
@@ -79,21 +116,24 @@ def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args,
     limits = np.array([profile.max_speed, profile.max_acceleration, profile.max_heading_rate, profile.max_vertical_speed])
     fleet = Fleet(scenario, ["uav1"], seed)
     target, _ = path.state(start)
-    bearing = rng.uniform(0.0, 2.0 * np.pi)
-    fleet.position[0] = [target[0] + START_DISTANCE * np.cos(bearing), target[1] + START_DISTANCE * np.sin(bearing),
-                         scenario.ground_z + START_HEIGHT]
+    fleet.position[0] = start_point(target, scenario, rng, obstacles)
     fleet.airborne[0], fleet.hold[0] = True, fleet.position[0]
     sent, next_plan, events, t = None, start, [], start
-    closest = (np.inf, 0.0)
+    closest, clearance, nearest = (np.inf, 0.0), np.inf, ""
     while t < start + args.limit:
         if t >= next_plan - 1e-9:
             predicted = prediction(path, t, args.latency, args.noise, rng, tracker)
             p, v = start_state(sent, int(round(t * NS)), fleet.position[0].copy(), fleet.velocity[0].copy(),
                                planner.rejoin_distance)
-            plan = pursuit_law.pursuit(p, predicted.position, predicted.velocity, profile=profile, dt=planner.dt,
-                                       horizon=planner.pursuit_horizon, predicted=predicted, start_velocity=v,
-                                       start_heading=float(fleet.heading[0]),
-                                       floor=scenario.ground_z + planner.pursuit_floor)
+            chase = dict(profile=profile, dt=planner.dt, horizon=planner.pursuit_horizon, predicted=predicted,
+                         start_velocity=v, start_heading=float(fleet.heading[0]),
+                         floor=scenario.ground_z + planner.pursuit_floor)
+            if obstacles is None:
+                plan = pursuit_law.pursuit(p, predicted.position, predicted.velocity, **chase)
+            else:
+                found = pursuit_clear(obstacles.env, p, predicted.position, predicted.velocity,
+                                      dict(chase, trust=np.inf))
+                plan = None if found is None else found.path
             if plan is not None:
                 start_ns = int(round(t * NS))
                 sent = TrajectoryReference(header=Header(stamp=start_ns), command_id=0, start=start_ns, dt=planner.dt,
@@ -107,9 +147,13 @@ def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args,
         relative = float(np.linalg.norm(fleet.velocity[0] - target_velocity))
         if gap < closest[0]:
             closest = (gap, relative)
+        if obstacles is not None and len(obstacles.solids):
+            distances = contact.signed_distance(fleet.position[0], obstacles.solids) - obstacles.body
+            if distances.min() < clearance:
+                clearance, nearest = float(distances.min()), obstacles.solids.names[int(distances.argmin())]
         if gap <= scenario.capture_radius and relative <= scenario.capture_speed:
-            return Outcome(seed, start, t - start, gap, relative)
-    return Outcome(seed, start, None, *closest)
+            return Outcome(seed, start, t - start, gap, relative, clearance, nearest)
+    return Outcome(seed, start, None, *closest, clearance, nearest)
 
 
 def main() -> int:
@@ -128,6 +172,10 @@ def main() -> int:
     parser.add_argument("--lead-max", type=float, help=f"override pursuit.LEAD_MAX ({pursuit_law.LEAD_MAX} s)")
     parser.add_argument("--max-turn-rate", type=float,
                         help="override the tracker's max_turn_rate (1.5 rad/s; 0: Singer's straight-on prediction)")
+    parser.add_argument("--obstacles", action="store_true",
+                        help="plan as the planner does near obstacles (commands.pursuit_clear on the scenario's "
+                             "a-priori map: predicted points moved to free space, the speed barrier, routes round "
+                             "obstacles) and report each pursuit's clearance (the body's closest approach to one)")
     parser.add_argument("--terminal", type=float, help=f"override pursuit.TERMINAL_GAIN ({pursuit_law.TERMINAL_GAIN} 1/s)")
     args = parser.parse_args()
     if args.braking is not None:
@@ -149,20 +197,29 @@ def main() -> int:
               file=sys.stderr)
         return 2
     index = names.index(args.drone)
+    obstacles = world(scenario) if args.obstacles else None
     outcomes = []
     for seed in args.seeds:
-        rng = np.random.default_rng(seed)
         for k in range(args.starts):
-            outcome = pursue(scenario.drones[index], scenario, seed, index, 15.0 + 10.0 * k, args, rng)
+            rng = np.random.default_rng([seed, k])  # each pursuit its own draws: one that changes leaves the rest
+            try:
+                outcome = pursue(scenario.drones[index], scenario, seed, index, 15.0 + 10.0 * k, args, rng, obstacles)
+            except ValueError as error:
+                print(f"pursuit.py: {error}", file=sys.stderr)
+                return 2
             outcomes.append(outcome)
             result = (f"captured after {outcome.captured_after:5.1f} s" if outcome.captured_after is not None
                       else f"not captured in {args.limit:g} s")
+            clear = "" if obstacles is None else f"; clearance {outcome.clearance:.2f} m to {outcome.nearest}"
             print(f"seed {seed} start t={outcome.start:5.1f} s: {result}; closest {outcome.closest:.2f} m "
-                  f"at {outcome.relative_at_closest:.1f} m/s relative", flush=True)
+                  f"at {outcome.relative_at_closest:.1f} m/s relative{clear}", flush=True)
     times = [o.captured_after for o in outcomes if o.captured_after is not None]
     summary = f"{len(times)}/{len(outcomes)} captured within {args.limit:g} s"
     if times:
         summary += f"; median {statistics.median(times):.1f} s, mean {statistics.fmean(times):.1f} s, worst {max(times):.1f} s"
+    if obstacles is not None:
+        summary += (f"; clearance >= {min(o.clearance for o in outcomes):.2f} m, "
+                    f"{sum(o.clearance <= 0.0 for o in outcomes)} pursuits touched an obstacle")
     print(summary)
     return 0
 

@@ -389,7 +389,7 @@ def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleStat
                env: Surroundings | None = None) -> Plan:
     """Pursuit re-plans smoothly from the current state on every new prediction; the merge (wait on
     the predicted path) is the fallback when no blend fits the profile; chasing the position is
-    the last resort. With a map (`_pursuit_clear`) the pursuit aims where the target will be *and*
+    the last resort. With a map (`pursuit_clear`) the pursuit aims where the target will be *and*
     the UAV can fly, and slides along obstacles instead of into them."""
     p, prm, profile, dt = vehicle.position, params, planning_profile(command.profile, params), params.dt
     moving = dict(start_velocity=vehicle.velocity, start_heading=vehicle.heading)
@@ -400,7 +400,7 @@ def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleStat
                  floor=vehicle.ground_z + prm.pursuit_floor, trust=trust, **moving)
     known = env is not None and env.space.known
     if known:
-        plan = _pursuit_clear(env, p, target, velocity, chase)
+        plan = pursuit_clear(env, p, target, velocity, chase)
         path = None if plan is None else plan.path
     else:
         path = core.pursuit(p, target, velocity, **chase)
@@ -420,7 +420,7 @@ def _intercept(command: MissionCommand, target: np.ndarray, vehicle: VehicleStat
                 "no merge onto the target is feasible; chasing its position")
 
 
-def _pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, velocity: np.ndarray,
+def pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, velocity: np.ndarray,
                    chase: dict) -> Plan | None:
     """The pursuit near obstacles: the predicted points the UAV could not be at move to the nearest
     free voxel (free_points), its speed towards an obstacle is held to what it can brake from
