@@ -9,7 +9,7 @@ import pytest
 
 from schemas.messages import ConstraintProfile, Header, MissionCommand, Obstacle
 from services.planner import guard
-from services.planner.avoid import Airspace, Clearances, Surroundings, body_clearance, lead_in
+from services.planner.avoid import Airspace, Clearances, Surroundings, body_clearance, clip, lead_in, speed_barrier
 from services.planner.commands import PlannerParams, VehicleState, plan_command
 from services.planner.freespace import FreeSpace
 from services.planner.search import Band, route
@@ -245,6 +245,52 @@ def test_a_pursuit_towards_an_obstacle_at_speed_slides_within_the_profile():
     accelerations = np.diff(positions, n=2, axis=0) / PARAMS.dt**2
     assert np.linalg.norm(accelerations, axis=1).max() <= ATTACK.max_acceleration * 1.02
     assert body_clearance(env, positions) >= CLEAR.margin
+
+
+def test_a_clipped_path_brakes_along_its_own_bend_not_straight_on_into_a_wall():
+    """street's gap: a chaser's plan bending away from a wall 1.15 m off, clipped for what lay
+    beyond, braked straight ahead from the bend and came within 0.67 m of the wall."""
+    env = env_of(box((47.5, 40.0, 5.0), (1.0, 30.0, 10.0)), box((45.0, 39.0, 5.0), (6.0, 1.0, 10.0)))
+    turn = np.linspace(0.0, np.pi / 2, 14)[:-1]  # 6 m/s round a 5 m quarter circle towards the wall, ...
+    arc = np.stack([40.0 + 5.0 * np.sin(turn), 35.0 - 5.0 * np.cos(turn), np.full(13, 5.0)], axis=1)
+    line = np.stack([np.full(20, 45.0), 35.0 + 0.6 * np.arange(20), np.full(20, 5.0)], axis=1)  # ... then north, 2 m off it
+    positions = np.vstack([arc, line])
+    headings = np.zeros(len(positions))
+    conflict = env.conflict(positions, CLEAR.timed)
+    assert conflict is not None and conflict < len(arc) + 4  # the box across the way, just past the bend
+    clipped, _ = clip(env, (positions, headings), conflict, ATTACK, PARAMS.dt)
+    assert body_clearance(env, clipped) >= CLEAR.margin
+    along = np.min(np.linalg.norm(clipped[:, None, :2] - dense(positions)[None, :, :2], axis=2), axis=1)
+    assert along.max() < 0.05  # on the path as planned
+    assert np.linalg.norm(clipped[-1] - clipped[-2]) < 0.02  # and at rest
+
+
+def dense(positions: np.ndarray, step: float = 0.01) -> np.ndarray:
+    out = [positions[:1]]
+    for a, b in zip(positions[:-1], positions[1:]):
+        n = max(int(np.ceil(np.linalg.norm(b - a) / step)), 1)
+        out.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
+    return np.vstack(out)
+
+
+def test_the_speed_barrier_brakes_for_an_obstacle_ahead_that_is_not_the_nearest():
+    """street: coming past one block's corner (the nearest obstacle, moving away from it) at the
+    next block across the gap, a barrier on the nearest alone let the pursuit fly at it at 6 m/s."""
+    west, east = box((49.0, 30.0, 6.0), (14.0, 8.0, 12.0)), box((68.0, 30.0, 4.0), (12.0, 8.0, 8.0))
+    env = env_of(west, east)
+    position, velocity = np.array([58.4, 36.3, 5.25]), np.array([4.0, -3.0, 0.0])
+    barrier = speed_barrier(env, 1.5, ATTACK.max_speed)
+    limited = barrier(position, velocity)
+    # the first place on the ray within the plan's clearance of the east block: ~2.4 m on
+    ray = position + np.linspace(0.0, 6.0, 601)[:, None] * velocity / 5.0
+    room = 0.01 * int(np.argmax(env.space.clearance(ray) < CLEAR.plan))
+    assert 1.5 < room < 3.5
+    assert np.linalg.norm(limited) <= np.sqrt(2.0 * 1.5 * room) + 0.05
+    assert limited @ velocity > 0.0  # slowed, not turned back
+    # inside the clearance the barrier asks the reference out again
+    near_wall = np.array([61.0, 30.0, 5.0])  # 1.0 m from the east block
+    out = barrier(near_wall, np.array([0.0, -3.0, 0.0]))
+    assert out[0] < -0.5
 
 
 def test_a_pursuit_detour_round_a_wall_is_flown_at_speed_and_keeps_the_margin():
