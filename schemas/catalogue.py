@@ -44,7 +44,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("falconry/<uav>/command", m.MissionCommand, "job_manager", "planner", "on change, repeated every 2 s"),
     Entry("falconry/<uav>/trajectory", m.TrajectoryReference, "planner", "simulator (onboard: flight controller)", "on command, re-sent every 2 s"),
     Entry("falconry/<uav>/plan", m.PlanReport, "planner", "job_manager (a balloon every approach to which is blocked becomes a forbidden zone), launcher (summary)", "per plan and per guard action"),
-    Entry("falconry/<uav>/status", m.UavStatus, "job_manager", "job_manager (partners: revenge mode, target claims, separation), planner (its own: the job manager watchdog), launcher", "5 Hz"),
+    Entry("falconry/<uav>/status", m.UavStatus, "job_manager", "job_manager (partners: revenge mode, target claims, separation predicted from their velocities), planner (its own: the job manager watchdog), launcher", "5 Hz"),
     Entry("falconry/<scope>/ack/<service>", m.StepAck, "every service (lockstep only)", "simulator, same-UAV downstream services", "1/tick"),
     Entry("falconry/<scope>/health/<service>", m.ServiceHealth, "every service (queryable)", "`falconry health`; recorder and viewer (CPU and memory plots)", "on query; recorder and viewer ask every second"),
     Entry("falconry/<scope>/alive/<service>", None, "every service (liveliness token)", "simulator, job_manager, every service (its UAV's upstream)", "while alive"),
