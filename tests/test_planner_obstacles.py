@@ -258,7 +258,7 @@ def test_a_clipped_path_brakes_along_its_own_bend_not_straight_on_into_a_wall():
     headings = np.zeros(len(positions))
     conflict = env.conflict(positions, CLEAR.timed)
     assert conflict is not None and conflict < len(arc) + 4  # the box across the way, just past the bend
-    clipped, _ = clip(env, (positions, headings), conflict, ATTACK, PARAMS.dt)
+    clipped, _ = clip((positions, headings), conflict, ATTACK, PARAMS.dt)
     assert body_clearance(env, clipped) >= CLEAR.margin
     along = np.min(np.linalg.norm(clipped[:, None, :2] - dense(positions)[None, :, :2], axis=2), axis=1)
     assert along.max() < 0.05  # on the path as planned

@@ -253,15 +253,14 @@ def timed(env: Surroundings | None, line: Polyline, profile: ConstraintProfile, 
         conflict = env.conflict(path[0], need, exempt)
     if conflict is None:
         return Cleared(path, line.outcome, line.note, body_clearance(env, path[0], exempt))
-    clipped = clip(env, path, conflict, profile, dt, exempt)
+    clipped = clip(path, conflict, profile, dt)
     where = path[0][min(int(conflict) + 1, len(path[0]) - 1)]
     note = "; ".join(filter(None, [line.note, f"stops short: the reference would pass closer than {need:.1f} m "
                                               f"to an obstacle near {fmt(where)}"]))
     return Cleared(clipped, "clipped", note, body_clearance(env, clipped[0], exempt))
 
 
-def clip(env: Surroundings, path: Path, conflict: float, profile: ConstraintProfile, dt: float,
-         exempt: np.ndarray | None = None) -> Path:
+def clip(path: Path, conflict: float, profile: ConstraintProfile, dt: float) -> Path:
     """The reference flown up to the last sample from which braking along it, at the profile's
     acceleration, comes to rest before `conflict` (a fractional sample index), then that braking.
     Along the path, not straight ahead: the path up to its first conflict is clear, and where it
@@ -296,16 +295,6 @@ def braking_along(positions: np.ndarray, along: np.ndarray, k: int, speed: float
         if norm > 1e-12:
             out[beyond] = positions[-1] + (s[beyond] - along[-1])[:, None] * (end / norm)
     return out
-
-
-def braking(position: np.ndarray, velocity: np.ndarray, accel: float, dt: float) -> np.ndarray:
-    """Samples (every dt, after `position`) of braking to rest along `velocity` at `accel`."""
-    speed = float(np.linalg.norm(velocity))
-    if speed < 1e-9:
-        return np.zeros((0, 3))
-    stop = speed / accel
-    t = np.minimum(np.arange(1, int(np.ceil(stop / dt)) + 1) * dt, stop)
-    return position + (speed * t - 0.5 * accel * t**2)[:, None] * (velocity / speed)
 
 
 def body_clearance(env: Surroundings, positions: np.ndarray, exempt: np.ndarray | None = None) -> float | None:

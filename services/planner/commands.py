@@ -245,7 +245,7 @@ def _clipped(env: Surroundings, path: core.Path, profile, dt: float, note: str |
     conflict = env.conflict(path[0], env.clearances.timed)
     if conflict is None:
         return Plan(path, note, outcome, body_clearance(env, path[0]))
-    path = clip(env, path, conflict, profile, dt)
+    path = clip(path, conflict, profile, dt)
     return Plan(path, "; ".join(filter(None, [note, f"clipped before an obstacle near {fmt(path[0][-1])}"])),
                 "clipped", body_clearance(env, path[0]))
 
