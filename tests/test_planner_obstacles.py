@@ -10,9 +10,10 @@ import pytest
 from schemas.messages import ConstraintProfile, Header, MissionCommand, Obstacle
 from services.planner import guard
 from services.planner.avoid import Airspace, Clearances, Surroundings, body_clearance, clip, lead_in, speed_barrier
-from services.planner.commands import PlannerParams, VehicleState, plan_command
+from services.planner.commands import PlannerParams, VehicleState, meeting_route, plan_command
 from services.planner.freespace import FreeSpace
 from services.planner.search import Band, route
+from services.tracker.view import PredictedPath
 from services.voxels.apriori import obstacle_voxels
 from services.voxels.grid import GridGeometry
 
@@ -339,3 +340,38 @@ def test_the_guardian_replans_on_a_conflict_brakes_when_none_helps_and_retries_w
     assert keeper.wants_replan(3 * 10**9, guard.CLEAR, True)  # the way may be clear: plan again
     keeper.release()
     assert not keeper.held
+
+
+def circling(degrees: float) -> tuple[np.ndarray, np.ndarray]:
+    """A drone circling a mast at (30, 30) anticlockwise, 4 m out at 3.2 m/s, now at its north: the
+    tracker's 2 s of prediction; and a UAV on the same circle at `degrees`."""
+    angle = 0.5 * math.pi + 0.8 * 0.25 * np.arange(1, 9)
+    circle = np.stack([30.0 + 4.0 * np.cos(angle), 30.0 + 4.0 * np.sin(angle), np.full(8, 7.0)], axis=1)
+    start = math.radians(degrees)
+    return circle, np.array([30.0 + 4.0 * math.cos(start), 30.0 + 4.0 * math.sin(start), 7.0])
+
+
+def bearing(point: np.ndarray) -> float:
+    return math.degrees(math.atan2(point[1] - 30.0, point[0] - 30.0))
+
+
+def test_a_pursuit_round_a_mast_goes_to_meet_the_drone_not_after_it():
+    """The drone 130° ahead of the UAV round the mast. A route to where it will be by the time a
+    straight flight would get there (0.9 s) went the same way round and ended behind it: the UAV
+    trailed it round the mast at its own angular speed (benchmarks/pursuit.py: 55 s to a capture).
+    The route's end moves along the prediction to the time the route takes (here as far as the
+    prediction goes), and the UAV goes the other way round to meet it."""
+    from schemas.arrays import from_numpy
+
+    env = env_of(pole(30.0, 30.0, 18.0, radius=0.25))
+    circle, start = circling(-40.0)
+    predicted = PredictedPath(np.array([30.0, 34.0, 7.0]), np.array([-3.2, 0.0, 0.0]), circle, 0.25)
+    way = meeting_route(env, start, predicted, ATTACK, math.inf)
+    assert way is not None and np.linalg.norm(way[-1] - circle[-1]) < 0.5  # where the drone is in 2 s
+    assert bearing(way[1]) < -60.0  # clockwise, towards the drone coming round
+    drone = command("intercept", target=(30.0, 34.0, 7.0), target_velocity=(-3.2, 0.0, 0.0), profile=ATTACK,
+                    target_path=from_numpy(circle), target_path_dt=0.25)
+    plan = plan_command(drone, vehicle(start), PARAMS, env)
+    assert body_clearance(env, plan.path[0]) >= CLEAR.margin
+    turned = bearing(plan.path[0][round(1.0 / PARAMS.dt)]) + 40.0
+    assert turned < -10.0, f"turned {turned:.0f}° round the mast in 1 s: after the drone, not towards it"

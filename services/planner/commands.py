@@ -36,6 +36,12 @@ from services.planner.search import route
 from services.tracker.view import PredictedPath
 from services.runtime.clock import NS
 
+# The route round an obstacle to a moving target (meeting_route):
+ROUTE_SPEED_SHARE = 0.5  # of the profile's speed a route round an obstacle is reckoned to be flown at (it curves)
+MEETING_AIM_MAX_S = 2.0  # s ahead a prediction without a path of its own is aimed along (the tracker's 8 x 0.25 s)
+MEETING_SEARCHES = 3  # routes searched per plan to move the aim to where the UAV meets the target
+MEETING_TOLERANCE_S = 0.25  # a route that takes at most this longer than its aim's time meets the target
+
 
 class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     """Seed 004 Table 3.1 symbols in brackets."""
@@ -425,22 +431,50 @@ def pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, v
     """The pursuit near obstacles: the predicted points the UAV could not be at move to the nearest
     free voxel (free_points), its speed towards an obstacle is held to what it can brake from
     before the clearance (speed_barrier), and when an obstacle stands between the UAV and where
-    the target will be, it first follows a route round it (search.py); what still conflicts is
-    clipped. None: no pursuit fits the profile (the target is too fast)."""
+    the target will be, it first follows a route round it to where it meets the target
+    (meeting_route); what still conflicts is clipped. None: no pursuit fits the profile (the
+    target is too fast)."""
     profile = chase["profile"]
     chase = dict(chase, free=lambda points: free_points(env, points),
                  barrier=speed_barrier(env, 0.5 * profile.max_acceleration, profile.max_speed))
-    outcome, note, way = "clear", None, None
-    ahead = min(float(np.linalg.norm(target - position)) / max(profile.max_speed, 1e-6), max(chase["trust"], 0.0))
-    (there,), _ = chase["predicted"].state([ahead])
-    aim = free_points(env, there[None])[0]
-    if env.conflict(np.stack([position, aim]), env.clearances.plan) is not None:
+    direct = core.pursuit(position, target, velocity, **chase)
+    if direct is None:
+        return None
+    if env.conflict(direct[0], env.clearances.timed) is None:
+        return Plan(direct, None, "clear", body_clearance(env, direct[0]))
+    way = meeting_route(env, position, chase["predicted"], profile, chase["trust"])
+    if way is None:
+        return _clipped(env, direct, profile, chase["dt"])
+    path = core.pursuit(position, target, velocity, route=way, **chase)
+    return None if path is None else _clipped(env, path, profile, chase["dt"],
+                                              "pursuit round an obstacle between the UAV and the target", "detour")
+
+
+def meeting_route(env: Surroundings, position: np.ndarray, predicted: PredictedPath, profile: ConstraintProfile,
+                  trust: float) -> np.ndarray | None:
+    """The route round an obstacle to where the UAV meets the target, or None when the way to it
+    is clear. A route to where the target will be when a straight flight would get there ends
+    behind it when the route is longer than the straight line: round a mast the UAV then trailed
+    the circling drone at its own angular speed for a minute (benchmarks/pursuit.py). So the aim
+    moves along the prediction to the time the route takes at ROUTE_SPEED_SHARE of the profile's
+    speed (a few searches: each longer route moves it further), at most as far as the
+    prediction is trusted and curved; there the UAV waits for the target, or meets it coming
+    the other way round."""
+    speed = ROUTE_SPEED_SHARE * profile.max_speed
+    steps = len(np.asarray(predicted.path).reshape(-1, 3)) if predicted.dt > 0 else 0
+    latest = max(min(trust, steps * predicted.dt if steps else MEETING_AIM_MAX_S), 0.0)
+    ahead = min(float(np.linalg.norm(predicted.position - position)) / max(profile.max_speed, 1e-6), latest)
+    way = None
+    for _ in range(MEETING_SEARCHES):
+        (there,), _ = predicted.state([ahead])
+        aim = free_points(env, there[None])[0]
         found = route(env.space, position, aim, env.clearances.plan, env.airspace.band(), vertical_weight(profile),
                       env.search_margin)
-        if found is not None and found.searched:
-            way = found.points
-            outcome, note = "detour", "pursuit round an obstacle between the UAV and the target"
-    path = core.pursuit(position, target, velocity, route=way, **chase)
-    return None if path is None else _clipped(env, path, profile, chase["dt"], note, outcome)
-
-
+        if found is None:
+            return way
+        way = found.points
+        takes = min(float(np.linalg.norm(np.diff(way, axis=0), axis=1).sum()) / max(speed, 1e-6), latest)
+        if takes <= ahead + MEETING_TOLERANCE_S:
+            break
+        ahead = takes
+    return way
