@@ -451,8 +451,12 @@ def pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, v
     if way is None:
         return _clipped(env, direct, profile, chase["dt"])
     path = core.pursuit(position, target, velocity, route=way, **chase)
-    return None if path is None else _clipped(env, path, profile, chase["dt"],
-                                              "pursuit round an obstacle between the UAV and the target", "detour")
+    if path is None:
+        return None
+    if len(way) > 2:
+        return _clipped(env, path, profile, chase["dt"], "pursuit round an obstacle between the UAV and the target",
+                        "detour")
+    return _clipped(env, path, profile, chase["dt"], "pursuit straight to where it meets the target")
 
 
 def _blocked_ahead(env: Surroundings, position: np.ndarray, predicted: PredictedPath, profile: ConstraintProfile,
@@ -466,8 +470,8 @@ def _blocked_ahead(env: Surroundings, position: np.ndarray, predicted: Predicted
 
 def meeting_route(env: Surroundings, position: np.ndarray, predicted: PredictedPath, profile: ConstraintProfile,
                   trust: float) -> np.ndarray | None:
-    """The route round an obstacle to where the UAV meets the target, or None when the way to it
-    is clear. A route to where the target will be when a straight flight would get there ends
+    """The way to where the UAV meets the target (a polyline round what stands between; two points
+    when nothing does), or None when no way is found. A route to where the target will be when a straight flight would get there ends
     behind it when the route is longer than the straight line: round a mast the UAV then trailed
     the circling drone at its own angular speed for a minute (benchmarks/pursuit.py). So the aim
     moves along the prediction to the time the route takes at ROUTE_SPEED_SHARE of the profile's
