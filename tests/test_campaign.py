@@ -79,3 +79,5 @@ def test_a_small_campaign_keeps_the_team_apart_and_prints_its_table(tmp_path):
     table = result.stdout.split("run UAVs")[1].splitlines()
     assert len([line for line in table if line.strip().startswith(("1 ", "2 "))]) == 2
     assert sorted(p.name for p in tmp_path.glob("run*.json")) == ["run001.json", "run002.json"]
+    services_log = (tmp_path / "run002.services.log").read_text()  # what each run's services said
+    assert "uav1/job_manager" in services_log and "PREFLIGHT -> TAKING_OFF" in services_log

@@ -45,8 +45,8 @@ def add_parser(commands) -> None:
                    help="detector of every run (the oracle keeps a campaign about the faults, and quick)")
     p.add_argument("--lidar", default="os0-32-512", metavar="MODEL",
                    help="LiDAR model of every UAV ('' = the scenario's own); a light one keeps runs quick")
-    p.add_argument("--out", metavar="DIR", help="keep each run's scenario, summary and log here (default: a "
-                                                "temporary directory, removed afterwards)")
+    p.add_argument("--out", metavar="DIR", help="keep each run's scenario, summary, log and its services' log "
+                                                "lines here (default: a temporary directory, removed afterwards)")
     p.set_defaults(handler=run_campaign)
 
 
@@ -106,7 +106,8 @@ def _fly(plan: RunPlan, base: str, config: Path, args: argparse.Namespace, out: 
     summary_path = stem.with_suffix(".json")
     argv = [sys.executable, "-m", "services.launcher", "sim", str(scenario), "--uavs", str(plan.uavs), "--lockstep",
             "--seed", str(plan.seed), "--duration", f"{args.duration:g}", "--detector", args.detector, "--quiet",
-            "--progress", "0", "--summary-json", str(summary_path), "--config", str(config), "--lease-ms", "1000"]
+            "--progress", "0", "--summary-json", str(summary_path), "--config", str(config), "--lease-ms", "1000",
+            "--log-file", str(stem.with_suffix(".services.log"))]  # what a hung or failed run's services said
     with open(stem.with_suffix(".log"), "w") as log:
         try:
             code = subprocess.run(argv, stdout=log, stderr=subprocess.STDOUT, timeout=RUN_TIMEOUT_S).returncode
