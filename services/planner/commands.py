@@ -459,33 +459,42 @@ def pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, v
     return _clipped(env, path, profile, chase["dt"], "pursuit straight to where it meets the target")
 
 
+def _straight_time(position: np.ndarray, predicted: PredictedPath, profile: ConstraintProfile) -> float:
+    """s a straight flight at the profile's speed takes to where the target is now."""
+    return float(np.linalg.norm(predicted.position - position)) / max(profile.max_speed, 1e-6)
+
+
+def _free_aim(env: Surroundings, predicted: PredictedPath, ahead: float) -> np.ndarray:
+    """Where the target will be in `ahead` s, moved to free space if the UAV could not be there."""
+    (there,), _ = predicted.state([ahead])
+    return free_points(env, there[None])[0]
+
+
 def _blocked_ahead(env: Surroundings, position: np.ndarray, predicted: PredictedPath, profile: ConstraintProfile,
                    trust: float) -> bool:
     """Whether an obstacle stands between the UAV and where the target will be by the time a
     straight flight gets there."""
-    ahead = min(float(np.linalg.norm(predicted.position - position)) / max(profile.max_speed, 1e-6), max(trust, 0.0))
-    (there,), _ = predicted.state([ahead])
-    return env.conflict(np.stack([position, free_points(env, there[None])[0]]), env.clearances.plan) is not None
+    aim = _free_aim(env, predicted, min(_straight_time(position, predicted, profile), max(trust, 0.0)))
+    return env.conflict(np.stack([position, aim]), env.clearances.plan) is not None
 
 
 def meeting_route(env: Surroundings, position: np.ndarray, predicted: PredictedPath, profile: ConstraintProfile,
                   trust: float) -> np.ndarray | None:
     """The way to where the UAV meets the target (a polyline round what stands between; two points
-    when nothing does), or None when no way is found. A route to where the target will be when a straight flight would get there ends
-    behind it when the route is longer than the straight line: round a mast the UAV then trailed
-    the circling drone at its own angular speed for a minute (benchmarks/pursuit.py). So the aim
-    moves along the prediction to the time the route takes at ROUTE_SPEED_SHARE of the profile's
-    speed (a few searches: each longer route moves it further), at most as far as the
-    prediction is trusted and curved; there the UAV waits for the target, or meets it coming
-    the other way round."""
+    when nothing does), or None when no way is found. A route to where the target will be when a
+    straight flight would get there ends behind it when the route is longer than the straight
+    line: round a mast the UAV then trailed the circling drone at its own angular speed for a
+    minute (benchmarks/pursuit.py). So the aim moves along the prediction to the time the route
+    takes at ROUTE_SPEED_SHARE of the profile's speed (a few searches: each longer route moves it
+    further), at most as far as the prediction is trusted and curved; there the UAV waits for the
+    target, or meets it coming the other way round."""
     speed = ROUTE_SPEED_SHARE * profile.max_speed
     steps = len(np.asarray(predicted.path).reshape(-1, 3)) if predicted.dt > 0 else 0
     latest = max(min(trust, steps * predicted.dt if steps else MEETING_AIM_MAX_S), 0.0)
-    ahead = min(float(np.linalg.norm(predicted.position - position)) / max(profile.max_speed, 1e-6), latest)
+    ahead = min(_straight_time(position, predicted, profile), latest)
     way = None
     for _ in range(MEETING_SEARCHES):
-        (there,), _ = predicted.state([ahead])
-        aim = free_points(env, there[None])[0]
+        aim = _free_aim(env, predicted, ahead)
         found = route(env.space, position, aim, env.clearances.plan, env.airspace.band(), vertical_weight(profile),
                       env.search_margin)
         if found is None:
