@@ -1,5 +1,7 @@
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from schemas.messages import ConstraintProfile
 from services.planner.core import (
@@ -470,13 +472,14 @@ def test_pursuit_never_follows_a_prediction_below_its_floor():
 
 
 
-def _chase_the_circler(start_bearing: float, limit: float = 20.0) -> float | None:
+def _chase_the_circler(start_bearing: float, limit: float = 20.0, env=None) -> float | None:
     """The pursuit flown by the simulator's vehicle against mast's circler (4 m round the mast at
     3.2 m/s), re-planned every 0.3 s from its true state 0.2 s old, turned on by the tracker's
-    turn model (TurnHistory over the same window). Seconds to a capture (1 m, 2 m/s), or None."""
+    turn model (TurnHistory over the same window); round the mast as `env` (Surroundings) has it
+    when given (commands.pursuit_clear). Seconds to a capture (1 m, 2 m/s), or None."""
     from schemas.messages import Header, TrajectoryReference
     from schemas.arrays import from_numpy
-    from services.planner.commands import PlannerParams, start_state
+    from services.planner.commands import PlannerParams, pursuit_clear, start_state
     from services.planner.pursuit import pursuit
     from services.simulator.paths import DronePath
     from services.simulator.scenario import load_scenario
@@ -508,9 +511,13 @@ def _chase_the_circler(start_bearing: float, limit: float = 20.0) -> float | Non
             predicted = ahead.rebased(0.2, 8, 0.25)
             now = int(round(t * NS))
             p0, v0 = start_state(sent, now, fleet.position[0].copy(), fleet.velocity[0].copy(), planner.rejoin_distance)
-            positions, headings = pursuit(p0, predicted.position, predicted.velocity, profile=ATTACK, dt=planner.dt,
-                                          horizon=planner.pursuit_horizon, predicted=predicted, start_velocity=v0,
-                                          start_heading=float(fleet.heading[0]))
+            chase = dict(profile=ATTACK, dt=planner.dt, horizon=planner.pursuit_horizon, predicted=predicted,
+                         start_velocity=v0, start_heading=float(fleet.heading[0]))
+            if env is None:
+                positions, headings = pursuit(p0, predicted.position, predicted.velocity, **chase)
+            else:
+                plan = pursuit_clear(env, p0, predicted.position, predicted.velocity, dict(chase, trust=np.inf))
+                positions, headings = plan.path
             sent = TrajectoryReference(header=Header(stamp=now), command_id=0, start=now, dt=planner.dt,
                                        positions=from_numpy(positions), headings=from_numpy(headings))
             fleet.set_reference(0, make_reference("uav1", now, planner.dt, positions, headings), limits)
@@ -537,3 +544,31 @@ def test_a_pursuit_trailing_a_circling_drone_cuts_inside_its_turn_and_catches_it
     print(f"captured after {led} s with the lead, {unled} without")
     assert all(took is not None and took < 15.0 for took in led)
     assert any(took is None for took in unled)
+
+
+@settings(max_examples=300, deadline=None)
+@given(radius=st.floats(2.0, 8.0), speed=st.floats(1.0, 6.0), bearing=st.floats(0.0, 2 * np.pi),
+       distance=st.floats(1.0, 15.0), velocity=st.tuples(*[st.floats(-5.0, 5.0)] * 2, st.floats(-1.5, 1.5)),
+       climb=st.floats(-1.0, 1.0))
+def test_a_rendezvous_with_a_turning_target_stays_within_the_profile_and_meets_it(radius, speed, bearing, distance,
+                                                                                  velocity, climb):
+    from services.planner import pursuit as law
+    from services.tracker.view import PredictedPath
+
+    rate = speed / radius  # anticlockwise round (0, 0, 6), climbing or sinking
+    angle = bearing + rate * 0.25 * np.arange(1, 9)
+    path = np.stack([radius * np.cos(angle), radius * np.sin(angle), 6.0 + climb * 0.25 * np.arange(1, 9)], axis=1)
+    here = np.array([radius * np.cos(bearing), radius * np.sin(bearing), 6.0])
+    heading = np.array([-np.sin(bearing), np.cos(bearing), 0.0]) * speed + [0.0, 0.0, climb]
+    predicted = PredictedPath(here, heading, path, 0.25)
+    uav = here + distance * np.array([np.cos(bearing + 2.0), np.sin(bearing + 2.0), -0.1])
+    chase = dict(profile=ATTACK, start_velocity=np.array(velocity), start_heading=0.0, predicted=predicted, floor=1.0)
+    positions, headings = law.pursuit(uav, here, heading, **chase)
+    check_profile(positions, headings, ATTACK)
+    assert positions[:, 2].min() >= min(1.0, uav[2]) - 1e-9
+    meeting = law.meeting_length(uav, here, heading, **chase)
+    if meeting:
+        (there,), (moving,) = predicted.state([meeting * DT])
+        assert np.linalg.norm(positions[meeting] - there) < 1e-6
+        arriving = (positions[meeting] - positions[meeting - 1]) / DT
+        assert np.linalg.norm(arriving - moving) <= law.RENDEZVOUS_SLACK + 0.15  # a backward difference: ½·a·dt off

@@ -375,3 +375,20 @@ def test_a_pursuit_round_a_mast_goes_to_meet_the_drone_not_after_it():
     assert body_clearance(env, plan.path[0]) >= CLEAR.margin
     turned = bearing(plan.path[0][round(1.0 / PARAMS.dt)]) + 40.0
     assert turned < -10.0, f"turned {turned:.0f}° round the mast in 1 s: after the drone, not towards it"
+
+
+def test_a_drone_circling_a_mast_tighter_than_the_uav_can_turn_is_met_not_trailed(monkeypatch):
+    """Mast's circler turns at 2.56 m/s², more than a pursuit may ask of the UAV at its speed: the
+    pursuit law chasing it from behind or meeting it head-on at speed passed it faster than the
+    net takes (2 m/s) and trailed it round the mast. A rendezvous (pursuit.py) flies to where the
+    drone will be, arriving near its velocity; from every bearing round the mast the UAV then
+    catches it within 20 s, where without one it did not within 25 s from three of them."""
+    from services.planner import pursuit
+    from tests.test_planner_core import _chase_the_circler
+
+    env = env_of(pole(20.0, 27.0, 18.0, radius=0.25))  # mast's mast, the drone 4 m round it
+    bearings = np.arange(13) * 0.5
+    met = [_chase_the_circler(b, 25.0, env) for b in bearings]
+    assert all(took is not None and took < 20.0 for took in met), met
+    monkeypatch.setattr(pursuit, "RENDEZVOUS_TURN", math.inf)
+    assert [_chase_the_circler(b, 25.0, env) for b in (1.5, 2.0, 3.5)] == [None, None, None]

@@ -435,8 +435,9 @@ def pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, v
     free voxel (free_points), its speed towards an obstacle is held to what it can brake from
     before the clearance (speed_barrier), and when an obstacle stands between the UAV and where
     the target will be, it first follows a route round it to where it meets the target
-    (meeting_route); what still conflicts is clipped. None: no pursuit fits the profile (the
-    target is too fast)."""
+    (meeting_route), unless the pursuit plans a rendezvous (pursuit.py: a target turning harder
+    than the UAV may) clear of obstacles until it meets; what still conflicts is clipped. None:
+    no pursuit fits the profile (the target is too fast)."""
     profile = chase["profile"]
     chase = dict(chase, free=lambda points: free_points(env, points),
                  barrier=speed_barrier(env, 0.5 * profile.max_acceleration, profile.max_speed))
@@ -444,6 +445,9 @@ def pursuit_clear(env: Surroundings, position: np.ndarray, target: np.ndarray, v
     if direct is None:
         return None
     conflict = env.conflict(direct[0], env.clearances.timed)
+    meeting = core.meeting_length(position, target, velocity, **chase)
+    if meeting and (conflict is None or conflict > meeting):
+        return _clipped(env, direct, profile, chase["dt"], "pursuit to meet the target where it will be")
     soon = conflict is not None and conflict * chase["dt"] <= DIRECT_LOOK_S
     if not soon and not _blocked_ahead(env, position, chase["predicted"], profile, chase["trust"]):
         return _clipped(env, direct, profile, chase["dt"])

@@ -15,7 +15,7 @@ import numpy as np
 
 from schemas.messages import ConstraintProfile
 from services.planner.intercept import InterceptPlan, intercept, plan_intercept
-from services.planner.pursuit import pursuit
+from services.planner.pursuit import meeting_length, pursuit
 from services.planner.scan import inner_rectangle, lawnmower, lawnmower_line, lawnmower_waypoints, scan_rectangle
 from services.planner.timing import (
     DT,
@@ -35,7 +35,7 @@ __all__ = [
     "DT", "HIT_OFFSET", "STOP_ANGLE", "Path", "InterceptPlan", "approach", "approach_goal", "approach_waypoints", "attack",
     "attack_waypoints", "deadband", "evaluate", "facing", "fly", "goto", "hover", "inner_rectangle", "intercept",
     "land", "lawnmower", "lawnmower_line", "lawnmower_waypoints",
-    "path_duration", "plan_intercept", "pursuit", "plan_timing", "sample_path", "scan_rectangle", "speed_caps", "steer",
+    "meeting_length", "path_duration", "plan_intercept", "pursuit", "plan_timing", "sample_path", "scan_rectangle", "speed_caps", "steer",
     "stop", "takeoff", "wrap_angle",
 ]
 
