@@ -127,12 +127,12 @@ def pursue(spec: DroneSpec, scenario, seed: int, index: int, start: float, args,
                                planner.rejoin_distance)
             chase = dict(profile=profile, dt=planner.dt, horizon=planner.pursuit_horizon, predicted=predicted,
                          start_velocity=v, start_heading=float(fleet.heading[0]),
-                         floor=scenario.ground_z + planner.pursuit_floor)
+                         floor=scenario.ground_z + planner.pursuit_floor,
+                         trust=np.inf if args.trust is None else args.trust - args.latency)
             if obstacles is None:
                 plan = pursuit_law.pursuit(p, predicted.position, predicted.velocity, **chase)
             else:
-                found = pursuit_clear(obstacles.env, p, predicted.position, predicted.velocity,
-                                      dict(chase, trust=np.inf))
+                found = pursuit_clear(obstacles.env, p, predicted.position, predicted.velocity, chase)
                 plan = None if found is None else found.path
             if plan is not None:
                 start_ns = int(round(t * NS))
@@ -172,6 +172,9 @@ def main() -> int:
     parser.add_argument("--lead-max", type=float, help=f"override pursuit.LEAD_MAX ({pursuit_law.LEAD_MAX} s)")
     parser.add_argument("--max-turn-rate", type=float,
                         help="override the tracker's max_turn_rate (1.5 rad/s; 0: Singer's straight-on prediction)")
+    parser.add_argument("--trust", type=float, default=None,
+                        help="s past its sighting a prediction is followed, as the planner's pursuit_trust "
+                             f"(the missions: {PlannerParams().pursuit_trust}); default: for ever")
     parser.add_argument("--obstacles", action="store_true",
                         help="plan as the planner does near obstacles (commands.pursuit_clear on the scenario's "
                              "a-priori map: predicted points moved to free space, the speed barrier, routes round "

@@ -516,7 +516,8 @@ def _chase_the_circler(start_bearing: float, limit: float = 20.0, env=None) -> f
             if env is None:
                 positions, headings = pursuit(p0, predicted.position, predicted.velocity, **chase)
             else:
-                plan = pursuit_clear(env, p0, predicted.position, predicted.velocity, dict(chase, trust=np.inf))
+                trust = planner.pursuit_trust - 0.2  # the missions': past a sighting 0.2 s old
+                plan = pursuit_clear(env, p0, predicted.position, predicted.velocity, dict(chase, trust=trust))
                 positions, headings = plan.path
             sent = TrajectoryReference(header=Header(stamp=now), command_id=0, start=now, dt=planner.dt,
                                        positions=from_numpy(positions), headings=from_numpy(headings))
