@@ -211,8 +211,8 @@ def _aims(prediction: PredictedPath, count: int, dt: float, trust: float, floor:
     return (targets if free is None else free(targets)), velocities
 
 
-def _meet(p: np.ndarray, v: np.ndarray, prediction: PredictedPath, steps: int, dt: float, trust: float,
-          profile: ConstraintProfile, floor: float, free) -> tuple[np.ndarray, np.ndarray] | None:
+def _meet(p: np.ndarray, v: np.ndarray, prediction: PredictedPath, steps: int, dt: float, profile: ConstraintProfile,
+          floor: float, free) -> tuple[np.ndarray, np.ndarray] | None:
     """The rendezvous with a target predicted to turn harder than RENDEZVOUS_TURN of what the
     pursuit law may ask of the UAV, or None. It may meet the target up to RENDEZVOUS_MAX_S ahead,
     past the trust and the end of the predicted path (straight on from there): the trust keeps a
@@ -231,14 +231,14 @@ def _meet(p: np.ndarray, v: np.ndarray, prediction: PredictedPath, steps: int, d
 
 def meeting_length(position, target_position, target_velocity, *, profile: ConstraintProfile, dt: float = DT,
                    start_velocity=None, horizon: float = 12.0, predicted: PredictedPath | None = None,
-                   floor: float = -np.inf, trust: float = np.inf, free=None, **_) -> int:
+                   floor: float = -np.inf, free=None, **_) -> int:
     """How many samples of `pursuit`'s reference (with the same arguments, no route) fly the
-    rendezvous with the target: 0 when it plans none."""
+    rendezvous with the target: 0 when it plans none (the trust does not bound it, see _meet)."""
     p = np.asarray(position, float).reshape(3)
     v = np.zeros(3) if start_velocity is None else _limit_velocity(np.asarray(start_velocity, float).reshape(3), profile)
     prediction = predicted if predicted is not None else PredictedPath(np.asarray(target_position, float).reshape(3),
                                                                       np.asarray(target_velocity, float).reshape(3))
-    met = _meet(p, v, prediction, int(np.ceil(horizon / dt)), dt, trust, profile, floor, free)
+    met = _meet(p, v, prediction, int(np.ceil(horizon / dt)), dt, profile, floor, free)
     return 0 if met is None else len(met[0])
 
 
@@ -268,8 +268,7 @@ def _braking_tail(p: np.ndarray, v: np.ndarray, accel: float, dt: float, floor: 
 def pursuit(position, target_position, target_velocity, *, profile: ConstraintProfile, dt: float = DT,
             start_velocity=None, start_heading: float | None = None, horizon: float = 12.0,
             predicted: PredictedPath | None = None, floor: float = -np.inf,
-            trust: float = np.inf, free=None, route: np.ndarray | None = None, barrier=None,
-            rendezvous: bool = True) -> Path | None:
+            trust: float = np.inf, free=None, route: np.ndarray | None = None, barrier=None) -> Path | None:
     """Close on the predicted track and fly along it for `horizon` s, then brake to rest; heading
     along the target's velocity. `predicted` (time 0 = now): the target's predicted path, else the
     line from target_position along target_velocity, followed for `trust` s and then waited at;
@@ -288,9 +287,7 @@ def pursuit(position, target_position, target_velocity, *, profile: ConstraintPr
     lead_steps = int(np.ceil(LEAD_MAX / dt))
     targets, target_velocities = _aims(prediction, steps + lead_steps, dt, trust, floor, free)
     following = route is not None and len(route) >= 2
-    met = None
-    if rendezvous and not following:
-        met = _meet(p, v, prediction, steps, dt, trust, profile, floor, free)
+    met = None if following else _meet(p, v, prediction, steps, dt, profile, floor, free)
     first = 0
     if met is not None:
         samples, v = met
