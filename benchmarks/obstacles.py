@@ -52,7 +52,8 @@ def figures(summary: dict) -> dict:
             "clearance": min(lows) if lows else None, "attack_pole": min(poles) if poles else None,
             "balloons": (balloons, total, done), "captures": captures,
             "separation": None if separation is None else separation["m"],
-            "handler_errors": (summary.get("health") or {}).get("handler_errors", -1)}
+            "handler_errors": (summary.get("health") or {}).get("handler_errors", -1),
+            "started_without": summary.get("started_without", [])}
 
 
 def failures(scenario: str, uavs: int, seed: int, f: dict) -> list[str]:
@@ -71,6 +72,8 @@ def failures(scenario: str, uavs: int, seed: int, f: dict) -> list[str]:
         if not isinstance(took, float) or took > CAPTURE_WITHIN:
             out.append(f"{where}: {drone} " + (f"captured {took:.1f} s after its first detection"
                                               if isinstance(took, float) else str(took or "not captured")))
+    if f.get("started_without"):
+        out.append(f"{where}: started without {', '.join(f['started_without'])} (start-up timed out under load)")
     if f["outcome"] != "finished" or f["handler_errors"]:
         out.append(f"{where}: outcome {f['outcome']}, {f['handler_errors']} handler errors")
     return out

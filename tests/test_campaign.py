@@ -53,6 +53,8 @@ def test_a_collision_fails_a_run_like_a_separation_violation_and_the_table_shows
     assert (crashed.collisions, crashed.clearance, crashed.ok) == (1, 0.61, False)
     assert not too_close.ok and never_flew.clearance is None and never_flew.ok
     assert RunResult.from_summary(plan, {}).clearance is None  # a run that wrote no summary
+    short = RunResult.from_summary(plan, {**summary(), "started_without": ["uav2/job_manager"]})
+    assert (short.outcome, short.ok) == ("started short", False)  # another mission than its seed's
     columns = HEADER.split()
     assert columns[columns.index("viol") + 1:columns.index("viol") + 4] == ["coll", "clear", "m"]
     cells = row(crashed).split()

@@ -107,3 +107,11 @@ def test_collision_events_are_listed_with_the_other_party():
 
 def test_the_launcher_hands_the_world_model_to_the_monitor():
     assert keys.WORLD in WATCHED
+
+
+def test_a_run_begun_short_of_a_service_says_so_in_its_summary():
+    monitor = RunMonitor()
+    assert monitor.summary()["started_without"] == []
+    monitor.handle(keys.EVENTS, encode(SimEvent(header=Header(), kind="started_without", subject="sim",
+                                                detail="uav2/classifier, uav2/job_manager")))
+    assert monitor.summary()["started_without"] == ["uav2/classifier", "uav2/job_manager"]

@@ -128,7 +128,9 @@ class RunResult:
         health = summary.get("health") or {}
         separation = summary.get("min_separation")
         clearances = [c["m"] for c in (summary.get("clearance") or {}).values() if c and c.get("m") is not None]
-        return cls(plan=plan, outcome=summary.get("outcome", "?"),
+        # a run whose team was not all up at the first tick flew another mission than its seed's
+        outcome = "started short" if summary.get("started_without") else summary.get("outcome", "?")
+        return cls(plan=plan, outcome=outcome,
                    min_separation=None if separation is None else separation["m"],
                    violations=len(summary.get("separation_violations", [])),
                    destroyed=len(summary.get("destroyed", [])), targets=summary.get("targets", 0),

@@ -115,6 +115,7 @@ class RunMonitor:
         self.destroyed: list[tuple[float, str, str]] = []
         self.events: list[SimEvent] = []
         self.restarts: list[str] = []
+        self.started_without: list[str] = []  # services the simulator gave up waiting for at start-up
         self.team_changes: list[dict] = []  # a UAV's working area or fallen partners changed (revenge mode)
         self.faults: list[str] = []
         self.collisions: list[dict] = []  # t, uav, with (the other party), detail
@@ -390,6 +391,8 @@ class RunMonitor:
         elif event.kind == "collision":
             self.collisions.append({"t": round(self._seconds(event.header.stamp), 2), "uav": event.subject,
                                     "with": event.detail.rsplit(" at ", 1)[0], "detail": event.detail})
+        elif event.kind == "started_without":
+            self.started_without = event.detail.split(", ")
         elif event.kind == "service_restarted":
             self.restarts.append(f"{event.subject} ({event.detail})")
         elif event.kind.startswith("fault_"):
@@ -424,6 +427,7 @@ class RunMonitor:
                                  else _approach(u.attack_pole)}
                           for name, u in sorted(self.uavs.items())},
             "restarts": list(self.restarts),
+            "started_without": list(self.started_without),
             "team_changes": list(self.team_changes),
             "faults": list(self.faults),
             "uavs": {

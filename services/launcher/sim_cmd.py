@@ -512,6 +512,8 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         f"{'lockstep' if s['lockstep'] else 'real time'}, detector {s['detector']} ===",
         f"outcome: {s['outcome']}; mission time {s['mission_time']:.1f}/{duration:g} s in {s['wall_time']:.1f} s "
         f"wall (real-time factor {s['mission_time'] / max(s['wall_time'], 1e-9):.2f}x)",
+        *([f"started without {', '.join(s['started_without'])}: not up within the simulator's start-up "
+           "timeout, so this run is not the one its seed names"] if s.get("started_without") else []),
         f"targets destroyed or captured: {len(s['destroyed'])}/{s['targets']}"
         + "".join(f"\n  t={d['t']:.1f} s {d['target']} by {d['by']}" + _since_detection(d) for d in s["destroyed"]),
     ]

@@ -189,11 +189,14 @@ class SimulatorNode(Node):
 
     def serve(self) -> None:
         first_step = self.resume_from_launcher()
-        if not self.wait_for_team():
+        absent = self.wait_for_team()
+        if absent is None:
             return
         if first_step == 0:
             self.event("mission_started", "sim", f"{self.scenario.name}, {len(self.uav_names)} UAVs, "
                        f"seed {self.seed}, {'lockstep' if self.run_lockstep else f'real time x{self.rtf:g}'}")
+        if absent:  # a run that began short of a service is not the run its seed names: say so in the summary
+            self.event("started_without", "sim", ", ".join(sorted(absent)))
         steps = int(round(self.duration / self.tick_s))
         wall_start, mission_start = time.monotonic(), seconds(to_ns(first_step * self.tick_s))
         for step in range(first_step, steps + 1):
@@ -247,15 +250,17 @@ class SimulatorNode(Node):
             return truth.step + 1
         return 0
 
-    def wait_for_team(self) -> bool:
+    def wait_for_team(self) -> set[str] | None:
+        """The services still absent when the first tick may go (empty when the whole team is up),
+        or None when the run is stopping."""
         expected = self.expected_services()
         deadline = time.monotonic() + self.params.startup_timeout
         while not expected <= self._alive:
             if self.stopping:
-                return False
+                return None
             if time.monotonic() > deadline:
                 self.log.warning("starting without %s", ", ".join(sorted(expected - self._alive)))
-                return True
+                return expected - self._alive
             self.pump(0.05)
         # A token says a service is up, not that its subscriptions have reached every publisher
         # (declarations travel separately): a first message sent before then is lost, and in
@@ -263,7 +268,7 @@ class SimulatorNode(Node):
         settle = time.monotonic() + self.params.startup_settle
         while time.monotonic() < settle and not self.stopping:
             self.pump(0.05)
-        return True
+        return set()
 
     def bounds(self) -> dict[str, int]:
         merged: dict[str, int] = {}
