@@ -115,3 +115,28 @@ def test_a_run_begun_short_of_a_service_says_so_in_its_summary():
     monitor.handle(keys.EVENTS, encode(SimEvent(header=Header(), kind="started_without", subject="sim",
                                                 detail="uav2/classifier, uav2/job_manager")))
     assert monitor.summary()["started_without"] == ["uav2/classifier", "uav2/job_manager"]
+
+
+def test_a_uav_braking_along_its_attack_towards_the_pole_is_still_attacking_until_its_momentum_is_spent():
+    """Giving way to a partner mid-attack (street, 3 UAVs, seed 5), the UAV brakes along the attack's
+    line: the pole stays the attack's while the UAV closes on it; an approach after it came to rest
+    and left is an obstacle's."""
+    monitor = RunMonitor()
+    world(monitor)
+
+    def closest() -> tuple:
+        c = monitor.summary()["clearance"]["uav1"]
+        pole = c["attack_pole"]
+        return (c["m"], c["to"]), None if pole is None else (pole["m"], pole["t"])
+
+    command(monitor, 10.0, "attack", (50.0, 30.0, 4.5))
+    truth(monitor, 10.5, (48.0, 30.0, 3.0))  # beside balloon2's pole, 1.55 m from it (body and pole radii off)
+    command(monitor, 10.55, "stop")  # giving way: braking to a hover, 1.55 m from the pole
+    truth(monitor, 10.6, (48.3, 30.0, 3.0))  # 1.25 m, still closing at 3 m/s: the attack's momentum
+    truth(monitor, 10.8, (48.75, 30.0, 3.0))
+    truth(monitor, 11.0, (48.8, 30.0, 3.0))
+    truth(monitor, 11.5, (48.8, 30.0, 3.0))  # at rest, within 1 m: the pass goes on
+    assert closest() == ((2.75, "balloon9_pole"), (0.75, 11.0))  # the other pole, an obstacle throughout
+    truth(monitor, 12.0, (47.0, 30.0, 3.0))  # 2.55 m and leaving: the pass is over
+    truth(monitor, 13.0, (48.9, 30.0, 3.0))  # back under the stop, no attack: the pole is an obstacle
+    assert closest() == ((0.65, "balloon2_pole"), (0.75, 11.0))

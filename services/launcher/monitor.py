@@ -10,8 +10,12 @@ when. While the UAV's latest mission command is an attack, the pole of the ballo
 ATTACKED_POLE_WITHIN) is measured apart, as its `attack_pole`: an attack flies close over that
 pole's top by design. The pass does not end with the command: a command that follows an attack
 (a stop once the balloon is down, a yield) starts where the attack left the UAV, over the pole's
-top, so the pole stays the attack's until the UAV is first PASS_CLEAR from it (street seed 2: a
-yield 0.05 s after the hit, 0.50 m from the pole's top 0.2 s later)."""
+top (street seed 2: a yield 0.05 s after the hit, 0.50 m from the pole's top 0.2 s later), or on
+its way there: a UAV giving way to a partner mid-attack brakes along the attack's line, towards
+the pole (street, 3 UAVs, seed 5: a stop 1.6 s before the hit, 0.83 m from the pole 0.45 s later).
+So the pole stays the attack's until the UAV is PASS_CLEAR from it and no longer closing on it
+faster than PASS_CLOSING: once the attack's momentum is spent, any later approach is measured as
+an obstacle's."""
 from __future__ import annotations
 
 import hashlib
@@ -40,6 +44,7 @@ DETECTED_WITHIN = 1.5  # m between a detection and a target's true position for 
 NEAREST_PERIOD = 0.25  # s of mission time between samples of each UAV's distance to its nearest partner
 ATTACKED_POLE_WITHIN = 1.5  # m from an attack command's target to the axis of the pole it attacks
 PASS_CLEAR = 1.0  # m (the obstacle margin) from the attacked pole that ends an attack's pass over it
+PASS_CLOSING = 0.1  # m/s: closing on the attacked pole slower than this, the attack's momentum is spent
 
 
 def write_record(stream: BinaryIO, payload: bytes) -> None:
@@ -87,6 +92,7 @@ class UavSummary:
     last_action: str = ""  # of the job manager's latest command
     attacking: tuple[float, float, float] | None = None  # the target of the latest command, an attack
     leaving: tuple[float, float, float] | None = None  # the target of an attack whose pole the UAV is still over
+    pole_gap: tuple[float, float] | None = None  # (m, mission time) to the attacked pole at the last truth
     team_view: tuple | None = None  # (working area x-range, fallen partners) last reported
     clearance: tuple[float, str, float] | None = None  # (m, obstacle, mission time) of the closest approach
     attack_pole: tuple[float, str, float] | None = None  # the same to the pole of the balloon it attacked
@@ -285,8 +291,9 @@ class RunMonitor:
         for v, row in zip(flying, gaps):
             u = self._uav(v.name)
             pole = self._attacked_pole(u.attacking or u.leaving)
-            if u.attacking is None and (pole is None or row[pole] >= PASS_CLEAR):
+            if u.attacking is None and (pole is None or self._pass_over(u, float(row[pole]), t)):
                 u.leaving, pole = None, None  # the pass is over: the pole is an obstacle like any other
+            u.pole_gap = None if pole is None else (float(row[pole]), t)
             if pole is not None:
                 u.attack_pole = _closer(u.attack_pole, (float(row[pole]), self._shapes.names[pole], t))
                 row = row.copy()
@@ -294,6 +301,16 @@ class RunMonitor:
             k = int(np.argmin(row))
             if np.isfinite(row[k]):
                 u.clearance = _closer(u.clearance, (float(row[k]), self._shapes.names[k], t))
+
+    @staticmethod
+    def _pass_over(u: UavSummary, gap: float, t: float) -> bool:
+        """Whether the pass over the attacked pole, `gap` m from the UAV's body now, has ended."""
+        if gap < PASS_CLEAR:
+            return False
+        if u.pole_gap is None or t <= u.pole_gap[1]:
+            return True
+        before, then = u.pole_gap
+        return (before - gap) / (t - then) <= PASS_CLOSING
 
     def _attacked_pole(self, target: tuple[float, float, float] | None) -> int | None:
         """The index of the balloon pole an attack on `target` goes for, if any."""
