@@ -99,17 +99,24 @@ def main() -> int:
     parser.add_argument("--teams", type=int, nargs="+", choices=[2, 3], default=[2, 3], help="default 2 3")
     parser.add_argument("--duration", type=float, default=120.0, help="mission time per run, s (default 120)")
     parser.add_argument("--json", type=Path, help="write every run's figures here")
+    parser.add_argument("--keep", type=Path, metavar="DIR",
+                        help="keep each run's summary (SCENARIO-UAVS-SEED.json) and services' log (.log) here, "
+                             "to read why a goal was missed")
     args = parser.parse_args()
     started = time.time()
     lines, missed, runs = [], [], []
     print("| scenario | UAVs | seed | collisions | clearance m (to) | pole in attack m | balloons (last) "
           "| drones: capture after first detection | min separation m |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |", flush=True)
+    if args.keep:
+        args.keep.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as tmp:
+        workdir = args.keep or Path(tmp)
         for scenario in args.scenarios:
             for uavs in args.teams:
                 for seed in args.seeds:
-                    f = figures(run(scenario, uavs, seed, args.duration, Path(tmp), "onboard"))
+                    log = ("--log-file", str(workdir / f"{scenario}-{uavs}-{seed}.log")) if args.keep else ()
+                    f = figures(run(scenario, uavs, seed, args.duration, workdir, "onboard", log))
                     runs.append({"scenario": scenario, "uavs": uavs, "seed": seed, **f})
                     lines.append(row(scenario, uavs, seed, f))
                     missed += failures(scenario, uavs, seed, f)
