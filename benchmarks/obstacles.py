@@ -1,8 +1,9 @@
 """Flying clear of obstacles (issue 34): whole lockstep missions over every obstacle scenario, seeds
 1-5, with 2 and with 3 UAVs (default detector), and per run the collisions, every UAV's clearance
 (its body's closest approach to a static obstacle; a balloon's pole during that balloon's attack, up
-to the UAV's being 1 m clear of it and no longer closing on it, apart), the balloons and when the last went down, each
-drone's capture after its first detection, and the closest two flying UAVs came.
+to the UAV's being 1 m clear of it and no longer closing on it, apart), the balloons and when the
+last went down, each drone's capture after its first detection, and the closest two flying UAVs
+came.
 
 Goals: 0 collisions; every clearance >= obstacle_margin (1.0 m), >= 0.3 m from a pole in its
 attack; mbzirc's 5 balloons within 90 s on every seed with 2 UAVs; every drone captured within 60 s

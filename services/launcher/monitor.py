@@ -12,7 +12,7 @@ pole's top by design. The pass does not end with the command: a command that fol
 (a stop once the balloon is down, a yield) starts where the attack left the UAV, over the pole's
 top (street seed 2: a yield 0.05 s after the hit, 0.50 m from the pole's top 0.2 s later), or on
 its way there: a UAV giving way to a partner mid-attack brakes along the attack's line, towards
-the pole (street, 3 UAVs, seed 5: a stop 1.6 s before the hit, 0.83 m from the pole 0.45 s later).
+the pole (street, 3 UAVs, seed 5: a stop 0.55 s before the hit, 0.83 m from the pole 0.45 s later).
 So the pole stays the attack's until the UAV is PASS_CLEAR from it and no longer closing on it
 faster than PASS_CLOSING: once the attack's momentum is spent, any later approach is measured as
 an obstacle's."""
