@@ -176,3 +176,18 @@ def test_two_uav_mission_flies_and_reports(tmp_path):
     assert set(summary["cpu"]) == expected
     assert all(seconds > 0 for seconds in summary["cpu"].values()), summary["cpu"]
     assert summary["killed_at_shutdown"] == []  # every process stopped within the launcher's grace
+
+
+def test_a_run_that_began_before_its_team_was_up_says_so(tmp_path):
+    """A start-up wait that runs out (a loaded machine; here a 10 ms one) flies another mission than
+    the seed's: the summary must not pass it off as the seed's run."""
+    config, summary = tmp_path / "impatient.toml", tmp_path / "summary.json"
+    config.write_text("[simulator]\nstartup_timeout = 0.01\n")
+    result = subprocess.run(
+        falconry_argv("sim", "mbzirc", "--uavs", "2", "--lockstep", "--duration", "1", "--config", str(config),
+                      "--quiet", "--progress", "0", "--summary-json", str(summary), "--wall-timeout", "120"),
+        capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    absent = read_summary(summary)["started_without"]
+    assert absent and all(name.startswith(("uav1/", "uav2/")) for name in absent), absent
+    assert "started without uav" in result.stdout
