@@ -7,8 +7,9 @@ tells the services (in the tick's `bounds`) exactly which messages belong to it;
 real-time mode it paces ticks at the requested real-time factor.
 
 Before the first tick it waits until every service of every UAV is alive (automatic
-start; after startup_timeout it starts without the rest and sends a started_without event); a service that dies is no longer waited for, and is waited for again once its
-liveliness token returns.
+start; after startup_timeout it starts without the rest and sends a started_without event); a
+service that dies is no longer waited for, and is waited for again once its liveliness token
+returns.
 
 A UAV flying without GNSS (positioning "lidar": the scenario's, or --positioning) gets its
 odometry from its localizer's estimate (falconry/<uav>/localization), which the simulated flight
