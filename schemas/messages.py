@@ -52,6 +52,9 @@ class PointCloud(msgspec.Struct, kw_only=True):
     # carrier's own body, so its missing return says nothing about the world (the mapper skips it)
     mask: Array | None = None
     pose_covariance: Array | None = None  # float64 6×6 over (x, y, z, roll, pitch, yaw) of sensor_pose
+    # Why the driver's sanity check (services/lidar/sanity.py) failed this scan ("" : it passed). A
+    # failed scan is published for the record only: every consumer skips its points.
+    sanity: str = ""
 
 
 class PointTruth(msgspec.Struct, kw_only=True):
@@ -157,6 +160,8 @@ class Detections(msgspec.Struct, kw_only=True):
     # float32 (N,): probability that the centroid's voxel is the true one given the sensor's pose and
     # range uncertainty (seed 000 sec. IV-B); None from a detector that does not say
     confidences: Array | None = None
+    # "" when the sensor's data passed its sanity check; else why not (the detector found nothing in it)
+    sensor_health: str = ""
 
 
 class LabelSet(msgspec.Struct, kw_only=True):
@@ -221,6 +226,9 @@ class Track(msgspec.Struct, kw_only=True):
 class Tracks(msgspec.Struct, kw_only=True):
     header: Header
     tracks: list[Track] = []
+    # "" while the sender's LiDAR passes its sanity checks; else why its detections are not trusted
+    # now (failing, or settling after a failure): partners leave these tracks out of their picture
+    sensor_health: str = ""
 
 
 class ConstraintProfile(msgspec.Struct, kw_only=True):

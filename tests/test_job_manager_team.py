@@ -122,7 +122,8 @@ def test_a_target_claimed_by_a_partner_is_left_to_it_unless_i_am_closer():
     assert rig.jm.state is State.GOING_AROUND, "chased a target the partner had claimed"
     # both claim it: the one closer keeps it
     rig2 = Rig().airborne()
-    rig2.tick(1.1, detections=[near_border], position=[46.0, 30.0, 5.0])
+    rig2.tick(1.05, detections=[near_border], position=[46.0, 30.0, 5.0])
+    rig2.tick(1.1, detections=[near_border])
     rig2.tick(1.2, detections=[near_border])
     assert rig2.jm.state is State.GOING_TO_TARGET
     flying(rig2, "uav2", 1.2, position=(60.0, 30.0, 5.0), state="GOING_TO_TARGET", target=near_border)

@@ -59,6 +59,13 @@ class ClassifierNode(Node):
                                     self._ignored_deltas})
 
     def on_points(self, msg: PointCloud, key: str) -> None:
+        if msg.sanity:  # the driver found the scan broken: nothing in it is a detection, nor a map update
+            self.detections_pub.put(Detections(
+                header=Header(stamp=msg.header.stamp), detector="classifier",
+                positions=from_numpy(np.zeros((0, 3))), covariances=from_numpy(np.zeros((0, 3, 3))),
+                point_counts=from_numpy(np.zeros(0, dtype=np.int32)), extents=from_numpy(np.zeros(0, dtype=np.float32)),
+                sensor_position=tuple(msg.sensor_pose.position), sensor_health=msg.sanity))
+            return
         covariance = None if msg.pose_covariance is None else to_numpy(msg.pose_covariance).reshape(6, 6)
         pose = SensorPose(np.asarray(msg.sensor_pose.position, dtype=np.float64),
                           rotation_matrix(msg.sensor_pose.orientation), covariance)

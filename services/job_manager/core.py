@@ -46,6 +46,7 @@ from services.job_manager.params import JobManagerParams
 from services.job_manager.sightings import ConfirmedTracks, Sightings
 from services.job_manager.targets import NS, ForbiddenZones, TargetFilter, usable_detections
 from services.job_manager.team import Mover, SeparationRule, Team
+from services.lidar.sanity import SensorTrust
 from services.tracker.view import PredictedPath
 
 
@@ -183,6 +184,8 @@ class JobManager:
         self._sent_seen = 0  # when the mover of the sent prediction was last measured
         self._now = 0
         self.seen = Sightings(params)
+        self.lidar = SensorTrust(params.sensor_settle_time)  # detections are not acted on while it fails or settles
+        self.camera = SensorTrust(params.sensor_settle_time)
         self._previous_target: np.ndarray | None = None  # what was locked before CHECKING_TARGET
         self._no_moving_until = 0  # a moving target that ran out a state timer: movers are skipped till then
         self._unseen_from = 0  # when the locked target last came within reliable range
@@ -221,9 +224,15 @@ class JobManager:
         active = self.team.active
         self.working_area = split_area(self.arena, len(active))[active.index(self.uav)]
 
-    def observe_detections(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None) -> None:
+    def observe_detections(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None,
+                           sensor_health: str = "") -> None:
         """One scan's detections (N, 3), world frame, with their covariances (N, 3, 3) if known;
-        also the LiDAR heartbeat of the abort system."""
+        also the LiDAR heartbeat of the abort system. A scan that failed its sanity check
+        (`sensor_health` says why), and those within sensor_settle_time after, count as heartbeats
+        that saw nothing."""
+        self.lidar.note(stamp, not sensor_health)
+        if not self.lidar.trusted(stamp):
+            positions, covariances = np.zeros((0, 3)), None
         positions, covariances = self.seen.scan(stamp, positions, covariances)
         above = positions[:, 2] >= self.ground_z + self.params.min_target_height
         if self.engagement is not None:
@@ -232,9 +241,14 @@ class JobManager:
         if mover is not None and (self.engagement is None or mover is not self.engagement.filter):
             mover.update(positions[above], stamp, _rows(covariances, above))  # keep knowing where it is
 
-    def observe_camera(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None) -> None:
+    def observe_camera(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None,
+                       sensor_health: str = "") -> None:
         """One camera frame's detections (N, 3), world frame, with their covariances (N, 3, 3) if
-        known (Object Detect: balloons by colour; far ones are metres off along the ray)."""
+        known (Object Detect: balloons by colour; far ones are metres off along the ray); as
+        observe_detections while the frames fail their sanity check or settle."""
+        self.camera.note(stamp, not sensor_health)
+        if not self.camera.trusted(stamp):
+            positions, covariances = np.zeros((0, 3)), None
         positions, covariances = self.seen.camera(stamp, positions, covariances)
         above = positions[:, 2] >= self.ground_z + self.params.min_target_height
         if self.engagement is not None:
@@ -493,8 +507,15 @@ class JobManager:
         return max(p.search_height, float(near[:, 2].max()) + p.vertical_separation + p.safety_distance)
 
     def _lock(self, found: Candidates, position: np.ndarray, now: int) -> bool:
-        """Select b_c: the closest static candidate (a moving one only when none is static); the
-        previous target, when it is among them, counts as closest (no flip-flopping between two)."""
+        """Select b_c among the candidates seen consistently (Sightings.consistent): the closest
+        static one (a moving one only when none is static); the previous target, when it is among
+        them, counts as closest (no flip-flopping between two)."""
+        agreed = np.array([self.seen.consistent(c, cov, now) for c, cov in zip(found.positions, found.covariances)],
+                          dtype=bool)
+        if not agreed.any():
+            return False
+        found = Candidates(found.positions[agreed], found.stamps[agreed], found.covariances[agreed],
+                           found.tethered[agreed])
         candidates, stamps = found.positions, found.stamps
         distance = np.linalg.norm(candidates - position, axis=1)
         if self._previous_target is not None:

@@ -111,10 +111,10 @@ class JobManagerNode(Node):
         self.positioning = msg.health
 
     def on_detections(self, msg: Detections, key: str) -> None:
-        self.core.observe_detections(msg.header.stamp, *_positions_and_covariances(msg))
+        self.core.observe_detections(msg.header.stamp, *_positions_and_covariances(msg), sensor_health=msg.sensor_health)
 
     def on_camera_detections(self, msg: Detections, key: str) -> None:
-        self.core.observe_camera(msg.header.stamp, *_positions_and_covariances(msg))
+        self.core.observe_camera(msg.header.stamp, *_positions_and_covariances(msg), sensor_health=msg.sensor_health)
 
     def on_tracks(self, msg: Tracks, key: str) -> None:
         confirmed = [t for t in msg.tracks if t.confirmed and np.isfinite(track_position(t)).all()

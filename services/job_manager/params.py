@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import msgspec
 
+from services.lidar.sanity import SETTLE_TIME
+
 
 class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     """Defaults from design §6 / seed 004 Table 3.1 (symbol in brackets)."""
@@ -18,6 +20,9 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     detection_gate: float = 3.0  # [d_e] m: a detection this close to the locked target is the target
     filter_switch_distance: float = 5.5  # [D_k] m: GOING_TO_TARGET hands over to DESTROYING inside it
     target_time: float = 3.0  # [t_m] s: unseen this long = lost; seen this long = confirmed for attack
+    # scans or frames of the last t_m that must agree on a target before it is locked (a partner's
+    # confirmed track counts as agreed): a single camera blob or a burst of junk starts no engagement
+    lock_sightings: int = 3
     checking_timeout: float = 30.0  # [T_c] s
     going_timeout: float = 30.0  # [T_g] s
     destroying_timeout: float = 20.0  # [T_d] s (for a mover: since its latest close pass)
@@ -64,3 +69,6 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     # with the profile "degraded" at this speed at most; "lost" holds position, and lost for
     # sensor_timeout lands as a silent LiDAR does (an emergency landing)
     degraded_speed: float = 2.0  # m/s
+    # s after a LiDAR scan or camera frame that failed its sanity check (PointCloud.sanity) during
+    # which that sensor's detections are not acted on (services/lidar/sanity.py)
+    sensor_settle_time: float = SETTLE_TIME

@@ -15,6 +15,7 @@ from services.tracker.view import PredictedPath
 
 STILL_RADIUS = 0.5  # m
 STILL_TIME = 1.0  # s
+AGREE_CHI2 = 11.34  # χ² of 3 degrees of freedom at 99 %: two 3D sightings of one object
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,7 @@ class Seen:
     positions: np.ndarray  # (N, 3)
     covariances: np.ndarray  # (N, 3, 3), NaN where the detector gave none
     tethered: bool = False  # from the camera's balloon detector
+    confirmed: bool = False  # partners' confirmed tracks (the fleet): seen consistently by their keepers
 
 
 class Sightings:
@@ -102,10 +104,10 @@ class Sightings:
         return positions, covariances
 
     def _remember(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None,
-                  tethered: bool = False) -> None:
+                  tethered: bool = False, confirmed: bool = False) -> None:
         if covariances is None:
             covariances = np.full((len(positions), 3, 3), np.nan)
-        self.recent.append(Seen(stamp, positions, covariances, tethered))
+        self.recent.append(Seen(stamp, positions, covariances, tethered, confirmed))
         while self.recent and stamp - self.recent[0].stamp > int(self.params.target_time * NS):
             self.recent.popleft()
 
@@ -119,7 +121,7 @@ class Sightings:
         only a partner sees can be locked, and a locked one stays seen while a partner sees it."""
         positions, covariances = _finite(positions, covariances)
         self.fleet_latest, self.fleet_stamp = positions, stamp
-        self._remember(stamp, positions, covariances)
+        self._remember(stamp, positions, covariances, confirmed=True)
         return positions, covariances
 
     def in_view(self, now: int) -> np.ndarray | None:
@@ -186,6 +188,35 @@ class Sightings:
 
     def motion(self, detection: np.ndarray, now: int, seen: int) -> Motion | None:
         return self.moving_track(detection, now, seen) or self.known_mover(detection, seen)
+
+    def consistent(self, candidate: np.ndarray, covariance: np.ndarray, now: int) -> bool:
+        """Seen consistently: at a confirmed track (the tracker's own, or a partner's) it is;
+        otherwise at least `lock_sightings`
+        scans or frames of the last t_m (each counted once) hold a detection that agrees with it
+        in 3D: within the 99 % ellipsoid of both covariances (floored at filter_sigma², the NaN of a
+        detector that gives none read as detection_gate), or within detection_gate. A single
+        blob, or a handful of garbage returns, is not a target."""
+        p = self.params
+        tracks = self.fresh_tracks(now)
+        if tracks is not None and len(tracks.ids) and \
+                np.linalg.norm(tracks.positions - candidate, axis=1).min() <= p.track_gate:
+            return True  # the tracker confirmed it
+        floor = p.filter_sigma ** 2 * np.eye(3)
+        mine = np.where(np.isfinite(covariance), covariance, p.detection_gate ** 2 * np.eye(3))
+        stamps = set()
+        for seen in self.recent:
+            if now - seen.stamp > int(p.target_time * NS) or not len(seen.positions):
+                continue
+            gaps = seen.positions - candidate
+            close = np.linalg.norm(gaps, axis=1) <= p.detection_gate
+            if seen.confirmed and close.any():
+                return True
+            theirs = np.where(np.isfinite(seen.covariances), seen.covariances, p.detection_gate ** 2 * np.eye(3))
+            spread = np.linalg.inv(theirs + mine + floor)
+            agree = np.einsum("ni,nij,nj->n", gaps, spread, gaps) <= AGREE_CHI2
+            if (close | agree).any():
+                stamps.add(seen.stamp)
+        return len(stamps) >= p.lock_sightings
 
     def held_still(self, candidate: np.ndarray, now: int) -> bool:
         """Seen at this very place (within STILL_RADIUS) over at least STILL_TIME of the recent

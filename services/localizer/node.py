@@ -131,6 +131,9 @@ class LocalizerNode(Node):
     def on_points(self, msg: PointCloud, key: str) -> None:
         if not self.core.started or msg.header.stamp < self.core.start_stamp:
             return
+        if msg.sanity:  # the driver found the scan broken: the IMU carries the estimate past it
+            self._refuse("scans skipped: they failed the driver's sanity check")
+            return
         self._waiting.append(msg)
         self._fuse_waiting()
 

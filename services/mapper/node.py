@@ -66,6 +66,8 @@ class MapperNode(Node):
                       len(pinned), len(msg.obstacles))
 
     def on_points(self, msg: PointCloud, key: str) -> None:
+        if msg.sanity:  # a scan the driver found broken carves no free space (the classifier labels none)
+            return
         rays = scan_rays(to_numpy(msg.points), msg.width, msg.sensor_model, msg.frame, msg.sensor_pose.position,
                          msg.sensor_pose.orientation, None if msg.mask is None else to_numpy(msg.mask))
         if rays.beams is None and not self._warned_model:

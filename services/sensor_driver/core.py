@@ -59,6 +59,9 @@ class SensorDriverParams(msgspec.Struct, forbid_unknown_fields=True):
     # point, which rests on the ground when landed: on top of the frame, not in the grass.
     mount: list[float] = msgspec.field(default_factory=lambda: list(DEFAULT_MOUNT))
     intensity: bool = False  # publish a per-point intensity (reflectivity · |cos incidence| / range²)
+    # Check every scan (services/lidar/sanity.py); a failing one is flagged and its points skipped downstream
+    sanity_checks: bool = True
+    max_return_share: float = 0.98  # of unblocked beams returning: above it the sky is missing (> 1 indoors)
 
     def __post_init__(self) -> None:  # msgspec reports these as validation errors naming the table
         if self.model:

@@ -9,6 +9,9 @@ parameters name, or else the one the scenario names for this UAV in the world mo
 PointTruth never enters the PointCloud, so perception cannot see it. LiDAR faults scheduled on
 falconry/sim/faults for this UAV are acted on here: `lidar_silent` publishes nothing,
 `lidar_nan` an all-NaN cloud, `lidar_garbage` random ranges on every beam (truth -1 for both).
+Every scan then goes through the sanity checks of services/lidar/sanity.py (`sanity_checks`): one
+that fails is still published, for the record, with the reason in `PointCloud.sanity`, which
+makes every consumer skip its points; the failures are counted warnings.
 Only this service and the simulator may read ground truth. Later issues add a recorded-file
 source and real hardware behind the same output.
 
@@ -30,7 +33,8 @@ from schemas.arrays import from_numpy
 from schemas.messages import FaultCommand, GroundTruth, Header, Odometry, PointCloud, PointTruth, Pose, WorldModel
 from services.geometry import heading_quaternion, yaw_of
 from services.lidar.models import lidar_model
-from services.lidar.rays import body_mask, pack_mask
+from services.lidar.rays import body_mask, pack_mask, unpack_mask
+from services.lidar.sanity import SanityLimits, ScanSanity, scan_figures
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.sensor_driver.core import (
@@ -67,6 +71,7 @@ class SensorDriverNode(Node):
         self.rng_key: tuple[int, int] | None = None
         self.last_slot = -1
         self.faults = LidarFaults()
+        self.sanity = ScanSanity(SanityLimits(max_return_share=p.max_return_share)) if p.sanity_checks else None
         self._unposed = 0
         self._bad_input = CountedWarnings(self.log)
         self._scan(np.zeros(3), 0.0, Primitives(planes=[-1.0]), np.random.default_rng(0))  # compile now,
@@ -166,6 +171,8 @@ class SensorDriverNode(Node):
             result = faulty_scan(result, fault, origin, beams, self.min_range, self.max_range, self.rng)
         points, origin, heading = self._registered(result.points, origin, me.heading)
         rows, cols = result.hits.shape
+        mask = self._mask(int(slot))
+        sanity = self._sanity(now_ns, points, origin, unpack_mask(mask, cols))
         self.points_pub.put(PointCloud(
             header=Header(stamp=now_ns),
             width=cols,
@@ -177,8 +184,9 @@ class SensorDriverNode(Node):
             min_range=self.min_range,
             max_range=self.max_range,
             frame=int(slot),
-            mask=from_numpy(self._mask(int(slot))),
+            mask=from_numpy(mask),
             pose_covariance=from_numpy(self._pose_covariance),
+            sanity=sanity,
         ))
         self.truth_pub.put(PointTruth(
             header=Header(stamp=now_ns),
@@ -187,6 +195,16 @@ class SensorDriverNode(Node):
             hits=from_numpy(result.hits),
             targets=[t.id for t in self.truth.targets],
         ))
+
+    def _sanity(self, now_ns: int, points: np.ndarray, origin: np.ndarray, blocked: np.ndarray) -> str:
+        """Why the scan fails the sanity checks ("" : it passes), the failures counted by kind."""
+        if self.sanity is None:
+            return ""
+        reason = self.sanity.check(now_ns, scan_figures(points, origin, self.min_range, self.max_range, blocked))
+        if reason:
+            self._bad_input.update({f"scans failing the sanity check ({check})": count
+                                    for check, count in self.sanity.failures.items()})
+        return reason
 
     def _registered(self, points: np.ndarray, origin: np.ndarray,
                     heading: float) -> tuple[np.ndarray, np.ndarray, float]:

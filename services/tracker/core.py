@@ -78,6 +78,7 @@ import numpy as np
 from schemas.voxels import STATE_OCCUPIED
 from services.classifier.core import half_width_across, surface_offset
 from services.geometry import is_covariance
+from services.lidar.sanity import SETTLE_TIME, SensorTrust
 from services.tracker.filters import FILTERS, FilterParams, make_filter
 from services.tracker.filters.base import NS, Estimate, InnovationStatistics
 from services.tracker.filters.models import (covariance_at_least, manoeuvre_path, manoeuvre_state, turning_path,
@@ -148,6 +149,9 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     alive_period: float = 1.0  # s; the node sends an empty Tracks at least this often
     fleet: bool = True  # join the partners' tracks into the published picture (fleet.py)
     partner_timeout: float = 1.0  # s without a partner's tracks before they are left out
+    # s after the LiDAR's last scan that failed its sanity check (services/lidar/sanity.py) during
+    # which detections neither start nor count to a track, and partners leave our tracks out
+    sensor_settle_time: float = SETTLE_TIME
 
     def __post_init__(self) -> None:
         if self.filter not in FILTERS:
@@ -278,6 +282,7 @@ class TrackerCounters:
     merged_tracks: int = 0  # duplicates of one target
     late_clouds: int = 0  # clouds older than the buffer's oldest: no detection can need them
     reidentified: int = 0  # new tracks that took back a lost track's identity at birth (reidentify_time)
+    untrusted_detections: int = 0  # detections of scans while the sensor failed its sanity check or settled
     stitched: int = 0  # new tracks that took a lost track's identity when confirmed (stitch_time)
 
 
@@ -291,6 +296,7 @@ class TrackerCore:
         self._tracks: list[_Track] = []
         self._lost: list[LostTrack] = []  # confirmed tracks dropped within reidentify_time or stitch_time
         self._next_id = 1
+        self.sensor = SensorTrust(self.params.sensor_settle_time)
 
     def __len__(self) -> int:
         return len(self._tracks)
@@ -420,11 +426,17 @@ class TrackerCore:
         return [Replayed(*parts) for parts in zip(current, corrected, statistics, widths)]
 
     # ------------------------------------------------------------ detections
-    def new_detections(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None) -> list[int]:
+    def new_detections(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None,
+                       sensor_health: str = "") -> list[int]:
         """Alg. 2 lines 19-32 for one set of detections (N, 3) taken at `stamp`; returns the track
         id each went to (-1: none: an unusable detection, dropped and counted, or a tentative track
-        that its replay made too uncertain, or no room for another track)."""
+        that its replay made too uncertain, or no room for another track, or a set made while the
+        sensor failed its sanity check (`sensor_health` says why) or within sensor_settle_time after)."""
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        self.sensor.note(stamp, not sensor_health)
+        if not self.sensor.trusted(stamp):
+            self.counters.untrusted_detections += len(positions)
+            return [-1] * len(positions)
         usable = self._usable(positions, covariances)
         covs = None if covariances is None else np.asarray(covariances, dtype=np.float64).reshape(-1, 3, 3)
         assigned = [-1] * len(positions)

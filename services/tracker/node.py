@@ -76,6 +76,8 @@ class TrackerNode(Node):
                                               np.asarray(r.shape, dtype=np.int64)))
 
     def on_points(self, msg: PointCloud, key: str) -> None:
+        if msg.sanity:  # the driver found the scan broken: its points correct no track
+            return
         points = to_numpy(msg.points)
         if points.size % 3 or self._from_the_future(msg.header.stamp):
             self._refuse("scans refused (not (N, 3) points, or stamped ahead of the clock)")
@@ -94,7 +96,7 @@ class TrackerNode(Node):
         positions = positions.reshape(-1, 3)
         # a covariance per detection or none (each one is still checked by the core)
         covariances = covariances.reshape(-1, 3, 3) if covariances.size == 9 * len(positions) else None
-        self.core.new_detections(msg.header.stamp, positions, covariances)
+        self.core.new_detections(msg.header.stamp, positions, covariances, msg.sensor_health)
         self._report()
 
     def _from_the_future(self, stamp: int) -> bool:
@@ -111,7 +113,7 @@ class TrackerNode(Node):
         if partner == self.uav or not self.params.fleet or partner_number(partner) <= 0:
             return  # ourselves, or no UAV (a fleet id needs the partner's number)
         tracks = []
-        for track in msg.tracks:
+        for track in [] if msg.sensor_health else msg.tracks:  # a partner whose LiDAR fails: none of its tracks
             if not track.confirmed or track.source != partner:
                 continue  # a partner's fleet tracks come from their own keepers, heard directly
             mean, covariance = to_numpy(track.state).reshape(-1), to_numpy(track.covariance)
@@ -129,6 +131,8 @@ class TrackerNode(Node):
         self._bad_input.update({"detections with a non-finite position or an impossible covariance dropped":
                                 c.rejected_detections,
                                 "tracks dropped whose filter diverged to inf or NaN": c.diverged_tracks,
+                                "detections left out: the LiDAR failed its sanity check or was settling":
+                                c.untrusted_detections,
                                 "map messages refused (impossible geometry or contents)": self._refused_maps,
                                 **self._refused})
 
@@ -144,8 +148,9 @@ class TrackerNode(Node):
         if not fleet and not quiet:
             return
         self._last_published_ns = now_ns
-        self.tracks_pub.put(Tracks(header=Header(stamp=now_ns),
-                                   tracks=[self._track(f, estimates.get(f.id)) for f in fleet]))
+        health = "" if self.core.sensor.trusted(now_ns) else "LiDAR failed its sanity check or is settling"
+        self.tracks_pub.put(Tracks(header=Header(stamp=now_ns), tracks=[self._track(f, estimates.get(f.id)) for f in fleet],
+                                   sensor_health=health))
 
     def _own_tracks(self, now_ns: int) -> tuple[dict[int, TrackEstimate], list[FleetTrack]]:
         estimates = {e.id: e for e in self.core.estimates(now_ns)}
