@@ -127,16 +127,24 @@ def point_in_polygon(points: np.ndarray, polygon: np.ndarray) -> np.ndarray | bo
     return bool(inside[0]) if single else inside
 
 
-def distance_to_edges(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
-    """(N,) distance of (N, 2) points to the polygon's outline (inside or out)."""
+def nearest_on_edges(points: np.ndarray, polygon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 2) nearest points of the polygon's outline to (N, 2) points, and (N,) their distances."""
     poly = as_polygon(polygon)
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     a, b = poly, np.roll(poly, -1, axis=0)
     edge = b - a
     length2 = np.maximum(np.sum(edge * edge, axis=1), 1e-18)
     along = np.clip(np.einsum("nkd,kd->nk", pts[:, None, :] - a[None], edge) / length2, 0.0, 1.0)
-    nearest = a[None] + along[..., None] * edge[None]
-    return np.linalg.norm(pts[:, None, :] - nearest, axis=2).min(axis=1, initial=np.inf)
+    nearest = a[None] + along[..., None] * edge[None]  # (N, K, 2)
+    gaps = np.linalg.norm(pts[:, None, :] - nearest, axis=2)
+    best = np.argmin(gaps, axis=1)
+    rows = np.arange(len(pts))
+    return nearest[rows, best], gaps[rows, best]
+
+
+def distance_to_edges(points: np.ndarray, polygon: np.ndarray) -> np.ndarray:
+    """(N,) distance of (N, 2) points to the polygon's outline (inside or out)."""
+    return nearest_on_edges(points, polygon)[1]
 
 
 def deepest_point(polygon: np.ndarray, step: float = 1.0) -> tuple[float, float]:

@@ -140,3 +140,22 @@ def test_a_uav_braking_along_its_attack_towards_the_pole_is_still_attacking_unti
     truth(monitor, 12.0, (47.0, 30.0, 3.0))  # 2.55 m and leaving: the pass is over
     truth(monitor, 13.0, (48.9, 30.0, 3.0))  # back under the stop, no attack: the pole is an obstacle
     assert closest() == ((0.65, "balloon2_pole"), (0.75, 11.0))
+
+
+def test_a_uav_out_of_the_arena_or_above_its_ceiling_is_a_geofence_breach():
+    from services.launcher.monitor import RunMonitor
+
+    monitor = RunMonitor()
+    monitor._on_world(WorldModel(header=Header(stamp=0), scenario="fence", min_height=1.0, arena=[(0.0, 0.0), (20.0, 0.0), (20.0, 20.0), (0.0, 20.0)],
+                                 max_height=10.0, obstacles=[Obstacle(kind="plane", center=(0.0, 0.0, 1.0))]))
+
+    def at(t: float, *positions) -> None:
+        monitor._note_geofence(t, [VehicleTruth(name=f"uav{k + 1}", position=p, velocity=(0.0, 0.0, 0.0), heading=0.0,
+                                                airborne=True, alive=True) for k, p in enumerate(positions)])
+
+    at(1.0, (10.0, 10.0, 5.0), (19.8, 10.0, 10.9))  # inside (the ceiling: ground 1 m + max_height 10 m)
+    at(2.0, (20.4, 10.0, 5.0), (10.0, 10.0, 11.8))  # uav1 within the 0.5 m slack; uav2 0.8 m above 10 + 1 m
+    at(3.0, (21.5, 10.0, 5.0), (10.0, 10.0, 12.5))
+    at(4.0, (10.0, 10.0, 5.0), (10.0, 10.0, 5.0))
+    assert monitor.geofence == [{"uav": "uav2", "start": 2.0, "end": 4.0, "m": 1.5},
+                                {"uav": "uav1", "start": 3.0, "end": 4.0, "m": 1.5}]

@@ -9,6 +9,7 @@ import pytest
 
 from schemas.arrays import from_numpy
 from schemas.messages import ConstraintProfile, Header, MissionCommand, TrajectoryReference
+from services.geometry import point_in_polygon
 from services.planner.commands import PlannerParams, VehicleState, plan_command, start_state
 
 NS = 1_000_000_000
@@ -120,3 +121,33 @@ def test_a_pursuit_follows_a_prediction_only_so_long_past_the_last_sighting():
     assert np.linalg.norm(positions[-1] - waited) < 0.3
     assert np.abs(positions[:, 0]).max() < waited[0] + 0.5  # never beyond it
 
+
+
+def test_no_reference_leaves_the_arena_or_goes_above_its_ceiling():
+    """A mover's predicted meeting beyond the arena's edge and above its ceiling is aimed at inside;
+    the reference never leaves the arena polygon (non-convex here) nor climbs past max_height."""
+    from services.planner.avoid import Airspace, Clearances, Surroundings
+    from services.planner.freespace import FreeSpace
+
+    arena = ((0.0, 0.0), (40.0, 0.0), (40.0, 30.0), (25.0, 30.0), (25.0, 15.0), (15.0, 15.0), (15.0, 30.0), (0.0, 30.0))
+    airspace = Airspace(0.0, 1.0, 12.0, (0.0, 0.0), (40.0, 30.0), arena)
+    clearances = Clearances(0.4, 0.5, 0.2)
+    env = Surroundings(FreeSpace(clearances.plan), clearances, airspace)
+    climbing_out = command("intercept", target=(35.0, 25.0, 10.0), target_velocity=(3.0, 2.0, 2.0))
+    plan = plan_command(climbing_out, vehicle((30.0, 10.0, 5.0)), PARAMS, env)
+    positions = plan.path[0]
+    assert positions[:, 2].max() <= 12.0 + 1e-9
+    assert distance_outside(positions[:, :2], arena).max() <= 1e-6  # on the outline counts as inside
+    beyond = plan_command(command("intercept", target=(45.0, 25.0, 14.0), target_velocity=(3.0, 0.0, 0.0)),
+                          vehicle((30.0, 10.0, 5.0)), PARAMS, env)
+    assert "aimed inside the arena" in beyond.note
+    assert beyond.path[0][:, 2].max() <= 12.0 + 1e-9 and distance_outside(beyond.path[0][:, :2], arena).max() <= 1e-6
+    into_the_notch = command("goto", target=(20.0, 25.0, 5.0))  # the notch is outside the arena
+    plan = plan_command(into_the_notch, vehicle((5.0, 5.0, 5.0)), PARAMS, env)
+    assert distance_outside(plan.path[0][:, :2], arena).max() <= 1e-6
+
+
+def distance_outside(points, polygon) -> np.ndarray:
+    from services.geometry import distance_to_edges
+    inside = point_in_polygon(points, np.asarray(polygon))
+    return np.where(inside, 0.0, distance_to_edges(points, np.asarray(polygon)))

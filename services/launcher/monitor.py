@@ -15,7 +15,11 @@ its way there: a UAV giving way to a partner mid-attack brakes along the attack'
 the pole (street, 3 UAVs, seed 5: a stop 0.55 s before the hit, 0.83 m from the pole 0.45 s later).
 So the pole stays the attack's until the UAV is PASS_CLEAR from it and no longer closing on it
 faster than PASS_CLOSING: once the attack's momentum is spent, any later approach is measured as
-an obstacle's."""
+an obstacle's.
+
+Geofence: an alive, airborne UAV more than GEOFENCE_SLACK outside the world model's arena polygon
+or above its ground + max_height starts a breach episode (uav, start, end, how far out at most),
+as a real range's geofence would trip."""
 from __future__ import annotations
 
 import hashlib
@@ -33,7 +37,7 @@ from schemas.arrays import to_numpy
 from schemas.messages import (DEFAULT_UAV_RADIUS, Detections, GroundTruth, MissionCommand, Obstacle, PointTruth,
                               SimClock, SimEvent, Tracks, UavStatus, WorldModel)
 from services import evaluation
-from services.geometry import pairwise_gaps
+from services.geometry import distance_to_edges, pairwise_gaps, point_in_polygon
 from services.runtime.clock import StampOrigin, seconds
 from services.simulator import contact
 from services.simulator.specs import pole_name
@@ -45,6 +49,7 @@ NEAREST_PERIOD = 0.25  # s of mission time between samples of each UAV's distanc
 ATTACKED_POLE_WITHIN = 1.5  # m from an attack command's target to the axis of the pole it attacks
 PASS_CLEAR = 1.0  # m (the obstacle margin) from the attacked pole that ends an attack's pass over it
 PASS_CLOSING = 0.1  # m/s: closing on the attacked pole slower than this, the attack's momentum is spent
+GEOFENCE_SLACK = 0.5  # m beyond the arena's edge or ceiling a tracking error may carry the body
 
 
 def write_record(stream: BinaryIO, payload: bytes) -> None:
@@ -125,6 +130,8 @@ class RunMonitor:
         self.team_changes: list[dict] = []  # a UAV's working area or fallen partners changed (revenge mode)
         self.faults: list[str] = []
         self.collisions: list[dict] = []  # t, uav, with (the other party), detail
+        self.geofence: list[dict] = []  # breach episodes: uav, start, end (None: still out), m out at most
+        self._fence: tuple[np.ndarray, float] | None = None  # the arena polygon and the ceiling's world z
         self._surveyed: list[Obstacle] | None = None  # the world model's obstacles (None: no world model yet)
         self._unsurveyed: list[Obstacle] = []  # the truth's
         self._solids: list[Obstacle] = []  # both, as contact.shapes orders them (the ground left out)
@@ -273,6 +280,9 @@ class RunMonitor:
 
     def _on_world(self, world: WorldModel) -> None:
         self.uav_radius = dict(world.uav_radius)
+        ground = next((o.center[2] for o in world.obstacles if o.kind == "plane"), 0.0)
+        if len(world.arena) >= 3:
+            self._fence = (np.asarray(world.arena, dtype=np.float64), ground + world.max_height)
         if world.obstacles != self._surveyed:
             self._surveyed = world.obstacles
             self._rebuild_solids()
@@ -359,6 +369,7 @@ class RunMonitor:
             self._truth_history.pop(min(self._truth_history))
         self._note_clearance(t, truth)
         flying = [v for v in truth.uavs if v.airborne and v.alive]
+        self._note_geofence(t, flying)
         if len(flying) < 2:
             self._note_separation(t, None, "")
             return
@@ -373,6 +384,27 @@ class RunMonitor:
             series = self._uav(v.name).nearest_partner
             if not series or t - series[-1].t >= NEAREST_PERIOD:
                 series.append(Sample(t, float(gap)))
+
+    def _note_geofence(self, t: float, flying: list) -> None:
+        """Episodes in which a flying UAV was out of the arena or above its ceiling (module docstring)."""
+        if self._fence is None:
+            return
+        arena, ceiling = self._fence
+        open_episodes = {e["uav"]: e for e in self.geofence if e["end"] is None}
+        for v in flying:
+            p = np.asarray(v.position, dtype=np.float64)
+            out = max(p[2] - ceiling, 0.0)
+            if not point_in_polygon(p[:2], arena):
+                out = max(out, float(distance_to_edges(p[:2], arena)[0]))
+            episode = open_episodes.pop(v.name, None)
+            if out > GEOFENCE_SLACK and episode is None:
+                self.geofence.append({"uav": v.name, "start": round(t, 2), "end": None, "m": round(out, 2)})
+            elif out > GEOFENCE_SLACK:
+                episode["m"] = max(episode["m"], round(out, 2))
+            elif episode is not None:
+                episode["end"] = round(t, 2)
+        for episode in open_episodes.values():  # landed or lost while out
+            episode["end"] = round(t, 2)
 
     def _note_separation(self, t: float, closest: float | None, pair: str) -> None:
         """Episodes in which two flying UAVs were closer than the safety distance."""
@@ -440,6 +472,7 @@ class RunMonitor:
             "safety_distance": self.safety_distance,
             "separation_violations": [dict(v) for v in self.violations],
             "collisions": [dict(c) for c in self.collisions],
+            "geofence_breaches": [dict(e) for e in self.geofence],
             "clearance": {name: {**_approach(u.clearance), "attack_pole": None if u.attack_pole is None
                                  else _approach(u.attack_pole)}
                           for name, u in sorted(self.uavs.items())},

@@ -403,7 +403,16 @@ def _completion_lines(s: dict) -> list[str]:
         lines.append(f"closest approach of two flying UAVs: {sep['m']:.1f} m ({sep['pair']}, t={sep['t']:.1f} s)"
                      + verdict)
     lines.append(collisions_line(s.get("collisions", [])))
+    lines.append(geofence_line(s.get("geofence_breaches", [])))
     return lines
+
+
+def geofence_line(breaches: list[dict]) -> str:
+    """'geofence: kept', or each time a UAV left the arena or rose above its ceiling."""
+    if not breaches:
+        return "geofence (arena, max height): kept"
+    return f"GEOFENCE BREACHED: {len(breaches)} time(s)" + "".join(
+        f"\n  t={b['start']:.1f} s {b['uav']} {b['m']:.1f} m out" for b in breaches)
 
 
 def collisions_line(collisions: list[dict]) -> str:

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schemas.messages import ConstraintProfile
+from services.geometry import nearest_on_edges, point_in_polygon
 from services.planner.freespace import SAMPLE_STEP, FreeSpace
 from services.planner.search import FREE_SEARCH_STEPS, Band, nearest_free, route
 from services.planner.timing import DT, STOP_ANGLE, Path, fly, speed_caps
@@ -74,16 +75,31 @@ class Clearances:
 
 @dataclass(frozen=True)
 class Airspace:
-    """Where plans may go: above `low` and below `high` (world z), inside the box of the arena."""
+    """Where plans may go: above `low` and below `high` (world z), inside the box of the arena
+    (routes), and no reference ever beyond `high` or outside the arena polygon (`confine`)."""
 
     ground_z: float = 0.0
     low: float = -math.inf
     high: float = math.inf
     box_low: tuple[float, float] = (-math.inf, -math.inf)
     box_high: tuple[float, float] = (math.inf, math.inf)
+    arena: tuple[tuple[float, float], ...] = ()  # the polygon; () : no arena known
 
     def band(self) -> Band:
         return Band(self.low, self.high, self.box_low, self.box_high)
+
+    def confine(self, points: np.ndarray) -> tuple[np.ndarray, int]:
+        """(N, 3) points moved into the arena (onto its outline, the nearest point) and below
+        `high`, and how many had to move. Landing and take-off go below `low`: it is not enforced."""
+        points = np.array(points, dtype=np.float64).reshape(-1, 3)
+        moved = points[:, 2] > self.high
+        points[moved, 2] = self.high
+        if len(self.arena) >= 3 and len(points):
+            outside = ~point_in_polygon(points[:, :2], np.asarray(self.arena))
+            if outside.any():
+                points[outside, :2] = nearest_on_edges(points[outside, :2], np.asarray(self.arena))[0]
+                moved |= outside
+        return points, int(moved.sum())
 
 
 def airspace_of(arena, min_height: float, max_height: float, ground_z: float, floor: float) -> Airspace:
@@ -94,7 +110,8 @@ def airspace_of(arena, min_height: float, max_height: float, ground_z: float, fl
             or not min_height < max_height < math.inf:
         raise ValueError(f"an arena of {len(arena)} vertices, ground {ground_z} m, heights {min_height}-{max_height} m")
     return Airspace(ground_z, ground_z + max(min_height, floor), ground_z + max_height,
-                    tuple(map(float, arena.min(axis=0))), tuple(map(float, arena.max(axis=0))))
+                    tuple(map(float, arena.min(axis=0))), tuple(map(float, arena.max(axis=0))),
+                    tuple((float(x), float(y)) for x, y in arena))
 
 
 @dataclass(frozen=True)

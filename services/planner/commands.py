@@ -6,12 +6,12 @@ the map, and publishes and logs what comes back.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import msgspec
 import numpy as np
 
-from schemas.arrays import to_numpy
+from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import ConstraintProfile, Header, MissionCommand, TrajectoryReference
 from services.planner import core
 from services.planner.avoid import (
@@ -173,9 +173,40 @@ def start_state(trajectory: TrajectoryReference | None, now_ns: int, position: n
 def plan_command(command: MissionCommand, vehicle: VehicleState, params: PlannerParams,
                  env: Surroundings | None = None, approach_from: np.ndarray | None = None) -> Plan:
     """The path for one command from `vehicle` (its start state), kept clear of the map in `env`
-    (None: nothing known). `approach_from`: the direction an approach tries first (the one the
-    last approach to the same target took). A command that cannot be planned is a hover, with the
-    reason as the note."""
+    (None: nothing known) and inside its airspace: a target or a mover's predicted path beyond the
+    arena or its ceiling is aimed at the nearest point inside (a meeting out there would take the
+    UAV out), and any reference sample still beyond is moved in (`Airspace.confine`), said in the
+    note. `approach_from`: the direction an approach tries first (the one the last approach to the
+    same target took). A command that cannot be planned is a hover, with the reason as the note."""
+    if env is None or (problem := unplannable(command)) is not None:
+        return _plan(command, vehicle, params, env, approach_from)
+    command, aimed = _confined_command(command, env.airspace)
+    plan = _plan(command, vehicle, params, env, approach_from)
+    positions, moved = env.airspace.confine(plan.path[0])
+    if not aimed and not moved:
+        return plan
+    said = [f"target aimed inside the arena and below {env.airspace.high:g} m"] if aimed else []
+    said += [f"{moved} reference samples moved inside the arena and below {env.airspace.high:g} m"] if moved else []
+    return replace(plan, path=(positions, plan.path[1]), note="; ".join([*filter(None, [plan.note]), *said]))
+
+
+def _confined_command(command: MissionCommand, airspace) -> tuple[MissionCommand, bool]:
+    """The command with its target and target path moved inside the airspace, and whether any moved."""
+    changes = {}
+    if command.target is not None:
+        target, moved = airspace.confine(np.asarray(command.target, dtype=np.float64))
+        if moved:
+            changes["target"] = tuple(float(v) for v in target[0])
+    if command.target_path is not None:
+        path, moved = airspace.confine(to_numpy(command.target_path))
+        if moved:
+            changes["target_path"] = from_numpy(path)
+    return (msgspec.structs.replace(command, **changes), True) if changes else (command, False)
+
+
+def _plan(command: MissionCommand, vehicle: VehicleState, params: PlannerParams,
+          env: Surroundings | None = None, approach_from: np.ndarray | None = None) -> Plan:
+    """plan_command's planning proper."""
     if (problem := unplannable(command)) is not None:
         return Plan(core.hover(vehicle.position, vehicle.heading), f"{problem}; hovering")
     p, heading = vehicle.position, vehicle.heading
