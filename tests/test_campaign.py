@@ -65,6 +65,37 @@ def test_a_collision_fails_a_run_like_a_separation_violation_and_the_table_shows
     assert "collisions: 1; smallest clearance to an obstacle over all runs: 0.61 m" in lines[1]
 
 
+def test_an_engagement_at_no_target_or_a_geofence_breach_fails_a_run_and_runs_take_the_scenarios_in_turn():
+    runs = draw_runs(6, seed=7, duration=90.0, scenarios=("mbzirc", "intruder", "agile"))
+    assert [(r.scenario, r.uavs) for r in runs] == [("mbzirc", 2), ("intruder", 3), ("agile", 2), ("mbzirc", 3),
+                                                   ("intruder", 2), ("agile", 3)]
+    assert [(r.seed, r.faults) for r in runs] == [(r.seed, r.faults) for r in draw_runs(6, seed=7, duration=90.0)]
+    aimed = {"uavs": {"uav1": {"engagements": [{"t": 20.0, "action": "attack", "aim": [1.0, 2.0, 3.0],
+                                                 "target": "balloon1", "miss_m": 0.1},
+                                                {"t": 30.0, "action": "intercept", "aim": [9.0, 2.0, 21.0],
+                                                 "target": None, "miss_m": 31.0}]}}}
+    wrong = RunResult.from_summary(runs[1], {**summary(), **aimed})
+    out = RunResult.from_summary(runs[1], {**summary(), "geofence_breaches": [{"uav": "uav1", "start": 3.0,
+                                                                            "end": 4.0, "m": 1.5}]})
+    assert (wrong.no_target, wrong.ok) == (1, False) and (out.geofence, out.ok) == (1, False)
+    cells, columns = row(wrong).split(), HEADER.split()
+    assert cells[3] == "intruder" and columns[3] == "scenario"
+    assert columns[columns.index("no-tgt") + 1] == "fence"
+    assert "engagements at no target: 1; geofence breaches (out of the arena or above its ceiling): 1" in \
+        totals([wrong, out], 5.0)[2]
+
+
+def test_the_campaigns_arena_picture_marks_where_each_engagement_aimed(tmp_path):
+    from services.launcher.plot import plot_arena
+    from services.simulator.scenario import load_scenario
+
+    aimed = {"uavs": {"uav1": {"engagements": [{"t": 30.0, "action": "intercept", "aim": [9.0, 2.0, 21.0],
+                                                 "target": None, "miss_m": 31.0}]}}}
+    picture = tmp_path / "mbzirc.png"
+    plot_arena(load_scenario("mbzirc"), [aimed, {}], picture, "mbzirc")
+    assert picture.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and picture.stat().st_size > 10_000
+
+
 @pytest.mark.timeout(600)
 @pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
 def test_a_small_campaign_keeps_the_team_apart_and_prints_its_table(tmp_path):

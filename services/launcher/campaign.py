@@ -1,6 +1,7 @@
 """The fault campaign's pure part: seeded random fault schedules, and the table of what each run
 did with its faults (`falconry campaign`, `campaign_cmd.py`, runs them). A run fails when it did
-not finish, broke the safety distance, had a collision or a handler error.
+not finish, broke the safety distance, had a collision, engaged no target, left the arena or had
+a handler error. Runs take the campaign's scenarios in turn (and its team sizes in turn).
 
 A run's schedule is drawn from its own seed alone (numpy's PCG64 seeded with [campaign seed, run
 index]), so a campaign is the same list of runs on every machine, and each run is a lockstep
@@ -61,11 +62,13 @@ class RunPlan:
     seed: int
     uavs: int
     faults: list[Fault] = field(default_factory=list)
+    scenario: str = "mbzirc"
 
 
 def draw_runs(count: int, seed: int, duration: float, teams: tuple[int, ...] = (2, 3), faults_per_run: int = 1,
-              kinds: tuple[str, ...] = KINDS) -> list[RunPlan]:
-    """`count` runs, alternating team sizes, each with `faults_per_run` faults drawn from `kinds`."""
+              kinds: tuple[str, ...] = KINDS, scenarios: tuple[str, ...] = ("mbzirc",)) -> list[RunPlan]:
+    """`count` runs, team sizes and scenarios each taken in turn, each run with `faults_per_run`
+    faults drawn from `kinds` (the draws do not depend on the scenarios)."""
     if count < 1 or faults_per_run < 1:
         raise ValueError("a campaign needs at least one run and one fault per run")
     if duration < EARLIEST + LATEST_BEFORE_END + 1.0:
@@ -76,7 +79,7 @@ def draw_runs(count: int, seed: int, duration: float, teams: tuple[int, ...] = (
         rng = np.random.default_rng([seed, index])
         uavs = teams[index % len(teams)]
         faults = sorted((_draw(rng, uavs, duration, kinds) for _ in range(faults_per_run)), key=lambda f: f.time)
-        runs.append(RunPlan(index + 1, int(rng.integers(1, 10_000)), uavs, faults))
+        runs.append(RunPlan(index + 1, int(rng.integers(1, 10_000)), uavs, faults, scenarios[index % len(scenarios)]))
     return runs
 
 
@@ -122,6 +125,8 @@ class RunResult:
     lost: int
     collisions: int
     clearance: float | None  # m: the smallest body-to-obstacle clearance of the run's UAVs (attacked poles apart)
+    no_target: int = 0  # attacks and interceptions aimed at no target (farther than 2 m from every one)
+    geofence: int = 0  # episodes of a flying UAV out of the arena or above its ceiling
 
     @classmethod
     def from_summary(cls, plan: RunPlan, summary: dict) -> "RunResult":
@@ -138,26 +143,30 @@ class RunResult:
                                           for u in summary.get("uavs", {}).values()),
                    restarts=len(summary.get("restarts", [])), handler_errors=health.get("handler_errors", -1),
                    decode_errors=health.get("decode_errors", -1), lost=health.get("lost_own_uav", -1),
-                   collisions=len(summary.get("collisions", [])), clearance=min(clearances, default=None))
+                   collisions=len(summary.get("collisions", [])), clearance=min(clearances, default=None),
+                   no_target=sum(e.get("target") is None for u in summary.get("uavs", {}).values()
+                                 for e in u.get("engagements", [])),
+                   geofence=len(summary.get("geofence_breaches", [])))
 
     @property
     def ok(self) -> bool:
         return (self.outcome == "finished" and self.violations == 0 and self.collisions == 0
-                and self.handler_errors == 0)
+                and self.handler_errors == 0 and self.no_target == 0 and self.geofence == 0)
 
 
-HEADER = (f"{'run':>3} {'UAVs':>4} {'seed':>5}  {'faults':<44} {'min sep m':>9} {'viol':>4} {'coll':>4} "
-          f"{'clear m':>7} {'destroyed':>9} {'e-land':>6} {'restarts':>8} {'handler':>7} {'decode':>6} {'lost':>5}  "
-          f"outcome")
+HEADER = (f"{'run':>3} {'UAVs':>4} {'seed':>5} {'scenario':<10} {'faults':<44} {'min sep m':>9} {'viol':>4} "
+          f"{'coll':>4} {'clear m':>7} {'no-tgt':>6} {'fence':>5} {'destroyed':>9} {'e-land':>6} {'restarts':>8} "
+          f"{'handler':>7} {'decode':>6} {'lost':>5}  outcome")
 
 
 def row(r: RunResult) -> str:
     faults = "; ".join(f.label() for f in r.plan.faults)
     separation = "-" if r.min_separation is None else f"{r.min_separation:.1f}"
     clearance = "-" if r.clearance is None else f"{r.clearance:.2f}"
-    return (f"{r.plan.index:>3} {r.plan.uavs:>4} {r.plan.seed:>5}  {faults:<44} {separation:>9} {r.violations:>4} "
-            f"{r.collisions:>4} {clearance:>7} {f'{r.destroyed}/{r.targets}':>9} {r.emergency_landings:>6} "
-            f"{r.restarts:>8} {r.handler_errors:>7} {r.decode_errors:>6} {r.lost:>5}  {r.outcome}")
+    return (f"{r.plan.index:>3} {r.plan.uavs:>4} {r.plan.seed:>5} {r.plan.scenario[:10]:<10} {faults:<44} "
+            f"{separation:>9} {r.violations:>4} {r.collisions:>4} {clearance:>7} {r.no_target:>6} {r.geofence:>5} "
+            f"{f'{r.destroyed}/{r.targets}':>9} {r.emergency_landings:>6} {r.restarts:>8} {r.handler_errors:>7} "
+            f"{r.decode_errors:>6} {r.lost:>5}  {r.outcome}")
 
 
 def totals(results: list[RunResult], safety_distance: float) -> list[str]:
@@ -170,6 +179,8 @@ def totals(results: list[RunResult], safety_distance: float) -> list[str]:
         + (f"{min(separations):.1f} m" if separations else "-"),
         f"collisions: {sum(r.collisions for r in results)}; smallest clearance to an obstacle over all runs: "
         + (f"{min(clearances):.2f} m" if clearances else "-") + " (attacked balloons' poles apart)",
+        f"engagements at no target: {sum(r.no_target for r in results)}; geofence breaches (out of the arena or "
+        f"above its ceiling): {sum(r.geofence for r in results)}",
         f"handler errors: {sum(r.handler_errors for r in results)}; undecodable payloads: "
         f"{sum(r.decode_errors for r in results)}; restarts: {sum(r.restarts for r in results)}; emergency landings: "
         f"{sum(r.emergency_landings for r in results)}; own-UAV messages not received by services that ran throughout: "

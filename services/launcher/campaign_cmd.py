@@ -27,16 +27,17 @@ def add_parser(commands) -> None:
                     "turn, and print one line per run and a table: faults, minimum separation of flying UAVs, "
                     "separation violations, collisions (a UAV's body touching an obstacle, a partner or the "
                     "ground outside a landing), the smallest clearance of a UAV's body to an obstacle (the pole "
-                    "of a balloon it attacks apart), targets destroyed, emergency landings, restarts, handler "
+                    "of a balloon it attacks apart), engagements at no target, geofence breaches, targets destroyed, emergency landings, restarts, handler "
                     "errors, undecodable payloads, own-UAV messages not received by services that ran throughout "
                     "(what a killed or frozen service missed while gone follows wall time; each run's summary has "
                     "it). The same command gives the same table. "
-                    "Exit status 1 when a run did not finish, broke the safety distance, had a collision or a "
-                    "handler error.",
+                    "Exit status 1 when a run did not finish, broke the safety distance, had a collision, "
+                    "engaged no target, left the arena or had a handler error.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--runs", type=int, default=20, help="how many runs")
     p.add_argument("--seed", type=int, default=1, help="the campaign's seed (each run's schedule and seed follow)")
-    p.add_argument("--scenario", default="mbzirc", help="scenario name or TOML file the faults are added to")
+    p.add_argument("--scenarios", "--scenario", dest="scenarios", default="mbzirc",
+                   help="scenario names or TOML files (comma-separated) the faults are added to, taken in turn")
     p.add_argument("--duration", type=float, default=90.0, help="mission time of each run, s")
     p.add_argument("--teams", default="2,3", help="team sizes taken in turn, e.g. 2,3 or 3")
     p.add_argument("--faults-per-run", type=int, default=1)
@@ -45,6 +46,9 @@ def add_parser(commands) -> None:
                    help="detector of every run (the oracle keeps a campaign about the faults, and quick)")
     p.add_argument("--lidar", default="os0-32-512", metavar="MODEL",
                    help="LiDAR model of every UAV ('' = the scenario's own); a light one keeps runs quick")
+    p.add_argument("--plot", metavar="DIR", help="draw each scenario's arena from above with where every run's "
+                                                 "attacks and interceptions aimed (at a target or at none) and where "
+                                                 "UAVs broke the safety distance: DIR/<scenario>.png")
     p.add_argument("--out", metavar="DIR", help="keep each run's scenario, summary, log and its services' log "
                                                 "lines here (default: a temporary directory, removed afterwards)")
     p.set_defaults(handler=run_campaign)
@@ -71,10 +75,15 @@ def _options(args: argparse.Namespace) -> tuple[tuple[int, ...], tuple[str, ...]
 
 def run_campaign(args: argparse.Namespace) -> int:
     teams, kinds = _options(args)
+    names = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
+    if not names:
+        raise CliError("--scenarios: at least one scenario name or TOML file")
+    if args.plot and Path(args.plot).suffix:
+        raise CliError(f"--plot: a directory for one PNG per scenario, not a file ({args.plot})")
     try:
-        load_scenario(args.scenario)  # a bad scenario is one error now, not one per run
-        base = scenario_path(args.scenario).read_text()
-        plans = draw_runs(args.runs, args.seed, args.duration, teams, args.faults_per_run, kinds)
+        scenarios = {name: load_scenario(name) for name in names}  # a bad scenario is one error now, not one per run
+        bases = {name: scenario_path(name).read_text() for name in names}
+        plans = draw_runs(args.runs, args.seed, args.duration, teams, args.faults_per_run, kinds, names)
     except ValueError as exc:
         raise CliError(str(exc)) from None
     with tempfile.TemporaryDirectory(prefix="falconry-campaign-") as scratch:
@@ -82,20 +91,29 @@ def run_campaign(args: argparse.Namespace) -> int:
         out.mkdir(parents=True, exist_ok=True)
         config = out / "campaign.toml"
         config.write_text(f'[sensor_driver]\nmodel = "{args.lidar}"\n' if args.lidar else "")
-        print(f"campaign: {len(plans)} runs of {args.duration:g} s, seed {args.seed}, detector {args.detector}"
-              + (f", LiDAR {args.lidar}" if args.lidar else ""), flush=True)
-        results, safety = [], None
+        print(f"campaign: {len(plans)} runs of {args.duration:g} s over {', '.join(names)}, seed {args.seed}, detector "
+              f"{args.detector}" + (f", LiDAR {args.lidar}" if args.lidar else ""), flush=True)
+        results, summaries, safety = [], [], None
         for plan in plans:
             started = time.monotonic()
-            result, summary = _fly(plan, base, config, args, out)
+            result, summary = _fly(plan, bases[plan.scenario], config, args, out)
             wall = time.monotonic() - started
             safety = summary.get("safety_distance", safety)
             results.append(result)
+            summaries.append(summary)
             print(f"[{plan.index}/{len(plans)}] " + row(result) + f" (wall {wall:.0f} s)", flush=True)
     print("\n" + HEADER)
     for result in results:
         print(row(result))
     print("\n".join(totals(results, safety or 0.0)))
+    if args.plot:
+        from services.launcher.plot import plot_arena  # matplotlib only when a picture is asked for
+        Path(args.plot).mkdir(parents=True, exist_ok=True)
+        for name, scenario in scenarios.items():
+            path = Path(args.plot) / f"{Path(name).stem}.png"
+            runs = [(r, s) for r, s in zip(results, summaries) if r.plan.scenario == name]
+            plot_arena(scenario, [s for _, s in runs], path, f"{scenario.name}: {len(runs)} runs of campaign seed {args.seed}")
+            print(f"arena picture: {path}")
     return 0 if all(r.ok for r in results) else 1
 
 

@@ -1,4 +1,5 @@
-"""The run as a picture (`--plot FILE.png`): one timeline of the whole mission.
+"""The run as a picture (`--plot FILE.png`): one timeline of the whole mission; and a campaign's
+arena from above (`falconry campaign --plot DIR`, `plot_arena`).
 
 Top: every target — when it was first detected (open circle) and destroyed or captured (cross).
 Then per UAV: the job manager's state as a coloured band, detections per second (bars) and the
@@ -136,3 +137,57 @@ def plot_curves(path: str | Path, x, curves: dict[str, list[float]], xlabel: str
         raise UsageError(f"cannot write the plot {path}: {exc.strerror or exc}") from None
     finally:
         plt.close(figure)
+
+
+def plot_arena(scenario, summaries: list[dict], path: str | Path, title: str) -> None:
+    """The scenario's arena from above — outline, obstacles, balloons, the drones' paths, the
+    starts — and every attack and interception the runs' summaries list, at the point it aimed at:
+    a dot when it aimed at a target, a red cross when at none."""
+    import numpy as np
+    from matplotlib.patches import Circle, Polygon, Rectangle
+
+    fig, ax = plt.subplots(figsize=(9, 7))
+    ax.add_patch(Polygon(np.asarray(scenario.arena), closed=True, fill=False, edgecolor="black", linewidth=1.5))
+    for o in scenario.obstacles:
+        face = "0.55" if o.surveyed else "0.8"
+        if o.kind == "box":
+            ax.add_patch(Rectangle((o.center[0] - o.size[0] / 2, o.center[1] - o.size[1] / 2), o.size[0], o.size[1],
+                                   facecolor=face, edgecolor="0.3"))
+        else:
+            ax.add_patch(Circle(o.center[:2], o.radius, facecolor=face, edgecolor="0.3"))
+    for b in scenario.balloons:
+        ax.plot(*b.pole, marker="o", color="tab:orange", markersize=6, linestyle="none")
+    for d in scenario.drones:
+        if d.center is not None and d.radius > 0:
+            ax.add_patch(Circle(d.center[:2], d.radius, fill=False, edgecolor="tab:purple", linestyle="--"))
+        if d.waypoints:
+            w = np.asarray(d.waypoints)
+            ax.plot(w[:, 0], w[:, 1], color="tab:purple", linestyle="--", linewidth=1)
+    for k, start in enumerate(scenario.starts or []):
+        ax.plot(start[0], start[1], marker="^", color=_rgb(uav_color(k)), markersize=9, linestyle="none")
+    hits, misses = [], []
+    for summary in summaries:
+        for uav in summary.get("uavs", {}).values():
+            for e in uav.get("engagements", []):
+                (misses if e.get("target") is None else hits).append(e["aim"][:2])
+    if hits:
+        ax.plot(*np.asarray(hits).T, marker=".", color="tab:green", linestyle="none", label=f"aimed at a target ({len(hits)})")
+    if misses:
+        ax.plot(*np.asarray(misses).T, marker="x", color="red", markersize=9, linestyle="none",
+                label=f"aimed at no target ({len(misses)})")
+    ax.plot([], [], marker="o", color="tab:orange", linestyle="none", label="balloon")
+    ax.plot([], [], color="tab:purple", linestyle="--", label="drone path")
+    ax.plot([], [], marker="^", color="0.3", linestyle="none", label="start")
+    ax.set_aspect("equal")
+    ax.autoscale_view()
+    ax.set_xlabel("x, m (east)")
+    ax.set_ylabel("y, m (north)")
+    ax.set_title(title)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    fig.tight_layout()
+    try:
+        fig.savefig(path, dpi=110)
+    except OSError as exc:
+        raise UsageError(f"cannot write {path}: {exc.strerror}") from None
+    finally:
+        plt.close(fig)
