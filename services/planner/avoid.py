@@ -88,18 +88,27 @@ class Airspace:
     def band(self) -> Band:
         return Band(self.low, self.high, self.box_low, self.box_high)
 
-    def confine(self, points: np.ndarray) -> tuple[np.ndarray, int]:
+    def confine(self, points: np.ndarray) -> Confined:
         """(N, 3) points moved into the arena (onto its outline, the nearest point) and below
-        `high`, and how many had to move. Landing and take-off go below `low`: it is not enforced."""
-        points = np.array(points, dtype=np.float64).reshape(-1, 3)
-        moved = points[:, 2] > self.high
-        points[moved, 2] = self.high
+        `high`. Landing and take-off go below `low`: it is not enforced."""
+        given = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        points = given.copy()
+        points[:, 2] = np.minimum(points[:, 2], self.high)
         if len(self.arena) >= 3 and len(points):
             outside = ~point_in_polygon(points[:, :2], np.asarray(self.arena))
             if outside.any():
                 points[outside, :2] = nearest_on_edges(points[outside, :2], np.asarray(self.arena))[0]
-                moved |= outside
-        return points, int(moved.sum())
+        shift = np.linalg.norm(points - given, axis=1)
+        return Confined(points, int((shift > 0).sum()), float(shift.max(initial=0.0)))
+
+
+@dataclass(frozen=True)
+class Confined:
+    """Points moved inside an airspace: how many moved, and the farthest move, m."""
+
+    points: np.ndarray
+    moved: int
+    farthest: float
 
 
 def airspace_of(arena, min_height: float, max_height: float, ground_z: float, floor: float) -> Airspace:

@@ -182,25 +182,26 @@ def plan_command(command: MissionCommand, vehicle: VehicleState, params: Planner
         return _plan(command, vehicle, params, env, approach_from)
     command, aimed = _confined_command(command, env.airspace)
     plan = _plan(command, vehicle, params, env, approach_from)
-    positions, moved = env.airspace.confine(plan.path[0])
-    if not aimed and not moved:
+    inside = env.airspace.confine(plan.path[0])
+    if not aimed and not inside.moved:
         return plan
-    said = [f"target aimed inside the arena and below {env.airspace.high:g} m"] if aimed else []
-    said += [f"{moved} reference samples moved inside the arena and below {env.airspace.high:g} m"] if moved else []
-    return replace(plan, path=(positions, plan.path[1]), note="; ".join([*filter(None, [plan.note]), *said]))
+    ceiling = f"inside the arena and below {env.airspace.high:g} m"
+    said = [f"target aimed {ceiling}"] if aimed else []
+    said += [f"{inside.moved} reference samples moved {ceiling} (up to {inside.farthest:.2f} m)"] if inside.moved else []
+    return replace(plan, path=(inside.points, plan.path[1]), note="; ".join([*filter(None, [plan.note]), *said]))
 
 
 def _confined_command(command: MissionCommand, airspace) -> tuple[MissionCommand, bool]:
     """The command with its target and target path moved inside the airspace, and whether any moved."""
     changes = {}
     if command.target is not None:
-        target, moved = airspace.confine(np.asarray(command.target, dtype=np.float64))
-        if moved:
-            changes["target"] = tuple(float(v) for v in target[0])
+        target = airspace.confine(np.asarray(command.target, dtype=np.float64))
+        if target.moved:
+            changes["target"] = tuple(float(v) for v in target.points[0])
     if command.target_path is not None:
-        path, moved = airspace.confine(to_numpy(command.target_path))
-        if moved:
-            changes["target_path"] = from_numpy(path)
+        path = airspace.confine(to_numpy(command.target_path))
+        if path.moved:
+            changes["target_path"] = from_numpy(path.points)
     return (msgspec.structs.replace(command, **changes), True) if changes else (command, False)
 
 
