@@ -325,6 +325,11 @@ class UavStatus(msgspec.Struct, kw_only=True):
     fallen_partners: list[str] = []  # partners this UAV's job manager counts as fallen (revenge mode)
     forbidden_zones: list[ForbiddenZoneStatus] = []  # this UAV's live forbidden zones
     state_reason: str = ""  # why the job manager entered `state` (e.g. "lost link: ...")
+    # The next seconds of this UAV's reference (its planner's trajectory): float64 (K, 3) positions at
+    # plan_start + i·plan_dt (ns, s), at rest after the last; partners check their own plans against it
+    plan: Array | None = None
+    plan_start: int = 0
+    plan_dt: float = 0.0
 
 
 class SimClock(msgspec.Struct, kw_only=True):

@@ -138,7 +138,7 @@ def test_the_lower_priority_uav_yields_by_climbing_above_the_partner():
     flying(rig, "uav1", 1.2, position=HOME + [3.0, 0, 0])
     rig.tick(1.2)
     hold = rig.last
-    assert hold.action == "goto" and hold.target == (HOME[0], HOME[1], HOME[2] + 3.0)
+    assert hold.action == "goto" and hold.target == (HOME[0], HOME[1], HOME[2] + 6.0)  # vertical_separation
     flying(rig, "uav1", 1.3, position=HOME + [6.0, 0, 0])  # 6 m: beyond 5 m but inside the hysteresis
     rig.tick(1.3)
     assert rig.last == hold
@@ -174,7 +174,7 @@ def test_an_engaged_uav_brakes_rather_than_fly_into_the_partner_yielding_to_it()
     assert "giving way to uav2" in rig.jm.notes[-1]
     rig.tick(1.4, detections=[BALLOON], velocity=np.zeros(3))  # stopped: still held, not released
     assert rig.last.action == "stop"
-    flying(rig, "uav2", 1.45, position=partner + [0.0, 0.0, 2.6])  # it climbed out of the way
+    flying(rig, "uav2", 1.45, position=partner + [0.0, 0.0, 5.6])  # it climbed out of the way
     rig.tick(1.5, detections=[BALLOON])
     assert rig.last.action == "approach" and "clear: engaging again" in " ".join(rig.jm.notes[-3:])
     # moving away from a partner, or a sweeping UAV: nothing to give way to
@@ -202,7 +202,7 @@ def test_a_head_on_meeting_is_resolved_before_the_safety_distance_is_broken():
     far.tick(1.1, velocity=south)
     flying(far, "uav1", 1.1, position=HOME + [0.0, -25.0, 0.0], state="GOING_TO_TARGET", velocity=north)
     far.tick(1.2)
-    assert far.last.action == "goto" and far.last.target == (HOME[0], HOME[1], HOME[2] + 3.0)
+    assert far.last.action == "goto" and far.last.target == (HOME[0], HOME[1], HOME[2] + 6.0)
     assert "yielding to uav1 (24.7 m apart)" in " ".join(far.jm.notes)  # carried on 0.1 s at 3 m/s
     early = Rig(uav="uav2").airborne()  # 30 m: 3.3 s to the breach, later than the 3 s lookahead
     early.tick(1.1, velocity=south)
@@ -223,11 +223,11 @@ def test_an_engaged_uav_gives_way_to_a_partner_it_will_meet_and_a_yield_lasts_un
     flying(rig, "uav2", 1.25, position=HOME + 15.0 * toward, velocity=-4.5 * toward)  # sweeping at it
     rig.tick(1.3, detections=[BALLOON], velocity=3.0 * toward)  # (15 - 0.2·4.5 - 5) / 7.5 = 1.2 s
     assert rig.last.action == "stop" and "giving way to uav2" in rig.jm.notes[-1]
-    # the partner (yielding) hovers 1 m above the way: still held; 2.6 m above: clear
-    flying(rig, "uav2", 1.35, position=HOME + 6.0 * toward + [0.0, 0.0, 1.0])
+    # the partner (yielding) hovers 4 m above the way: still held; 5.6 m above: clear
+    flying(rig, "uav2", 1.35, position=HOME + 6.0 * toward + [0.0, 0.0, 4.0])
     rig.tick(1.4, detections=[BALLOON], velocity=1.0 * toward)
     assert rig.last.action == "stop"
-    flying(rig, "uav2", 1.45, position=HOME + 6.0 * toward + [0.0, 0.0, 2.6])
+    flying(rig, "uav2", 1.45, position=HOME + 6.0 * toward + [0.0, 0.0, 5.6])
     rig.tick(1.5, detections=[BALLOON])
     assert rig.last.action == "approach"
     # the yielding side: held (above the way) while the engaged partner passes below, released once it is past

@@ -43,6 +43,7 @@ import numpy as np
 from services.geometry import polygon_area
 from services.job_manager.areas import grown_part, split_area
 from services.job_manager.params import JobManagerParams
+from services.job_manager.plans import PlannedPath
 from services.job_manager.sightings import ConfirmedTracks, Sightings
 from services.job_manager.targets import NS, ForbiddenZones, TargetFilter, usable_detections
 from services.job_manager.team import Mover, SeparationRule, Team
@@ -184,6 +185,8 @@ class JobManager:
         self._sent_seen = 0  # when the mover of the sent prediction was last measured
         self._now = 0
         self.seen = Sightings(params)
+        self.reference: PlannedPath | None = None  # the own planner's latest reference
+        self._paused: tuple[PlannedPath | None, int] | None = None  # a yield's: the mission's reference, since when
         self.lidar = SensorTrust(params.sensor_settle_time)  # detections are not acted on while it fails or settles
         self.camera = SensorTrust(params.sensor_settle_time)
         self._previous_target: np.ndarray | None = None  # what was locked before CHECKING_TARGET
@@ -313,10 +316,21 @@ class JobManager:
             self._blocked = None
 
     def partner_status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool = True,
-                       position=(0.0, 0.0, 0.0), state: str = "", target=None, velocity=(0.0, 0.0, 0.0)) -> None:
+                       position=(0.0, 0.0, 0.0), state: str = "", target=None, velocity=(0.0, 0.0, 0.0),
+                       plan: PlannedPath | None = None) -> None:
         if self.team is not None and name != self.uav:
             self.team.status(name, stamp, flying_normally=flying_normally, airborne=airborne,
-                             position=position, state=state, target=target, velocity=velocity)
+                             position=position, state=state, target=target, velocity=velocity, plan=plan)
+
+    def observe_reference(self, plan: PlannedPath) -> None:
+        """This UAV's own planner's latest reference (the separation rules compare it with the partners')."""
+        self.reference = plan
+
+    def shared_plan(self, now: int) -> PlannedPath | None:
+        """The next plan_horizon s of the own reference, every plan_step s, for the status (None: none yet)."""
+        if self.reference is None:
+            return None
+        return self.reference.sampled(now, self.params.plan_horizon, self.params.plan_step)
 
     def partner_token(self, name: str, alive: bool, stamp: int) -> None:
         if self.team is not None and name != self.uav:
@@ -370,7 +384,7 @@ class JobManager:
         target, reason = self._next_state(now_ns, position, velocity, airborne, services_ready, stamp)
         if target is not self.state:
             self._enter(target, now_ns, reason, position)
-        decision = (self._yielding(now_ns, position, velocity) or self._giving_way(now_ns, position, velocity)
+        decision = (self._yielding(now_ns, position, velocity, airborne) or self._giving_way(now_ns, position, velocity)
                     or self._decision_for(now_ns, position))
         decision = self._within_positioning(decision, position)
         if decision == self._decision:
@@ -748,14 +762,16 @@ class JobManager:
         return ""
 
     # -------------------------------------------------------------- decisions
-    def _yielding(self, now: int, position: np.ndarray, velocity: np.ndarray) -> MissionDecision | None:
-        """Separation rule (team.py): hold position and climb above the partner while too close."""
+    def _yielding(self, now: int, position: np.ndarray, velocity: np.ndarray, airborne: bool) -> MissionDecision | None:
+        """Separation rule (team.py): hold (and climb above the partner's plan, if it passes near)
+        while too close or predicted to be."""
         p = self.params
-        if self.team is None or self.state not in MISSION_STATES:
+        if self.team is None or self.state not in (*MISSION_STATES, State.TAKING_OFF):
             self._yield = None
             return None
         current = self._yield[0] if self._yield else None
-        partner = self.team.yield_to(now, Mover(position, velocity, self.state.value), self._separation, current)
+        me = Mover(position, velocity, self.state.value, self._mission_plan(now), airborne)
+        partner = self.team.yield_to(now, me, self._separation, current)
         if partner is None:
             if self._yield is not None:
                 self.notes.append(f"separation from {current} restored")
@@ -763,8 +779,9 @@ class JobManager:
             self._yield = None
             return None
         if self._yield is None or self._yield[0] != partner.name:
-            spot = (float(position[0]), float(position[1]),
-                    float(max(position[2], partner.position[2] + p.vertical_separation)))
+            spot = _tuple(self.team.hold_spot(now, me, partner, self._separation))
+            if self._yield is None:
+                self._paused = (self.reference, now)
             self._yield = (partner.name, spot)
             self.notes.append(f"yielding to {partner.name} "
                               f"({np.linalg.norm(self.team.position_now(partner, now) - position):.1f} m apart): "
@@ -773,6 +790,16 @@ class JobManager:
         # for its whole braking distance (4.7 m/s: 8.7 m at the sweeping profile's, 4.3 m at the attack's)
         return MissionDecision("goto", height=self._yield[1][2], spacing=p.scan_spacing, target=self._yield[1],
                                profile="attack")
+
+    def _mission_plan(self, now: int) -> PlannedPath | None:
+        """The own plan the separation rules check: the reference; while yielding, the mission's
+        reference as it would go on if taken up again now (a yield that ended whenever the hold
+        itself was clear would end and start again tick by tick while the mission's way is not)."""
+        if self._yield is None or self._paused is None or self._paused[0] is None:
+            return self.reference
+        plan, paused = self._paused
+        p = self.params
+        return plan.resumed(paused, now, p.plan_horizon, p.plan_step)
 
     def _giving_way(self, now: int, position: np.ndarray, velocity: np.ndarray) -> MissionDecision | None:
         """Giving way (team.py): an engaged UAV brakes to a hover rather than fly into a partner."""
@@ -798,7 +825,7 @@ class JobManager:
     def _separation(self) -> SeparationRule:
         p = self.params
         return SeparationRule(p.safety_distance, p.vertical_separation, p.separation_hysteresis,
-                              p.separation_lookahead)
+                              p.separation_lookahead, p.plan_horizon, p.plan_step, p.plan_widen_rate)
 
     def _decision_for(self, now: int, position: np.ndarray) -> MissionDecision:
         p, state = self.params, self.state

@@ -24,11 +24,13 @@ from schemas.messages import (
     Odometry,
     PlanReport,
     Tracks,
+    TrajectoryReference,
     UavStatus,
     WorldModel,
 )
 from services.job_manager.core import NS, JobManager, MissionDecision, State
 from services.job_manager.params import JobManagerParams
+from services.job_manager.plans import PlannedPath
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.tracker.view import (path_step, track_path, track_position, track_position_covariance, track_positions,
@@ -49,6 +51,7 @@ class JobManagerNode(Node):
     def setup(self) -> None:
         self._refused_worlds = 0
         self._bad_input = CountedWarnings(self.log)
+        self._refused_plans = 0
         preload("filterpy.kalman")  # the target filter's library: off the restart's critical path
         self.core = JobManager(self.params, self.uav)
         p = self.params
@@ -78,6 +81,7 @@ class JobManagerNode(Node):
         self.subscribe(self.topic("camera_detections"), Detections, self.on_camera_detections)
         self.subscribe(self.topic("tracks"), Tracks, self.on_tracks)
         self.subscribe(self.topic("plan"), PlanReport, self.on_plan)
+        self.subscribe(self.topic("trajectory"), TrajectoryReference, self.on_trajectory)
         self.subscribe(keys.ALL_STATUS, UavStatus, self.on_partner_status)
         self.on_liveliness(keys.ALL_ALIVE, self.on_alive)
 
@@ -134,7 +138,28 @@ class JobManagerNode(Node):
         if msg.uav != self.uav:
             self.core.partner_status(msg.uav, msg.header.stamp, flying_normally=msg.flying_normally,
                                      airborne=msg.airborne, position=msg.position, state=msg.state, target=msg.target,
-                                     velocity=msg.velocity)
+                                     velocity=msg.velocity, plan=self._plan_of(msg))
+
+    def _plan_of(self, msg: UavStatus) -> PlannedPath | None:
+        """A partner's shared plan; one that cannot be (not finite, a bad shape or step) is left out,
+        counted, and the partner is predicted from its velocity instead."""
+        if msg.plan is None:
+            return None
+        try:
+            return PlannedPath(msg.plan_start, msg.plan_dt, to_numpy(msg.plan))
+        except ValueError:
+            self._refused_plans += 1
+            self._bad_input.update({"partner plans refused (not finite (K, 3) positions every plan_dt > 0)":
+                                    self._refused_plans})
+            return None
+
+    def on_trajectory(self, msg: TrajectoryReference, key: str) -> None:
+        try:
+            self.core.observe_reference(PlannedPath(msg.start, msg.dt, to_numpy(msg.positions)))
+        except ValueError:
+            self._refused_plans += 1
+            self._bad_input.update({"own references refused (not finite (K, 3) positions every dt > 0)":
+                                    self._refused_plans})
 
     def on_alive(self, key: str, alive: bool) -> None:
         parsed = keys.parse_alive(key)
@@ -223,6 +248,7 @@ class JobManagerNode(Node):
     def publish_status(self, now_ns: int) -> None:
         position = self.position if self.position is not None else np.zeros(3)
         area = self.core.working_area
+        plan = self.core.shared_plan(now_ns)
         self.status_pub.put(UavStatus(
             header=Header(stamp=now_ns),
             uav=self.uav,
@@ -237,6 +263,9 @@ class JobManagerNode(Node):
             forbidden_zones=[ForbiddenZoneStatus(center=z.center, radius=self.core.zones.radius, expires=z.expires,
                                                  reason=z.reason) for z in self.core.zones.zones],
             state_reason=self.core.transitions[-1].reason if self.core.transitions else "",
+            plan=None if plan is None else from_numpy(plan.positions),
+            plan_start=0 if plan is None else plan.start,
+            plan_dt=0.0 if plan is None else plan.dt,
         ))
 
 

@@ -55,12 +55,20 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     claim_radius: float = 4.5  # m around a partner's target that is left to it
     area_overlap: float = 2.0  # m beyond its working area a UAV still takes a target (one on the line: both may)
     safety_distance: float = 5.0  # m: closer than this to a partner, the lower-priority UAV yields
-    vertical_separation: float = 3.0  # m above the partner a yielding UAV climbs to
+    # m above the highest point of the partner's plan near it a yielding UAV climbs to (when holding
+    # where it is would not keep it clear): more than safety_distance, so a partner passing below is no breach
+    vertical_separation: float = 6.0
     separation_hysteresis: float = 2.0  # m beyond safety_distance before a yield ends
     # s: a partner predicted (both at their current velocities) to come within safety_distance this
     # soon is treated as one already there. Two UAVs closing at 10 m/s (two sweeps head-on) brake from
     # 5 m/s in 1.7 s (attack profile) and a yielding one climbs clear in about 1.5 s more
     separation_lookahead: float = 3.0
+    # Separation planned ahead (team.py, plans.py): the statuses carry the next plan_horizon s of each
+    # UAV's reference every plan_step s; a partner's plan must keep plan_widen_rate m more per second
+    # of its age. 6 s: braking from 8.3 m/s (2.8 s at the attack profile) and climbing clear after
+    plan_horizon: float = 6.0
+    plan_step: float = 0.25
+    plan_widen_rate: float = 2.0
     sweeping_speed: float = 5.0  # m/s, constraint profile "sweeping" (scan, approach, climbs)
     sweeping_acceleration: float = 1.5  # m/s²
     attack_speed: float = 8.3  # m/s, constraint profile "attack" (attack, intercept)

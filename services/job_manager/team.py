@@ -26,17 +26,24 @@ Rules (docs/architecture.md, "Mission"):
 - **One chaser per target**: a partner's claimed target (its status `target`) filters out my
   detections within `claim_radius` of it — unless I claim the same target and am closer to it
   (ties: the UAV earlier in the team order keeps it).
-- **Separation**: when an active, airborne partner is closer than `safety_distance`, or will be
-  within `separation_lookahead` seconds at both UAVs' current velocities (`breach_time`), the
-  lower-priority UAV yields: it holds its horizontal position and climbs to
-  `vertical_separation` above the partner, until the distance exceeds safety_distance +
-  `separation_hysteresis` and is not predicted to fall below it within the lookahead. Priority:
-  a UAV engaging a target (GOING_TO_TARGET, DESTROYING) over one that is not, then the team
-  order. A partner's position is its last status's, carried on at its velocity to now (at most
-  for `lost_link_time`: beyond that it is unaccounted, a no-fly column). Reacting only inside
-  the safety distance was too late: on street (seed 4) a sweeping UAV at 4.5 m/s and an
-  interceptor at 3 m/s met head-on; two braking distances at those speeds plus a tick are
-  about 6 m.
+- **Separation, planned ahead** (plans.py): every status carries the next `plan_horizon` s of
+  its UAV's reference. When an active partner that is airborne or taking off is closer than
+  `safety_distance`, or its plan and this UAV's come closer than that within plan_horizon (the
+  partner's plan widened by `plan_widen_rate` m per second of its status's age), the
+  lower-priority UAV yields, before the distance breaks. Without plans on either side the
+  prediction falls back to both UAVs' current velocities over `separation_lookahead`
+  (`breach_time`). The yield holds where the UAV is — on the ground while it is still taking
+  off — when the partner's plan stays safety_distance + `separation_hysteresis` clear of that
+  spot; else it also climbs to `vertical_separation` above the highest point of the partner's
+  plan near it (`hold_spot`). It lasts until the distance exceeds safety_distance + hysteresis
+  and no breach is predicted. Priority: a UAV engaging a target (GOING_TO_TARGET, DESTROYING)
+  over one that is not, then the team order. A partner's position is its last status's, carried
+  on at its velocity to now (at most for `lost_link_time`: beyond that it is unaccounted, a no-fly
+  column). Reacting only inside the safety distance was too late: on street (seed 4) a sweeping
+  UAV at 4.5 m/s and an interceptor at 3 m/s met head-on; two braking distances at those speeds
+  plus a tick are about 6 m. Reacting to current velocities was too late as well: two sweeps
+  turning into each other, two take-offs side by side and two chasers converging on one drone
+  came within 4.0-4.6 m (the velocities said nothing of the turn ahead).
 - **Giving way**: the UAV with priority does not yield, but it must not fly into the one yielding
   to it, which brakes from its own speed before it can climb. An engaged UAV moving towards a
   partner closer than `safety_distance` (faster than GIVE_WAY_SPEED) that is less than
@@ -50,6 +57,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from services.job_manager.plans import PlannedPath, first_breach, straight_on
 
 NS = 1_000_000_000
 ENGAGED_STATES = ("GOING_TO_TARGET", "DESTROYING")
@@ -72,6 +81,7 @@ class Partner:
     fallen_reason: str = ""  # "" while active
     landed_seen: bool = False  # its last status said it is on the ground
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))  # its last status's, m/s
+    plan: PlannedPath | None = None  # the next seconds of its reference, from its last status
 
 
 @dataclass(frozen=True)
@@ -95,7 +105,7 @@ class Team:
 
     # ---------------------------------------------------------------- inputs
     def status(self, name: str, stamp: int, *, flying_normally: bool, airborne: bool, position, state: str,
-               target, velocity=(0.0, 0.0, 0.0)) -> None:
+               target, velocity=(0.0, 0.0, 0.0), plan: PlannedPath | None = None) -> None:
         p = self.partners.get(name)
         if p is None:
             return
@@ -110,6 +120,7 @@ class Team:
         p.landed_seen = not airborne
         p.state = state
         p.target = None if target is None else np.asarray(target, dtype=np.float64).reshape(3)
+        p.plan = plan
 
     def token(self, name: str, alive: bool, stamp: int) -> None:
         p = self.partners.get(name)
@@ -210,17 +221,56 @@ class Team:
         return p.position + p.velocity * age
 
     def _near(self, now: int, me: Mover, rule: SeparationRule, radius: float) -> list[tuple[Partner, np.ndarray, float]]:
-        """(partner, its offset from me now, distance) of every active airborne partner closer than
-        `radius` now or predicted to be within rule.lookahead."""
+        """(partner, its offset from me now, distance) of every active partner that is airborne or
+        taking off and closer than `radius` now or predicted to be (`predicted_breach`)."""
         found = []
         for p in self.partners.values():
-            if p.fallen_reason or not p.airborne or p.position is None:
+            if p.fallen_reason or not (p.airborne or p.state == "TAKING_OFF") or p.position is None:
                 continue
             offset = self.position_now(p, now) - me.position
             distance = float(np.linalg.norm(offset))
-            if distance < radius or breach_time(offset, p.velocity - me.velocity, radius) <= rule.lookahead:
+            if distance < radius or self.predicted_breach(now, me, p, rule, radius):
                 found.append((p, offset, distance))
         return found
+
+    def partner_plan(self, p: Partner, now: int, rule: SeparationRule) -> tuple[PlannedPath, float]:
+        """A partner's plan and its age, s (its last status's); without one, its last position carried
+        on at its last velocity."""
+        heard = p.heard if p.heard is not None else now
+        age = max(now - heard, 0) / NS
+        if p.plan is not None:
+            return p.plan, age
+        return straight_on(p.position, p.velocity, heard, rule.plan_horizon + age, rule.plan_step), age
+
+    def predicted_breach(self, now: int, me: Mover, p: Partner, rule: SeparationRule, radius: float) -> bool:
+        """Whether the partner and I are predicted to come closer than `radius`: by our plans within
+        plan_horizon when either of us has one, else by our velocities within rule.lookahead."""
+        if me.plan is None and p.plan is None:
+            offset = self.position_now(p, now) - me.position
+            return breach_time(offset, p.velocity - me.velocity, radius) <= rule.lookahead
+        mine = me.plan if me.plan is not None else straight_on(me.position, me.velocity, now, rule.plan_horizon,
+                                                                 rule.plan_step)
+        theirs, age = self.partner_plan(p, now, rule)
+        approach = first_breach(mine, theirs, now, rule.plan_horizon, rule.plan_step, radius, age, rule.widen_rate)
+        return approach.breach <= rule.plan_horizon
+
+    def hold_spot(self, now: int, me: Mover, p: Partner, rule: SeparationRule) -> np.ndarray:
+        """Where a UAV yielding to `p` holds: where it is, when the partner's plan keeps safety_distance +
+        hysteresis from there over the horizon (and on the ground while it is still taking off);
+        else also vertical_separation above the highest point of that plan within that reach."""
+        spot = np.asarray(me.position, dtype=np.float64).copy()
+        theirs, age = self.partner_plan(p, now, rule)
+        reach = rule.safety_distance + rule.hysteresis
+        here = PlannedPath(now, rule.plan_step, spot[None])
+        if me.state == "TAKING_OFF" and not me.airborne:
+            return spot
+        if first_breach(here, theirs, now, rule.plan_horizon, rule.plan_step, reach, age, rule.widen_rate).breach == np.inf:
+            return spot
+        times = now + np.round(np.arange(int(rule.plan_horizon / rule.plan_step) + 1) * rule.plan_step * NS).astype(np.int64)
+        path = theirs.at(times)
+        close = np.linalg.norm(path[:, :2] - spot[:2], axis=1) < reach + age * rule.widen_rate
+        spot[2] = max(spot[2], float(path[close, 2].max(initial=self.position_now(p, now)[2])) + rule.vertical_separation)
+        return spot
 
     def give_way_to(self, now: int, me: Mover, rule: SeparationRule, giving_way_to: str | None) -> Partner | None:
         """The partner an engaged UAV must brake for now (None: no one); see the module docstring."""
@@ -245,8 +295,8 @@ class Team:
         engaged = me.state in ENGAGED_STATES
         best, best_distance = None, np.inf
         for p, offset, distance in self._near(now, me, rule, rule.safety_distance + rule.hysteresis):
-            if p.name != yielding_to:
-                if breach_time(offset, p.velocity - me.velocity, rule.safety_distance) > rule.lookahead:
+            if p.name != yielding_to:  # a new yield: inside the safety distance now or predicted to be
+                if distance >= rule.safety_distance and not self.predicted_breach(now, me, p, rule, rule.safety_distance):
                     continue
             theirs = p.state in ENGAGED_STATES
             outranked = theirs if theirs != engaged else self.members.index(p.name) < order
@@ -261,14 +311,19 @@ class Mover:
     position: np.ndarray
     velocity: np.ndarray
     state: str
+    plan: PlannedPath | None = None  # its own reference (None: not known yet)
+    airborne: bool = True
 
 
 @dataclass(frozen=True)
 class SeparationRule:
     safety_distance: float  # m
-    vertical_separation: float  # m a yielding UAV climbs above its partner
+    vertical_separation: float  # m a yielding UAV climbs above the partner's plan near it
     hysteresis: float  # m beyond safety_distance before a yield or a hold ends
-    lookahead: float  # s: a predicted breach this soon counts as one now
+    lookahead: float  # s: a breach predicted from velocities this soon counts as one now
+    plan_horizon: float = 6.0  # s of plans compared
+    plan_step: float = 0.25  # s between the compared samples
+    widen_rate: float = 2.0  # m per s of a partner plan's age added to the distance it must keep
 
 
 def breach_time(offset: np.ndarray, relative_velocity: np.ndarray, radius: float) -> float:

@@ -1,0 +1,164 @@
+"""Separation planned ahead (team.py, plans.py): each UAV's status carries the next seconds of its
+reference, and a conflict between two plans is resolved by the lower-priority UAV before the safety
+distance (5 m) is crossed — where the UAVs' current velocities say nothing is coming."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from services.job_manager.core import State
+from services.job_manager.plans import NS, PlannedPath, first_breach
+from tests.test_job_manager_machine import HOME, Rig, s
+
+
+def line(t0: float, start, velocity, seconds: float = 8.0, dt: float = 0.25) -> PlannedPath:
+    """A plan flying from `start` at `velocity` (m/s) from mission time t0 for `seconds`."""
+    steps = np.arange(int(seconds / dt) + 1)[:, None] * dt
+    return PlannedPath(s(t0), dt, np.asarray(start, dtype=float) + steps * np.asarray(velocity, dtype=float))
+
+
+def turn(t0: float, start, first, then, after: float, seconds: float = 8.0, dt: float = 0.25) -> PlannedPath:
+    """Flying at `first` m/s for `after` s, then at `then` m/s."""
+    t = np.arange(int(seconds / dt) + 1) * dt
+    before = np.minimum(t, after)[:, None] * np.asarray(first, dtype=float)
+    later = np.maximum(t - after, 0.0)[:, None] * np.asarray(then, dtype=float)
+    return PlannedPath(s(t0), dt, np.asarray(start, dtype=float) + before + later)
+
+
+def partner(rig: Rig, t: float, plan: PlannedPath, state: str = "GOING_AROUND", name: str = "uav1",
+            airborne: bool = True, velocity=None) -> None:
+    position = plan.at(np.array([s(t)]))[0]
+    if velocity is None:
+        velocity = (plan.at(np.array([s(t) + NS // 4]))[0] - position) * 4.0
+    rig.jm.partner_status(name, s(t), flying_normally=True, airborne=airborne, position=tuple(position), state=state,
+                          target=None, velocity=tuple(velocity), plan=plan)
+
+
+def closest(a: PlannedPath, b: PlannedPath, t0: float, seconds: float) -> float:
+    return first_breach(a, b, s(t0), seconds, 0.05, 0.0).closest
+
+
+def test_two_sweeps_turning_into_each_other_yield_while_the_velocities_say_they_pass_apart():
+    """uav1 sweeps east 12 m north of uav2 and turns south-east into uav2's line in 1 s; uav2 sweeps
+    east too. Their velocities are parallel (no breach by them); their plans meet 3.7 s ahead."""
+    rig = Rig(uav="uav2").airborne()
+    mine = line(1.1, HOME, (5.0, 0.0, 0.0))
+    rig.jm.observe_reference(mine)
+    rig.tick(1.1, velocity=(5.0, 0.0, 0.0))
+    theirs = turn(1.1, HOME + [0.0, 12.0, 0.0], (5.0, 0.0, 0.0), (5.0, -4.5, 0.0), after=1.0)
+    assert closest(mine, theirs, 1.1, 6.0) < 2.0  # they would meet
+    partner(rig, 1.1, theirs)
+    rig.tick(1.2, velocity=(5.0, 0.0, 0.0))
+    assert rig.last.action == "goto" and "yielding to uav1 (12.0 m apart)" in " ".join(rig.jm.notes)
+    # the same without plans: parallel velocities, no yield until it is too late
+    blind = Rig(uav="uav2").airborne()
+    blind.tick(1.1, velocity=(5.0, 0.0, 0.0))
+    blind.jm.partner_status("uav1", s(1.1), flying_normally=True, airborne=True, position=tuple(HOME + [0.0, 12.0, 0.0]),
+                            state="GOING_AROUND", target=None, velocity=(5.0, 0.0, 0.0))
+    blind.tick(1.2, velocity=(5.0, 0.0, 0.0))
+    assert blind.last.action == "scan"
+
+
+def test_plans_that_pass_apart_change_nothing_and_the_higher_priority_uav_keeps_its_plan():
+    rig = Rig(uav="uav2").airborne()
+    rig.jm.observe_reference(line(1.1, HOME, (5.0, 0.0, 0.0)))
+    rig.tick(1.1)
+    partner(rig, 1.1, line(1.1, HOME + [0.0, 7.0, 0.0], (5.0, 0.0, 0.0)))  # parallel, 7 m apart
+    rig.tick(1.2)
+    assert rig.last.action == "scan"
+    top = Rig(uav="uav1").airborne()
+    top.jm.observe_reference(line(1.1, HOME, (5.0, 0.0, 0.0)))
+    top.tick(1.1)
+    partner(top, 1.1, line(1.1, HOME + [20.0, 0.0, 0.0], (-5.0, 0.0, 0.0)), name="uav2")  # head-on in 1.5 s
+    top.tick(1.2)
+    assert top.last.action == "scan"  # uav2 yields, not uav1
+
+
+def test_a_yield_holds_where_it_is_when_the_partners_plan_passes_clear_of_it_else_climbs_above_it():
+    # uav1 crosses 10 m ahead of uav2 going north: holding where it is keeps uav2 10 m off its line
+    rig = Rig(uav="uav2").airborne()
+    rig.jm.observe_reference(line(1.1, HOME, (5.0, 0.0, 0.0)))
+    rig.tick(1.1)
+    partner(rig, 1.1, line(1.1, HOME + [10.0, -12.0, 0.0], (0.0, 5.0, 0.0)))
+    rig.tick(1.2)
+    assert rig.last.action == "goto" and rig.last.target == tuple(HOME)
+    # uav1's line passes over uav2's spot: it climbs vertical_separation (6 m) above that line
+    over = Rig(uav="uav2").airborne()
+    over.jm.observe_reference(line(1.1, HOME, (1.0, 0.0, 0.0)))  # 3 m east by the time uav1 passes
+    over.tick(1.1)
+    partner(over, 1.1, line(1.1, HOME + [0.0, -15.0, 1.0], (0.0, 5.0, 0.0)))
+    over.tick(1.2)
+    assert over.last.action == "goto" and over.last.target == (HOME[0], HOME[1], HOME[2] + 1.0 + 6.0)
+
+
+def test_a_uav_taking_off_beside_a_partner_that_is_taking_off_waits_on_the_ground():
+    rig = Rig(uav="uav2")
+    ground = HOME - [0.0, 0.0, 5.0]
+    rig.tick(0.0, position=ground)
+    assert rig.jm.state is State.TAKING_OFF
+    rig.jm.observe_reference(line(0.0, ground, (0.0, 0.0, 2.0), seconds=2.5))  # straight up to 5 m
+    climb = line(0.0, ground + [3.0, 0.0, 0.0], (0.0, 0.0, 2.0), seconds=2.5)  # uav1, 3 m away, the same
+    partner(rig, 0.0, climb, state="TAKING_OFF", airborne=False)
+    rig.tick(0.1, position=ground)
+    assert rig.last.action == "goto" and rig.last.target == tuple(ground)  # held on the ground
+    away = turn(3.0, ground + [3.0, 0.0, 5.0], (5.0, 0.0, 0.0), (5.0, 0.0, 0.0), after=0.0)
+    partner(rig, 3.0, away, state="GOING_AROUND")
+    rig.tick(3.0, position=ground)
+    assert rig.last.action == "goto"  # 3 m off: still too close
+    partner(rig, 4.5, away, state="GOING_AROUND")
+    rig.tick(4.5, position=ground)  # 8.4 m off and leaving
+    assert rig.last.action == "takeoff"
+
+
+def test_two_chasers_converging_on_one_target_the_lower_one_yields_before_they_meet():
+    """Both engaged on the same drone from either side; their plans meet where they would catch it."""
+    rig = Rig(uav="uav2").airborne()
+    drone = np.array([70.0, 30.0, 6.0])  # in uav2's half of the arena
+    for t in (1.0, 1.1, 1.2):
+        rig.tick(t, detections=[drone])
+    assert rig.jm.state is State.GOING_TO_TARGET
+    meet = HOME + [15.0, 10.0, 1.0]
+    mine = line(1.3, HOME, (meet - HOME) / 4.0)
+    theirs = line(1.3, meet + [15.0, 0.0, 0.0], np.array([-15.0, 0.0, 0.0]) / 4.0)
+    assert np.linalg.norm(mine.positions[0] - theirs.positions[0]) > 25.0
+    rig.jm.observe_reference(mine)
+    partner(rig, 1.3, theirs, state="GOING_TO_TARGET")
+    rig.tick(1.35)
+    assert rig.last.action == "goto" and "yielding to uav1" in " ".join(rig.jm.notes)
+
+
+@pytest.mark.parametrize("age, yields", [(0.1, False), (1.2, True)])
+def test_a_stale_partner_plan_must_keep_a_wider_distance(age, yields):
+    """A partner hovering 6.5 m away by its plan: fresh, 6.5 > 5 m; heard 1.2 s ago, it may have planned
+    anew since: 5 m + 1.2 s · 2 m/s = 7.4 m."""
+    t = 2.0
+    rig = Rig(uav="uav2").airborne()
+    rig.jm.observe_reference(line(1.0, HOME, (0.0, 0.0, 0.0)))
+    hover = line(t - age, HOME + [6.5, 0.0, 0.0], (0.0, 0.0, 0.0))
+    partner(rig, t - age, hover)
+    rig.tick(t)
+    assert (rig.last.action == "goto") is yields
+
+
+def test_a_yield_lasts_while_the_missions_way_is_blocked_even_when_the_hold_itself_is_clear():
+    """uav1 hovers (checking a target) 9 m ahead on uav2's sweep line: holding where it is, uav2 is
+    clear of it, but taking its sweep up again would fly into it: the yield lasts until uav1 leaves."""
+    rig = Rig(uav="uav2").airborne()
+    sweep = line(1.1, HOME, (5.0, 0.0, 0.0))
+    rig.jm.observe_reference(sweep)
+    rig.tick(1.1)
+    hovering = line(1.1, HOME + [9.0, 0.0, 0.0], (0.0, 0.0, 0.0), seconds=30.0)
+    partner(rig, 1.1, hovering, state="CHECKING_TARGET")
+    rig.tick(1.2)
+    hold = rig.last
+    assert hold.action == "goto" and hold.target == tuple(HOME)
+    rig.jm.observe_reference(line(1.2, HOME, (0.0, 0.0, 0.0)))  # the planner flies the hold
+    for t in np.arange(1.3, 5.0, 0.1):
+        partner(rig, round(t, 2), hovering, state="CHECKING_TARGET")
+        rig.tick(round(t, 2))
+        assert rig.last == hold, f"released at {t:.1f} s"
+    leaving = line(5.0, HOME + [9.0, 0.0, 0.0], (0.0, 5.0, 0.0))
+    partner(rig, 5.0, leaving)
+    partner(rig, 7.0, leaving)
+    rig.tick(7.0)  # uav1 10 m north and going on north: the sweep east is clear
+    assert rig.last.action == "scan"
