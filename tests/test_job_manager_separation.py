@@ -162,3 +162,29 @@ def test_a_yield_lasts_while_the_missions_way_is_blocked_even_when_the_hold_itse
     partner(rig, 7.0, leaving)
     rig.tick(7.0)  # uav1 10 m north and going on north: the sweep east is clear
     assert rig.last.action == "scan"
+
+
+def test_a_hold_climbs_when_the_partners_plan_later_comes_through_it():
+    """agile, 3 UAVs, seed 1: uav3 yielded to uav2's sweep 42 m away and held where it was, clear of
+    the plan's first 6 s; the sweep went on through the spot, and uav2 flew into it."""
+    rig = Rig(uav="uav2").airborne()
+    rig.jm.observe_reference(line(1.1, HOME, (5.0, 0.0, 0.0)))
+    rig.tick(1.1)
+    partner(rig, 1.1, line(1.1, HOME + [10.0, -12.0, 0.0], (0.0, 5.0, 0.0)))  # crosses 10 m ahead
+    rig.tick(1.2)
+    assert rig.last.target == tuple(HOME)  # clear of the spot: held where it is
+    rig.jm.observe_reference(line(1.2, HOME, (0.0, 0.0, 0.0)))
+    # uav1 has planned anew: its next line runs back west along y = HOME's, through the spot
+    back = turn(2.0, HOME + [10.0, 0.0, 0.0], (-5.0, 0.0, 0.0), (-5.0, 0.0, 0.0), after=0.0)
+    partner(rig, 2.0, back)
+    rig.tick(2.0)
+    assert rig.last.action == "goto" and rig.last.target == (HOME[0], HOME[1], HOME[2] + 6.0)
+    assert "comes through the hold: climbing" in rig.jm.notes[-1]
+
+
+def test_a_sweeping_uav_with_priority_brakes_rather_than_fly_into_a_partner_holding_on_its_line():
+    rig = Rig(uav="uav1").airborne()
+    rig.tick(1.1, velocity=(4.0, 0.0, 0.0))
+    partner(rig, 1.1, line(1.1, HOME + [4.5, 0.0, 0.0], (0.0, 0.0, 0.0)), name="uav2")  # 4.5 m ahead, same height
+    rig.tick(1.2, velocity=(4.0, 0.0, 0.0))
+    assert rig.last.action == "stop" and "giving way to uav2" in rig.jm.notes[-1]

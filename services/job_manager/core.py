@@ -786,6 +786,11 @@ class JobManager:
             self.notes.append(f"yielding to {partner.name} "
                               f"({np.linalg.norm(self.team.position_now(partner, now) - position):.1f} m apart): "
                               f"holding at {self._fmt(spot)}")
+        else:  # the partner's plan may come through the spot now: climb (never down while the yield lasts)
+            spot = self.team.hold_spot(now, me, partner, self._separation, at=np.asarray(self._yield[1]))
+            if spot[2] > self._yield[1][2] + 1e-6:
+                self._yield = (partner.name, _tuple(spot))
+                self.notes.append(f"{partner.name}'s plan comes through the hold: climbing to {self._fmt(spot)}")
         # with the attack profile's acceleration: the vehicle's momentum carries it on towards the partner
         # for its whole braking distance (4.7 m/s: 8.7 m at the sweeping profile's, 4.3 m at the attack's)
         return MissionDecision("goto", height=self._yield[1][2], spacing=p.scan_spacing, target=self._yield[1],
@@ -802,7 +807,7 @@ class JobManager:
         return plan.resumed(paused, now, p.plan_horizon, p.plan_step)
 
     def _giving_way(self, now: int, position: np.ndarray, velocity: np.ndarray) -> MissionDecision | None:
-        """Giving way (team.py): an engaged UAV brakes to a hover rather than fly into a partner."""
+        """Giving way (team.py): a UAV with priority brakes to a hover rather than fly into a partner."""
         before = self._giving_way_to
         partner = None if self.team is None or self.state not in MISSION_STATES else self.team.give_way_to(
             now, Mover(position, velocity, self.state.value), self._separation, before)

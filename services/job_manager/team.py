@@ -45,12 +45,13 @@ Rules (docs/architecture.md, "Mission"):
   turning into each other, two take-offs side by side and two chasers converging on one drone
   came within 4.0-4.6 m (the velocities said nothing of the turn ahead).
 - **Giving way**: the UAV with priority does not yield, but it must not fly into the one yielding
-  to it, which brakes from its own speed before it can climb. An engaged UAV moving towards a
-  partner closer than `safety_distance` (faster than GIVE_WAY_SPEED) that is less than
+  to it, which brakes from its own speed before it can climb. A UAV moving towards a partner
+  closer than `safety_distance` (faster than GIVE_WAY_SPEED) that is less than
   `vertical_separation` - GIVE_WAY_SLACK above or below it brakes to a hover, until the partner is
   that far above or below or beyond safety_distance + `separation_hysteresis`. On unmapped's
   first 20 s the interceptor of the circler, aiming ahead along its circle, flew into the partner
-  yielding to it on every seed at 3 m/s.
+  yielding to it on every seed at 3 m/s; on agile with 3 UAVs (seed 1) a sweep flew into a
+  partner holding on its line.
 """
 from __future__ import annotations
 
@@ -254,11 +255,13 @@ class Team:
         approach = first_breach(mine, theirs, now, rule.plan_horizon, rule.plan_step, radius, age, rule.widen_rate)
         return approach.breach <= rule.plan_horizon
 
-    def hold_spot(self, now: int, me: Mover, p: Partner, rule: SeparationRule) -> np.ndarray:
-        """Where a UAV yielding to `p` holds: where it is, when the partner's plan keeps safety_distance +
-        hysteresis from there over the horizon (and on the ground while it is still taking off);
-        else also vertical_separation above the highest point of that plan within that reach."""
-        spot = np.asarray(me.position, dtype=np.float64).copy()
+    def hold_spot(self, now: int, me: Mover, p: Partner, rule: SeparationRule, at: np.ndarray | None = None) -> np.ndarray:
+        """Where a UAV yielding to `p` holds: where it is (or `at`, the spot it holds at), when the
+        partner's plan keeps safety_distance + hysteresis from there over the horizon (and on the
+        ground while it is still taking off); else also vertical_separation above the highest point
+        of that plan within that reach. Asked again on every tick of a yield: a plan that passes
+        clear now may come through the spot later (agile, 3 UAVs, seed 1: a sweep 42 m away)."""
+        spot = np.asarray(me.position if at is None else at, dtype=np.float64).copy()
         theirs, age = self.partner_plan(p, now, rule)
         reach = rule.safety_distance + rule.hysteresis
         here = PlannedPath(now, rule.plan_step, spot[None])
@@ -273,9 +276,7 @@ class Team:
         return spot
 
     def give_way_to(self, now: int, me: Mover, rule: SeparationRule, giving_way_to: str | None) -> Partner | None:
-        """The partner an engaged UAV must brake for now (None: no one); see the module docstring."""
-        if me.state not in ENGAGED_STATES:
-            return None
+        """The partner a UAV must brake for now (None: no one); see the module docstring."""
         best, best_distance = None, np.inf
         for p, offset, distance in self._near(now, me, rule, rule.safety_distance + rule.hysteresis):
             if abs(offset[2]) >= rule.vertical_separation - GIVE_WAY_SLACK:

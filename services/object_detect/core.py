@@ -80,6 +80,8 @@ class Blob:
     radius: float  # pixels
     pixels: int
     fill: float
+    clipped: bool = False  # it touches the image's edge: part of the object may lie beyond it
+    half_extent: float = 0.0  # pixels: half the larger side of its box
 
 
 @dataclass(frozen=True)
@@ -106,8 +108,10 @@ def find_blobs(mask: np.ndarray, params: ObjectDetectParams) -> list[Blob]:
         fill = area / (math.pi * width * height / 4)
         if long / short > params.max_aspect or fill < params.min_fill:
             continue
+        left, top = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
+        clipped = left == 0 or top == 0 or left + width == mask.shape[1] or top + height == mask.shape[0]
         blobs.append(Blob(float(centroids[k, 0]), float(centroids[k, 1]), math.sqrt(area / math.pi), int(area),
-                          float(fill)))
+                          float(fill), bool(clipped), 0.5 * float(long)))
     return blobs
 
 
@@ -130,11 +134,14 @@ def detect(rgb: np.ndarray, depth_mm: np.ndarray | None, view: CameraView, color
         ray /= np.linalg.norm(ray)
         # the outline of a sphere seen θ off the optical axis is an ellipse stretched by 1/cos θ across
         # and 1/cos² θ along the radial direction: its area is π (f tan α)² / cos³ θ
-        size_range = radius_m / math.sin(math.atan(blob.radius * ray[0] ** 1.5 / focal))
+        radius_px = max(blob.radius, blob.half_extent)  # the segmentation only ever loses a balloon's pixels
+        size_range = radius_m / math.sin(math.atan(radius_px * ray[0] ** 1.5 / focal))
         if size_range > params.max_distance:
             continue
         size_var = (size_range ** 2 * params.outline_sigma / (focal * radius_m)) ** 2
         depth_range, depth_var = _depth_range(depth_mm, blob, view, radius_m, params)
+        if math.isnan(depth_range) and blob.clipped:
+            continue  # cut by the image's edge, its size says only that it is nearer: no range to trust
         if math.isnan(depth_range):
             rng, var = size_range, size_var
         else:
