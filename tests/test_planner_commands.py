@@ -125,29 +125,31 @@ def test_a_pursuit_follows_a_prediction_only_so_long_past_the_last_sighting():
 
 def test_no_reference_leaves_the_arena_or_goes_above_its_ceiling():
     """A mover's predicted meeting beyond the arena's edge and above its ceiling is aimed at inside;
-    the reference never leaves the arena polygon (non-convex here) nor climbs past max_height."""
+    the reference stays fence_margin (1 m) inside the arena polygon (non-convex here) and below
+    max_height (13 m)."""
     from services.planner.avoid import Airspace, Clearances, Surroundings
     from services.planner.freespace import FreeSpace
 
     arena = ((0.0, 0.0), (40.0, 0.0), (40.0, 30.0), (25.0, 30.0), (25.0, 15.0), (15.0, 15.0), (15.0, 30.0), (0.0, 30.0))
-    airspace = Airspace(0.0, 1.0, 12.0, (0.0, 0.0), (40.0, 30.0), arena)
+    airspace = Airspace(0.0, 1.0, 13.0, (0.0, 0.0), (40.0, 30.0), arena, fence_margin=1.0)
     clearances = Clearances(0.4, 0.5, 0.2)
     env = Surroundings(FreeSpace(clearances.plan), clearances, airspace)
     climbing_out = command("intercept", target=(35.0, 25.0, 10.0), target_velocity=(3.0, 2.0, 2.0))
     plan = plan_command(climbing_out, vehicle((30.0, 10.0, 5.0)), PARAMS, env)
     positions = plan.path[0]
     assert positions[:, 2].max() <= 12.0 + 1e-9
-    assert distance_outside(positions[:, :2], arena).max() <= 1e-6  # on the outline counts as inside
+    assert inside_by(positions[:, :2], arena).min() >= 1.0 - 1e-6
     beyond = plan_command(command("intercept", target=(45.0, 25.0, 14.0), target_velocity=(3.0, 0.0, 0.0)),
                           vehicle((30.0, 10.0, 5.0)), PARAMS, env)
-    assert "aimed inside the arena" in beyond.note
-    assert beyond.path[0][:, 2].max() <= 12.0 + 1e-9 and distance_outside(beyond.path[0][:, :2], arena).max() <= 1e-6
+    assert "aimed 1 m inside the arena" in beyond.note
+    assert beyond.path[0][:, 2].max() <= 12.0 + 1e-9 and inside_by(beyond.path[0][:, :2], arena).min() >= 1.0 - 1e-6
     into_the_notch = command("goto", target=(20.0, 25.0, 5.0))  # the notch is outside the arena
     plan = plan_command(into_the_notch, vehicle((5.0, 5.0, 5.0)), PARAMS, env)
-    assert distance_outside(plan.path[0][:, :2], arena).max() <= 1e-6
+    assert inside_by(plan.path[0][:, :2], arena).min() >= 1.0 - 1e-6
 
 
-def distance_outside(points, polygon) -> np.ndarray:
+def inside_by(points, polygon) -> np.ndarray:
+    """(N,) how far inside the polygon each point is (negative: outside)."""
     from services.geometry import distance_to_edges
     inside = point_in_polygon(points, np.asarray(polygon))
-    return np.where(inside, 0.0, distance_to_edges(points, np.asarray(polygon)))
+    return np.where(inside, 1.0, -1.0) * distance_to_edges(points, np.asarray(polygon))

@@ -84,22 +84,39 @@ class Airspace:
     box_low: tuple[float, float] = (-math.inf, -math.inf)
     box_high: tuple[float, float] = (math.inf, math.inf)
     arena: tuple[tuple[float, float], ...] = ()  # the polygon; () : no arena known
+    fence_margin: float = 0.0  # m inside the arena's edge and below `high` that `confine` keeps
 
     def band(self) -> Band:
         return Band(self.low, self.high, self.box_low, self.box_high)
 
     def confine(self, points: np.ndarray) -> Confined:
-        """(N, 3) points moved into the arena (onto its outline, the nearest point) and below
-        `high`. Landing and take-off go below `low`: it is not enforced."""
+        """(N, 3) points moved fence_margin inside the arena (from the nearest point of its outline)
+        and below `high` - fence_margin. Landing and take-off go below `low`: it is not enforced."""
         given = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         points = given.copy()
-        points[:, 2] = np.minimum(points[:, 2], self.high)
+        points[:, 2] = np.minimum(points[:, 2], self.high - self.fence_margin)
         if len(self.arena) >= 3 and len(points):
-            outside = ~point_in_polygon(points[:, :2], np.asarray(self.arena))
-            if outside.any():
-                points[outside, :2] = nearest_on_edges(points[outside, :2], np.asarray(self.arena))[0]
+            points[:, :2] = self._inside(points[:, :2])
         shift = np.linalg.norm(points - given, axis=1)
-        return Confined(points, int((shift > 0).sum()), float(shift.max(initial=0.0)))
+        return Confined(points, int((shift > 1e-9).sum()), float(shift.max(initial=0.0)))
+
+    def _inside(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) points at least fence_margin inside the arena: those outside or nearer its edge move
+        along the line from the edge's nearest point; where that would not do (a concave corner), onto it."""
+        arena = np.asarray(self.arena)
+        inside = point_in_polygon(xy, arena)
+        nearest, gap = nearest_on_edges(xy, arena)
+        move = ~inside | (gap < self.fence_margin)
+        if not move.any():
+            return xy
+        xy = xy.copy()
+        away = np.where(inside[:, None], xy - nearest, nearest - xy)[move]
+        length = np.linalg.norm(away, axis=1, keepdims=True)
+        unit = np.divide(away, length, out=np.zeros_like(away), where=length > 1e-9)
+        moved = nearest[move] + self.fence_margin * unit
+        fine = point_in_polygon(moved, arena) & (length[:, 0] > 1e-9)
+        xy[move] = np.where(fine[:, None], moved, nearest[move])
+        return xy
 
 
 @dataclass(frozen=True)
@@ -111,7 +128,8 @@ class Confined:
     farthest: float
 
 
-def airspace_of(arena, min_height: float, max_height: float, ground_z: float, floor: float) -> Airspace:
+def airspace_of(arena, min_height: float, max_height: float, ground_z: float, floor: float,
+                fence_margin: float = 0.0) -> Airspace:
     """The airspace of a world model: above `floor` (and the mission's min_height) over the ground,
     below its max_height, in its arena's box. ValueError: a world no plan can be made in."""
     arena = np.asarray(arena, dtype=np.float64).reshape(-1, 2)
@@ -120,7 +138,7 @@ def airspace_of(arena, min_height: float, max_height: float, ground_z: float, fl
         raise ValueError(f"an arena of {len(arena)} vertices, ground {ground_z} m, heights {min_height}-{max_height} m")
     return Airspace(ground_z, ground_z + max(min_height, floor), ground_z + max_height,
                     tuple(map(float, arena.min(axis=0))), tuple(map(float, arena.max(axis=0))),
-                    tuple((float(x), float(y)) for x, y in arena))
+                    tuple((float(x), float(y)) for x, y in arena), fence_margin)
 
 
 @dataclass(frozen=True)

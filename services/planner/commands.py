@@ -69,6 +69,9 @@ class PlannerParams(msgspec.Struct, forbid_unknown_fields=True):
     # s past the target's last sighting a pursuit follows its prediction (at most to the path's end), then waits
     pursuit_trust: float = 1.5
     pursuit_floor: float = 1.0  # m above the ground no pursuit goes below (the job manager's lowest target height)
+    # m inside the arena's edge and below its ceiling every reference stays (Airspace.confine): room for
+    # the tracking error (agile, 3 UAVs, seed 1: a reference on the edge, the vehicle 0.6 m beyond it)
+    fence_margin: float = 1.0
     rejoin_distance: float = 1.5  # m: a re-plan starts on the current trajectory while this close to it
     republish_period: float = 2.0  # s of mission time
     repeat_scan: bool = True  # sweep again once a scan trajectory has ended
@@ -185,7 +188,7 @@ def plan_command(command: MissionCommand, vehicle: VehicleState, params: Planner
     inside = env.airspace.confine(plan.path[0])
     if not aimed and not inside.moved:
         return plan
-    ceiling = f"inside the arena and below {env.airspace.high:g} m"
+    ceiling = f"{env.airspace.fence_margin:g} m inside the arena and below {env.airspace.high - env.airspace.fence_margin:g} m"
     said = [f"target aimed {ceiling}"] if aimed else []
     said += [f"{inside.moved} reference samples moved {ceiling} (up to {inside.farthest:.2f} m)"] if inside.moved else []
     return replace(plan, path=(inside.points, plan.path[1]), note="; ".join([*filter(None, [plan.note]), *said]))

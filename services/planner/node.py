@@ -104,7 +104,8 @@ class PlannerNode(Node):
         try:
             if not 0.0 < radius < math.inf:
                 raise ValueError(f"a body radius of {radius} m")
-            self.airspace = airspace_of(msg.arena, msg.min_height, msg.max_height, ground, self.params.pursuit_floor)
+            self.airspace = airspace_of(msg.arena, msg.min_height, msg.max_height, ground, self.params.pursuit_floor,
+                                        self.params.fence_margin)
         except ValueError as exc:
             self._refuse("world models refused (ground, heights, body radius or arena impossible)")
             self.log.debug("world refused: %s", exc)
