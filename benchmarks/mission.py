@@ -28,7 +28,7 @@ INTRUDER_GOAL_S = 60.0  # issue 4: an intruder at 4 m/s captured within 60 s of 
 def run(scenario: str, uavs: int, seed: int, duration: float, workdir: Path, detector: str,
         extra: tuple[str, ...] = ()) -> dict:
     """One lockstep `falconry sim` run (`extra`: more of its options); its summary."""
-    summary = workdir / f"{scenario}-{uavs}-{seed}.json"
+    summary = workdir / f"{Path(scenario).stem}-{uavs}-{seed}.json"  # a scenario may be a TOML file's path
     argv = [sys.executable, "-m", "services.launcher", "sim", scenario, "--uavs", str(uavs), "--seed", str(seed),
             "--lockstep", "--detector", detector, "--duration", str(duration), "--quiet", "--progress", "0",
             "--summary-json", str(summary), *extra]
