@@ -15,7 +15,7 @@ import numpy as np
 
 # Each kind of single fault a campaign draws from; the job managers must stay apart under any one.
 KINDS = ("link_cut", "kill_hold", "kill_land", "kill_service", "freeze_service", "lidar_silent", "lidar_nan",
-         "odometry_jump", "duplicate", "reorder", "slow_service")
+         "odometry_jump", "duplicate", "reorder", "slow_service", "lidar_garbage")
 SERVICES = ("sensor_driver", "mapper", "tracker", "job_manager", "planner")  # present whatever the detector
 TOPICS = ("odometry", "detections", "tracks", "command", "status")  # what duplicate and reorder disturb
 EARLIEST = 10.0  # s: faults hit flying UAVs (take-off is over by then)
@@ -105,7 +105,7 @@ def _draw(rng: np.random.Generator, uavs: int, duration: float, kinds: tuple[str
     if kind == "slow_service":
         return Fault(time, "slow", uav, round(float(rng.uniform(2.0, 8.0)), 2),
                      service=SERVICES[int(rng.integers(len(SERVICES)))], delay=round(float(rng.uniform(0.01, 0.05)), 3))
-    return Fault(time, kind, uav, round(float(rng.uniform(0.5, 3.0)), 2))  # lidar_silent, lidar_nan
+    return Fault(time, kind, uav, round(float(rng.uniform(0.5, 3.0)), 2))  # lidar_silent, lidar_nan, lidar_garbage
 
 
 @dataclass
@@ -126,6 +126,7 @@ class RunResult:
     collisions: int
     clearance: float | None  # m: the smallest body-to-obstacle clearance of the run's UAVs (attacked poles apart)
     no_target: int = 0  # attacks and interceptions aimed at no target (farther than 2 m from every one)
+    false_tracks: int = 0  # confirmed tracks, over every UAV, that never matched a target
     geofence: int = 0  # episodes of a flying UAV out of the arena or above its ceiling
 
     @classmethod
@@ -146,7 +147,9 @@ class RunResult:
                    collisions=len(summary.get("collisions", [])), clearance=min(clearances, default=None),
                    no_target=sum(e.get("target") is None for u in summary.get("uavs", {}).values()
                                  for e in u.get("engagements", [])),
-                   geofence=len(summary.get("geofence_breaches", [])))
+                   geofence=len(summary.get("geofence_breaches", [])),
+                   false_tracks=sum((u.get("perception") or {}).get("false_tracks", 0)
+                                    for u in summary.get("uavs", {}).values()))
 
     @property
     def ok(self) -> bool:
@@ -155,7 +158,7 @@ class RunResult:
 
 
 HEADER = (f"{'run':>3} {'UAVs':>4} {'seed':>5} {'scenario':<10} {'faults':<44} {'min sep m':>9} {'viol':>4} "
-          f"{'coll':>4} {'clear m':>7} {'no-tgt':>6} {'fence':>5} {'destroyed':>9} {'e-land':>6} {'restarts':>8} "
+          f"{'coll':>4} {'clear m':>7} {'no-tgt':>6} {'fence':>5} {'f-trk':>5} {'destroyed':>9} {'e-land':>6} {'restarts':>8} "
           f"{'handler':>7} {'decode':>6} {'lost':>5}  outcome")
 
 
@@ -165,6 +168,7 @@ def row(r: RunResult) -> str:
     clearance = "-" if r.clearance is None else f"{r.clearance:.2f}"
     return (f"{r.plan.index:>3} {r.plan.uavs:>4} {r.plan.seed:>5} {r.plan.scenario[:10]:<10} {faults:<44} "
             f"{separation:>9} {r.violations:>4} {r.collisions:>4} {clearance:>7} {r.no_target:>6} {r.geofence:>5} "
+            f"{r.false_tracks:>5} "
             f"{f'{r.destroyed}/{r.targets}':>9} {r.emergency_landings:>6} {r.restarts:>8} {r.handler_errors:>7} "
             f"{r.decode_errors:>6} {r.lost:>5}  {r.outcome}")
 
@@ -180,7 +184,8 @@ def totals(results: list[RunResult], safety_distance: float) -> list[str]:
         f"collisions: {sum(r.collisions for r in results)}; smallest clearance to an obstacle over all runs: "
         + (f"{min(clearances):.2f} m" if clearances else "-") + " (attacked balloons' poles apart)",
         f"engagements at no target: {sum(r.no_target for r in results)}; geofence breaches (out of the arena or "
-        f"above its ceiling): {sum(r.geofence for r in results)}",
+        f"above its ceiling): {sum(r.geofence for r in results)}; confirmed tracks of no target: "
+        f"{sum(r.false_tracks for r in results)}",
         f"handler errors: {sum(r.handler_errors for r in results)}; undecodable payloads: "
         f"{sum(r.decode_errors for r in results)}; restarts: {sum(r.restarts for r in results)}; emergency landings: "
         f"{sum(r.emergency_landings for r in results)}; own-UAV messages not received by services that ran throughout: "

@@ -42,8 +42,9 @@ def add_parser(commands) -> None:
     p.add_argument("--teams", default="2,3", help="team sizes taken in turn, e.g. 2,3 or 3")
     p.add_argument("--faults-per-run", type=int, default=1)
     p.add_argument("--kinds", default=",".join(KINDS), help="fault kinds to draw from (comma-separated)")
-    p.add_argument("--detector", default="oracle", choices=["oracle", "classifier"],
-                   help="detector of every run (the oracle keeps a campaign about the faults, and quick)")
+    p.add_argument("--detector", default="oracle", choices=["oracle", "classifier", "onboard"],
+                   help="detector of every run (the oracle keeps a campaign about the faults, and quick; a "
+                        "LiDAR fault's effect on perception shows only with the classifier or onboard)")
     p.add_argument("--lidar", default="os0-32-512", metavar="MODEL",
                    help="LiDAR model of every UAV ('' = the scenario's own); a light one keeps runs quick")
     p.add_argument("--plot", metavar="DIR", help="draw each scenario's arena from above with where every run's "
