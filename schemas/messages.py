@@ -444,7 +444,7 @@ class SimEvent(msgspec.Struct, kw_only=True):
 
 FaultKind = Literal[
     "lidar_silent", "lidar_nan", "lidar_garbage", "odometry_jump", "kill", "link_cut", "freeze",
-    "duplicate", "reorder", "slow", "clock_jump", "router_restart",
+    "duplicate", "reorder", "slow", "clock_jump", "router_restart", "camera_frozen", "camera_saturated",
 ]
 
 

@@ -19,7 +19,7 @@ from services.sensor_driver.core import (
     scan,
     target_spheres,
 )
-from services.sensor_driver.faults import LidarFaults, faulty_scan
+from services.sensor_driver.faults import faulty_scan, lidar_faults
 
 MM = 1e-3
 
@@ -294,7 +294,7 @@ def test_mid360_scan_sees_a_balloon_with_a_few_points():
 
 
 def test_fault_windows_follow_mission_time():
-    faults = LidarFaults()
+    faults = lidar_faults()
     faults.add("lidar_silent", 5_000_000_000, 2.0)
     faults.add("lidar_nan", 6_000_000_000, 0.0)  # until the end
     assert faults.active(4_999_999_999) is None

@@ -23,7 +23,7 @@ Pure: numpy in, numpy out; the caller owns the random generator and the drifting
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from statistics import NormalDist
 
 import msgspec
@@ -213,3 +213,15 @@ class Camera:
         shape = (p.height, p.width)
         return Frame(rgb.reshape(*shape, 3), depth.reshape(shape), hits.reshape(shape), np.asarray(rotation),
                      np.asarray(position))
+
+
+CAMERA_FAULTS = ("camera_frozen", "camera_saturated")  # what the camera node acts on (falconry/sim/faults)
+
+
+def frozen_or_saturated(frame: Frame, kind: str, last: Frame | None) -> Frame:
+    """What the camera gives during a fault: its previous frame again, or a white one (depth kept)."""
+    if kind == "camera_frozen" and last is not None:
+        return last
+    if kind == "camera_saturated":
+        return replace(frame, rgb=np.full_like(frame.rgb, 255))
+    return frame

@@ -6,7 +6,8 @@ obstacles the mission's survey lacks, standing targets and the own pose from fal
 as the simulated LiDAR does) at `rate_hz` of
 mission time, `phase` of a period after the LiDAR's scans. Only this service, the sensor driver
 and the simulator may read ground truth; the frames carry none of it. Onboard, a RealSense
-driver publishes the same messages.
+driver publishes the same messages. Camera faults scheduled on falconry/sim/faults for this UAV
+are acted on here: `camera_frozen` repeats the last frame, `camera_saturated` sends white ones.
 """
 from __future__ import annotations
 
@@ -18,11 +19,13 @@ import numpy as np
 
 from schemas import keys
 from schemas.arrays import from_numpy
-from schemas.messages import Appearance, CameraFrame, CompressedFrame, GroundTruth, Header, Pose, WorldModel
-from services.camera.core import Camera, CameraParams, Gains
+from schemas.messages import (Appearance, CameraFrame, CompressedFrame, FaultCommand, GroundTruth, Header, Pose,
+                              WorldModel)
+from services.camera.core import CAMERA_FAULTS, Camera, CameraParams, Gains, frozen_or_saturated
 from services.geometry import quaternion
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
+from services.runtime.sensor_faults import SensorFaults
 from services.sensor_driver.core import Primitives, noise_stream_key, pack, primitives_from_obstacles
 
 RNG_SALT = zlib.crc32(b"camera")  # a fixed number, so the stream differs from other services'
@@ -58,6 +61,16 @@ class CameraNode(Node):
         self.preview_pub = self.publisher(self.topic("camera_jpeg"), CompressedFrame)
         self.subscribe(keys.WORLD, WorldModel, self.on_world)
         self.subscribe(keys.TRUTH, GroundTruth, self.on_truth)
+        self.faults = SensorFaults(CAMERA_FAULTS)
+        self.last_frame = None
+        self.subscribe(keys.FAULTS, FaultCommand, self.on_fault, keep=None)  # events: each one counts
+
+    def on_fault(self, fault: FaultCommand, key: str) -> None:
+        if fault.uav != self.uav or fault.kind not in CAMERA_FAULTS:
+            return
+        self.faults.add(fault.kind, fault.header.stamp, fault.duration)
+        self.log.warning("camera fault %s from %.2f s%s", fault.kind, fault.header.stamp / 1e9,
+                         f" for {fault.duration:g} s" if fault.duration > 0 else " until the end")
 
     def on_world(self, world: WorldModel, key: str) -> None:
         if world.obstacles != self.obstacles:
@@ -95,6 +108,10 @@ class CameraNode(Node):
         self.gains.step(self.rng, self.params)
         world = pack(self.static.with_targets(self.truth.targets))
         frame = self.camera.render(world, self.appearance, position, rotation, self.gains.factors(), self.rng)
+        fault = self.faults.active(now_ns)
+        if fault is not None:
+            frame = frozen_or_saturated(frame, fault, self.last_frame)
+        self.last_frame = frame
         k = self.camera.intrinsics
         pose = Pose(position=tuple(float(v) for v in position), orientation=quaternion(rotation))
         self.frame_pub.put(CameraFrame(

@@ -19,6 +19,7 @@ from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import CameraFrame, ColorUpdate, Detections, Header
 from services.object_detect.colors import ColorFile, ColorFileError, load_color_file, parse_color_file
 from services.object_detect.core import CameraView, ObjectDetectParams, detect
+from services.object_detect.sanity import FrameSanity
 from services.runtime.counted import CountedWarnings
 from services.runtime.errors import UsageError
 from services.runtime.node import Node
@@ -47,6 +48,7 @@ class ObjectDetectNode(Node):
         self.log.info("colours %r (%s, %s, diameter %g m)", self.colors.name, self.colors.method,
                       self.colors.thresholds.space, self.colors.diameter)
         self.detections_pub = self.publisher(self.topic("camera_detections"), Detections)
+        self.sanity = FrameSanity()
         self.subscribe(self.topic(keys.COLORS), ColorUpdate, self.on_colors, keep=None)  # first: before a frame
         self.subscribe(self.topic("camera"), CameraFrame, self.on_frame)
         self._refused_colors = 0
@@ -77,7 +79,9 @@ class ObjectDetectNode(Node):
             if not (np.all(np.isfinite(view.position)) and np.all(np.isfinite(view.orientation))
                     and min(msg.fx, msg.fy) > 0):
                 raise ValueError("camera pose or focal length not usable")
-            found = detect(rgb, depth, view, self.colors, self.params)
+            health = self.sanity.check(rgb)
+            # a frozen or saturated frame: nothing in it is a detection
+            found = detect(rgb if not health else rgb[:0], None if health else depth, view, self.colors, self.params)
         except ValueError as exc:
             self._bad_frames += 1
             self._bad_input.update({"frames refused (image shape, camera pose or focal length)": self._bad_frames})
@@ -92,7 +96,11 @@ class ObjectDetectNode(Node):
             point_counts=from_numpy(found.pixels),
             extents=from_numpy(found.diameters),
             sensor_position=tuple(float(v) for v in view.position),
+            sensor_health=health,
         ))
+        if health:
+            self._bad_input.update({f"frames failing the sanity check ({check})": count
+                                    for check, count in self.sanity.failures.items()})
 
 
 NODE = ObjectDetectNode

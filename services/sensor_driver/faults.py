@@ -3,35 +3,21 @@
 `lidar_silent` publishes nothing, `lidar_nan` an all-NaN cloud, `lidar_garbage` a return on
 every beam at a random range (uniform within the sensor's range limits), as a sensor whose
 timing went wrong would give; neither of the last two hit anything real, so the truth says -1
-for every ray. Pure: the node feeds the commands and asks what is in force.
+for every ray. Pure: the node feeds the commands (services/runtime/sensor_faults.py) and asks what
+is in force.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
+from services.runtime.sensor_faults import SensorFaults
 from services.sensor_driver.core import Scan
 
 LIDAR_FAULTS = ("lidar_silent", "lidar_nan", "lidar_garbage")
 
 
-@dataclass
-class LidarFaults:
-    windows: list[tuple[int, str, int | None]] = field(default_factory=list)  # (start ns, kind, end ns or None)
-
-    def add(self, kind: str, start_ns: int, duration_s: float) -> None:
-        """A fault from `start_ns` for `duration_s` seconds of mission time (0: until the end)."""
-        if kind not in LIDAR_FAULTS:
-            raise ValueError(f"not a LiDAR fault: {kind!r}")
-        end = start_ns + int(round(duration_s * 1e9)) if duration_s > 0 else None
-        self.windows.append((int(start_ns), kind, end))
-
-    def active(self, now_ns: int) -> str | None:
-        """The most recently started fault in force at `now_ns`, or None."""
-        live = [(start, i, kind) for i, (start, kind, end) in enumerate(self.windows)
-                if start <= now_ns and (end is None or now_ns < end)]
-        return max(live)[2] if live else None
+def lidar_faults() -> SensorFaults:
+    return SensorFaults(LIDAR_FAULTS)
 
 
 def faulty_scan(good: Scan, kind: str, origin: np.ndarray, beams: np.ndarray, min_range: float,

@@ -47,7 +47,7 @@ from services.sensor_driver.core import (
     scan,
     yaw_rotation,
 )
-from services.sensor_driver.faults import LIDAR_FAULTS, LidarFaults, faulty_scan
+from services.sensor_driver.faults import LIDAR_FAULTS, faulty_scan, lidar_faults
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
 
@@ -70,7 +70,7 @@ class SensorDriverNode(Node):
         self.rng: np.random.Generator | None = None
         self.rng_key: tuple[int, int] | None = None
         self.last_slot = -1
-        self.faults = LidarFaults()
+        self.faults = lidar_faults()
         self.sanity = ScanSanity(SanityLimits(max_return_share=p.max_return_share)) if p.sanity_checks else None
         self._unposed = 0
         self._bad_input = CountedWarnings(self.log)

@@ -133,7 +133,8 @@ Top-level fields
 [[faults]]  the fault schedule, injected at mission times (file order kept)
   time      float, required: when, s of mission time (0 <= time <= duration).
   kind      required: "lidar_silent" | "lidar_nan" | "lidar_garbage" | "odometry_jump" | "kill" |
-            "link_cut" | "freeze" | "duplicate" | "reorder" | "slow" | "clock_jump" | "router_restart".
+            "link_cut" | "freeze" | "duplicate" | "reorder" | "slow" | "clock_jump" | "router_restart" |
+            "camera_frozen" (the camera repeats its last frame) | "camera_saturated" (white frames).
   uav       str: uav1..uav3, required but for router_restart; a run whose team lacks it stops with an error.
   service   str = ""     kill, freeze, slow and clock_jump only: one service (e.g. "planner"); "" = every
             process of the UAV.
