@@ -66,11 +66,8 @@ class CameraNode(Node):
         self.subscribe(keys.FAULTS, FaultCommand, self.on_fault, keep=None)  # events: each one counts
 
     def on_fault(self, fault: FaultCommand, key: str) -> None:
-        if fault.uav != self.uav or fault.kind not in CAMERA_FAULTS:
-            return
-        self.faults.add(fault.kind, fault.header.stamp, fault.duration)
-        self.log.warning("camera fault %s from %.2f s%s", fault.kind, fault.header.stamp / 1e9,
-                         f" for {fault.duration:g} s" if fault.duration > 0 else " until the end")
+        if (said := self.faults.take(self.uav, fault)) is not None:
+            self.log.warning("camera fault %s", said)
 
     def on_world(self, world: WorldModel, key: str) -> None:
         if world.obstacles != self.obstacles:

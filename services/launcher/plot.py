@@ -57,6 +57,11 @@ def plot_timeline(monitor: RunMonitor, path: str | Path, title: str, duration: f
         figure.legend(handles=legend, loc="lower center", ncol=min(len(legend), 5), fontsize=8, frameon=False)
     figure.suptitle(title, fontsize=11)
     figure.subplots_adjust(left=0.09, right=0.91, top=0.93, bottom=0.06 + 0.02 * ((len(legend) + 4) // 5))
+    _save(figure, path)
+
+
+def _save(figure, path: str | Path) -> None:
+    """Write the figure as a PNG (a path that cannot be written is one line) and free it."""
     try:
         figure.savefig(path, dpi=110)
     except OSError as exc:
@@ -185,9 +190,4 @@ def plot_arena(scenario, summaries: list[dict], path: str | Path, title: str) ->
     ax.set_title(title)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
     fig.tight_layout()
-    try:
-        fig.savefig(path, dpi=110)
-    except OSError as exc:
-        raise UsageError(f"cannot write {path}: {exc.strerror}") from None
-    finally:
-        plt.close(fig)
+    _save(fig, path)

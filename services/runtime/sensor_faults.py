@@ -17,6 +17,14 @@ class SensorFaults:
         end = start_ns + int(round(duration_s * 1e9)) if duration_s > 0 else None
         self.windows.append((int(start_ns), kind, end))
 
+    def take(self, uav: str, fault) -> str | None:
+        """A FaultCommand: added when it is for `uav` and of these kinds; returns what to log, or None."""
+        if fault.uav != uav or fault.kind not in self.kinds:
+            return None
+        self.add(fault.kind, fault.header.stamp, fault.duration)
+        return (f"{fault.kind} from {fault.header.stamp / 1e9:.2f} s"
+                + (f" for {fault.duration:g} s" if fault.duration > 0 else " until the end"))
+
     def active(self, now_ns: int) -> str | None:
         """The most recently started fault in force at `now_ns`, or None."""
         live = [(start, i, kind) for i, (start, kind, end) in enumerate(self.windows)

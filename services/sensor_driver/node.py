@@ -47,7 +47,7 @@ from services.sensor_driver.core import (
     scan,
     yaw_rotation,
 )
-from services.sensor_driver.faults import LIDAR_FAULTS, faulty_scan, lidar_faults
+from services.sensor_driver.faults import faulty_scan, lidar_faults
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
 
@@ -134,11 +134,8 @@ class SensorDriverNode(Node):
         self.odometry = odometry
 
     def on_fault(self, fault: FaultCommand, key: str) -> None:
-        if fault.uav != self.uav or fault.kind not in LIDAR_FAULTS:
-            return
-        self.faults.add(fault.kind, fault.header.stamp, fault.duration)
-        self.log.warning("LiDAR fault %s from %.2f s%s", fault.kind, fault.header.stamp / 1e9,
-                         f" for {fault.duration:g} s" if fault.duration > 0 else " until the end")
+        if (said := self.faults.take(self.uav, fault)) is not None:
+            self.log.warning("LiDAR fault %s", said)
 
     def _scan(self, origin: np.ndarray, heading: float, world: Primitives, rng: np.random.Generator,
               frame: int = 0):
