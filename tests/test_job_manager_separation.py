@@ -188,3 +188,14 @@ def test_a_sweeping_uav_with_priority_brakes_rather_than_fly_into_a_partner_hold
     partner(rig, 1.1, line(1.1, HOME + [4.5, 0.0, 0.0], (0.0, 0.0, 0.0)), name="uav2")  # 4.5 m ahead, same height
     rig.tick(1.2, velocity=(4.0, 0.0, 0.0))
     assert rig.last.action == "stop" and "giving way to uav2" in rig.jm.notes[-1]
+
+
+def test_a_uav_with_priority_whose_new_plan_starts_towards_a_partner_gives_way_before_it_is_under_way():
+    """agile, 3 UAVs, seed 1: uav2 took up its sweep after an interception, at rest, straight at uav3
+    7 m off; by velocities the give-way came only once it was moving, 6.7 m apart (4.1 m at the closest)."""
+    rig = Rig(uav="uav1").airborne()
+    rig.jm.observe_reference(line(1.1, HOME, (5.0, 0.0, 0.0)))  # the sweep, from rest
+    rig.tick(1.1, velocity=(0.0, 0.0, 0.0))
+    partner(rig, 1.1, line(1.1, HOME + [9.0, 0.0, 1.0], (0.0, 0.0, 0.0)), name="uav2")  # holding ahead
+    rig.tick(1.2, velocity=(0.2, 0.0, 0.0))
+    assert rig.last.action == "stop" and "giving way to uav2" in rig.jm.notes[-1]

@@ -810,7 +810,7 @@ class JobManager:
         """Giving way (team.py): a UAV with priority brakes to a hover rather than fly into a partner."""
         before = self._giving_way_to
         partner = None if self.team is None or self.state not in MISSION_STATES else self.team.give_way_to(
-            now, Mover(position, velocity, self.state.value), self._separation, before)
+            now, Mover(position, velocity, self.state.value, self.reference), self._separation, before)
         self._giving_way_to = None if partner is None else partner.name
         if partner is None:
             if before is not None:
