@@ -69,7 +69,7 @@ TRUTH_UAV_SIZE = 0.6  # m
 class ScanInfo(msgspec.Struct, kw_only=True):
     """A LiDAR scan (`PointCloud`) without its points and intensities, which are on the
     foxglove.PointCloud of the same scan: its header (mission time), sensor pose, model, ranges,
-    beam frame, self-hit mask and pose covariance."""
+    beam frame, self-hit mask, pose covariance and why the driver's sanity check failed it."""
 
     header: Header
     width: int
@@ -81,6 +81,7 @@ class ScanInfo(msgspec.Struct, kw_only=True):
     frame: int = 0
     mask: Array | None = None
     pose_covariance: Array | None = None
+    sanity: str = ""
 
 
 @dataclass(frozen=True)
