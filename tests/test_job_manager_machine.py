@@ -67,10 +67,8 @@ class Rig:
         return self
 
     def engaged(self) -> "Rig":
-        """... IDLE → CHECKING_TARGET → GOING_TO_TARGET on BALLOON, at rest, once three scans agree on it
-        (lock_sightings)."""
+        """... IDLE → CHECKING_TARGET → GOING_TO_TARGET on BALLOON, at rest."""
         self.airborne()
-        self.tick(1.0, detections=[BALLOON], position=HOME)
         self.tick(1.1, detections=[BALLOON])
         assert self.jm.state is State.CHECKING_TARGET
         self.tick(1.2, detections=[BALLOON])
@@ -127,14 +125,12 @@ TRANSITIONS = [
     ("IDLE → CHECKING_TARGET: target in view", "airborne", lambda r: r.tick(1.1, detections=[BALLOON]),
      State.CHECKING_TARGET, "stop"),
     ("CHECKING_TARGET → GOING_TO_TARGET: at rest, closest target locked", "airborne",
-     lambda r: (r.tick(1.0, detections=[BALLOON]), r.tick(1.1, detections=[BALLOON]),
-                r.tick(1.2, detections=[[80, 50, 4], BALLOON])),
+     lambda r: (r.tick(1.1, detections=[BALLOON]), r.tick(1.2, detections=[[80, 50, 4], BALLOON])),
      State.GOING_TO_TARGET, "approach"),
     ("CHECKING_TARGET → IDLE → GOING_AROUND: no target for t_m", "airborne",
      lambda r: (r.tick(1.1, detections=[BALLOON], velocity=[1.0, 0, 0]), r.run(1.2, 4.3)), State.GOING_AROUND, "scan"),
     ("CHECKING_TARGET → GOING_TO_TARGET: a target seen within t_m is locked once at rest", "airborne",
-     lambda r: (r.tick(1.0, detections=[BALLOON]), r.tick(1.05, detections=[BALLOON]),
-                r.tick(1.1, detections=[BALLOON], velocity=[1.0, 0, 0]), r.run(1.2, 2.0),
+     lambda r: (r.tick(1.1, detections=[BALLOON], velocity=[1.0, 0, 0]), r.run(1.2, 2.0),
                 r.tick(2.1, velocity=[0, 0, 0])), State.GOING_TO_TARGET, "approach"),
     ("GOING_TO_TARGET → DESTROYING: within D_k", "engaged",
      lambda r: r.tick(1.3, detections=[BALLOON], position=BALLOON + [5.0, 0, 1.0]), State.DESTROYING, None),
@@ -242,7 +238,6 @@ TIMERS = [
 @pytest.mark.parametrize("timer,params,state,limit", TIMERS, ids=[t[0] for t in TIMERS])
 def test_state_timer_forbids_the_target_and_returns_to_idle(timer, params, state, limit):
     rig = Rig(**params).airborne()
-    rig.tick(1.0, detections=[BALLOON], velocity=[0.5, 0, 0])
     rig.tick(1.1, detections=[BALLOON], velocity=[0.5, 0, 0])  # CHECKING, not yet at rest
     if state != "CHECKING_TARGET":
         rig.tick(1.2, detections=[BALLOON], velocity=[0, 0, 0])
@@ -361,8 +356,6 @@ def test_lidar_that_stops_at_take_off_aborts_one_second_later():
 def test_moving_target_is_intercepted_static_preferred():
     rig = Rig().airborne()
     drone = np.array([25.0, 25.0, 6.0])
-    rig.tick(1.0, detections=[BALLOON])  # three scans agree on the balloon (lock_sightings) by 1.1
-    rig.tick(1.05, detections=[BALLOON])
     rig.jm.observe_tracks(s(1.1), np.array([7]), drone[None], np.array([[4.0, 0.0, 0.0]]))
     rig.tick(1.1, detections=[drone, BALLOON])
     rig.tick(1.2, detections=[drone, BALLOON])
@@ -581,7 +574,6 @@ def test_a_balloon_the_camera_sees_is_attacked_though_its_range_jumps_when_depth
 
 def test_a_target_that_turns_out_to_move_is_intercepted():
     rig = Rig().airborne()
-    rig.tick(1.0, detections=[drone_at(-0.1)])
     rig.tick(1.1, detections=[drone_at(0.0)])
     rig.tick(1.2, detections=[drone_at(0.1)])
     assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "approach"

@@ -122,8 +122,7 @@ def test_a_target_claimed_by_a_partner_is_left_to_it_unless_i_am_closer():
     assert rig.jm.state is State.GOING_AROUND, "chased a target the partner had claimed"
     # both claim it: the one closer keeps it
     rig2 = Rig().airborne()
-    rig2.tick(1.05, detections=[near_border], position=[46.0, 30.0, 5.0])
-    rig2.tick(1.1, detections=[near_border])
+    rig2.tick(1.1, detections=[near_border], position=[46.0, 30.0, 5.0])
     rig2.tick(1.2, detections=[near_border])
     assert rig2.jm.state is State.GOING_TO_TARGET
     flying(rig2, "uav2", 1.2, position=(60.0, 30.0, 5.0), state="GOING_TO_TARGET", target=near_border)
@@ -310,8 +309,8 @@ def test_an_unaccounted_partner_is_a_no_fly_column_until_it_is_seen_landed():
     assert rig.last.action == "scan" and rig.last.height == rig.jm.params.search_height
     rig.run(3.1, 5.0)  # uav2 silent: stale after 1.5 s
     p = rig.jm.params
-    assert rig.last.action == "scan" and rig.last.height == pytest.approx(6.0 + p.vertical_separation
-                                                                           + p.safety_distance)
+    assert rig.last.action == "scan" and rig.last.height == pytest.approx(6.0 + p.vertical_separation)
+    assert p.vertical_separation > p.safety_distance
     near, far = [40.0, 30.0, 4.0], [20.0, 30.0, 4.0]  # 5 m and 25 m from its last position
     assert rig.jm.candidates(s(5.0), rig.position).shape == (0, 3)
     rig.tick(5.1, detections=[near, far])

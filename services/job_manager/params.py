@@ -20,8 +20,8 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     detection_gate: float = 3.0  # [d_e] m: a detection this close to the locked target is the target
     filter_switch_distance: float = 5.5  # [D_k] m: GOING_TO_TARGET hands over to DESTROYING inside it
     target_time: float = 3.0  # [t_m] s: unseen this long = lost; seen this long = confirmed for attack
-    # scans or frames of the last t_m that must agree on a target before it is locked (a partner's
-    # confirmed track counts as agreed): a single camera blob or a burst of junk starts no engagement
+    # frames (and scans) of the last t_m that must agree on a camera blob before it is locked (a
+    # confirmed track there counts as agreed): a single camera blob starts no engagement
     lock_sightings: int = 3
     checking_timeout: float = 30.0  # [T_c] s
     going_timeout: float = 30.0  # [T_g] s

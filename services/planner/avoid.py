@@ -89,13 +89,13 @@ class Airspace:
     def band(self) -> Band:
         return Band(self.low, self.high, self.box_low, self.box_high)
 
-    def confine(self, points: np.ndarray) -> Confined:
-        """(N, 3) points moved fence_margin inside the arena (from the nearest point of its outline)
-        and below `high` - fence_margin. Landing and take-off go below `low`: it is not enforced."""
+    def confine(self, points: np.ndarray, across: bool = True) -> Confined:
+        """(N, 3) points moved below `high` - fence_margin and, `across`, fence_margin inside the arena
+        (from the nearest point of its outline). Landing and take-off go below `low`: not enforced."""
         given = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         points = given.copy()
         points[:, 2] = np.minimum(points[:, 2], self.high - self.fence_margin)
-        if len(self.arena) >= 3 and len(points):
+        if across and len(self.arena) >= 3 and len(points):
             points[:, :2] = self._inside(points[:, :2])
         shift = np.linalg.norm(points - given, axis=1)
         return Confined(points, int((shift > 1e-9).sum()), float(shift.max(initial=0.0)))

@@ -176,21 +176,25 @@ def start_state(trajectory: TrajectoryReference | None, now_ns: int, position: n
 def plan_command(command: MissionCommand, vehicle: VehicleState, params: PlannerParams,
                  env: Surroundings | None = None, approach_from: np.ndarray | None = None) -> Plan:
     """The path for one command from `vehicle` (its start state), kept clear of the map in `env`
-    (None: nothing known) and inside its airspace: a target or a mover's predicted path beyond the
-    arena or its ceiling is aimed at the nearest point inside (a meeting out there would take the
-    UAV out), and any reference sample still beyond is moved in (`Airspace.confine`), said in the
-    note. `approach_from`: the direction an approach tries first (the one the last approach to the
+    (None: nothing known) and within its airspace: a target or a mover's predicted path beyond the
+    arena or its ceiling is aimed at the nearest point fence_margin inside (a meeting out there
+    would take the UAV out), and every reference sample is kept below the ceiling, said in the
+    note. Samples are not moved across, into the arena: a path squeezed after it was timed is one
+    the vehicle cannot follow (a sweep of mbzirc's part taken over crossed the notch, its samples
+    moved by up to 10.8 m: the vehicle flew 6.6 m out and missed two balloons). The arena's edge as
+    a constraint the plans are made against is not done; the run summary reports a UAV out of it. `approach_from`: the direction an approach tries first (the one the last approach to the
     same target took). A command that cannot be planned is a hover, with the reason as the note."""
     if env is None or (problem := unplannable(command)) is not None:
         return _plan(command, vehicle, params, env, approach_from)
     command, aimed = _confined_command(command, env.airspace)
     plan = _plan(command, vehicle, params, env, approach_from)
-    inside = env.airspace.confine(plan.path[0])
+    inside = env.airspace.confine(plan.path[0], across=False)
     if not aimed and not inside.moved:
         return plan
-    ceiling = f"{env.airspace.fence_margin:g} m inside the arena and below {env.airspace.high - env.airspace.fence_margin:g} m"
-    said = [f"target aimed {ceiling}"] if aimed else []
-    said += [f"{inside.moved} reference samples moved {ceiling} (up to {inside.farthest:.2f} m)"] if inside.moved else []
+    ceiling = env.airspace.high - env.airspace.fence_margin
+    said = [f"target aimed {env.airspace.fence_margin:g} m inside the arena and below {ceiling:g} m"] if aimed else []
+    said += [f"{inside.moved} reference samples moved below {ceiling:g} m (up to {inside.farthest:.2f} m)"] \
+        if inside.moved else []
     return replace(plan, path=(inside.points, plan.path[1]), note="; ".join([*filter(None, [plan.note]), *said]))
 
 
