@@ -31,7 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-NS = 1_000_000_000
+from services.runtime.clock import NS
+
 SETTLE_TIME = 1.0  # s after a failing scan before detections are trusted again (tracker, job manager)
 
 
