@@ -33,15 +33,15 @@ def pole(x, y, height, radius=0.05) -> Obstacle:
     return Obstacle(kind="cylinder", center=(float(x), float(y), 0.0), radius=radius, height=float(height))
 
 
-def space_of(*obstacles: Obstacle, seen: bool = True) -> FreeSpace:
+def space_of(*obstacles: Obstacle, seen: bool = True, grid: GridGeometry = GRID) -> FreeSpace:
     """The a-priori map of the obstacles, everything else seen free (`seen`) or never seen."""
     space = FreeSpace(CLEAR.plan)
     space.set_ground(0.0)
-    pinned = obstacle_voxels([GROUND, *obstacles], GRID)
-    values = np.full(GRID.size, -1000.0 if seen else -740.0, np.float32)
+    pinned = obstacle_voxels([GROUND, *obstacles], grid)
+    values = np.full(grid.size, -1000.0 if seen else -740.0, np.float32)
     values[pinned] = np.inf
-    every = np.arange(GRID.size)
-    space.apply_map(True, GRID.origin, GRID.shape, GRID.voxel_size, -740.0, every, values)
+    every = np.arange(grid.size)
+    space.apply_map(True, grid.origin, grid.shape, grid.voxel_size, -740.0, every, values)
     return space
 
 
@@ -392,3 +392,55 @@ def test_a_drone_circling_a_mast_tighter_than_the_uav_can_turn_is_met_not_traile
     assert all(took is not None and took < 20.0 for took in met), met
     monkeypatch.setattr(pursuit, "RENDEZVOUS_TURN", math.inf)
     assert [_chase_the_circler(b, 25.0, env) for b in (1.5, 2.0, 3.5)] == [None, None, None]
+
+
+# mbzirc's outline: a notch x 40-60, y 45-60 cut out of the north edge
+NOTCHED = np.array([(0.0, 0.0), (100.0, 0.0), (100.0, 60.0), (60.0, 60.0), (60.0, 45.0), (40.0, 45.0), (40.0, 60.0),
+                    (0.0, 60.0)])
+
+
+FENCE_KEPT = 0.65  # m inside a 1 m margin the grid keeps a plan at least (freespace.py, _set_fence)
+ARENA_GRID = GridGeometry((-10.0, -10.0, -1.0), (240, 160, 52), 0.5)  # the mapper's default reach, 120 x 80 m
+
+
+def fenced_env(*obstacles: Obstacle) -> Surroundings:
+    space = space_of(*obstacles, grid=ARENA_GRID)
+    space.set_arena(NOTCHED, PARAMS.fence_margin)
+    return Surroundings(space, CLEAR, Airspace(0.0, 1.0, 20.0, (0.0, 0.0), (100.0, 60.0), tuple(map(tuple, NOTCHED)),
+                                               PARAMS.fence_margin))
+
+
+def inside_by(points: np.ndarray) -> np.ndarray:
+    """(N,) m each point lies inside NOTCHED (negative: outside)."""
+    from services.geometry import distance_to_edges, point_in_polygon
+    gap = distance_to_edges(points[:, :2], NOTCHED)
+    return np.where(point_in_polygon(points[:, :2], NOTCHED), gap, -gap)
+
+
+def test_the_arenas_edge_is_a_wall_a_sweep_going_over_to_the_far_part_goes_round_the_notch():
+    """A UAV that takes over the east half from the north-west (revenge mode in mbzirc) went
+    straight across the notch, 10 m out of the arena."""
+    east = [(50.0, 0.0), (100.0, 0.0), (100.0, 60.0), (60.0, 60.0), (60.0, 45.0), (50.0, 45.0)]
+    scan = command("scan", area=east, height=5.0, spacing=20.0)
+    start = vehicle((15.0, 48.0, 5.0))
+    assert inside_by(plan_command(scan, start, PARAMS, env_of()).path[0]).min() < -5.0  # no edge: across
+    plan = plan_command(scan, start, PARAMS, fenced_env())
+    margin = inside_by(plan.path[0])
+    assert plan.outcome == "detour" and margin.min() >= FENCE_KEPT - 0.5 * CLEAR.allowance, margin.min()
+    assert np.linalg.norm(plan.path[0][-1, :2] - plan_command(scan, start, PARAMS, env_of()).path[0][-1, :2]) < 1.0
+
+
+def test_a_balloon_near_the_arenas_edge_is_attacked_along_it_and_the_guard_brakes_before_the_edge():
+    balloon = (97.0, 30.0, 4.5)  # 3 m inside the east edge: an attack from the west would end 2 m out
+    env = fenced_env(pole(97.0, 30.0, 4.0))
+    head_on = plan_command(command("attack", target=balloon, profile=ATTACK), vehicle((92.0, 30.0, 4.9)), PARAMS, env)
+    assert head_on.outcome == "blocked"  # not even min_overshoot is left before the edge
+    approach = plan_command(command("approach", target=balloon), vehicle((80.0, 30.0, 5.0)), PARAMS, env)
+    goal = approach.path[0][-1]
+    assert approach.outcome != "blocked" and abs(goal[1] - balloon[1]) > 2.0  # not head-on: from north or south
+    attack = plan_command(command("attack", target=balloon, profile=ATTACK), vehicle(goal), PARAMS, env)
+    assert attack.outcome != "blocked" and np.ptp(attack.path[0][:, 1]) > PARAMS.wait_distance  # through it
+    assert min(inside_by(approach.path[0]).min(), inside_by(attack.path[0]).min()) >= FENCE_KEPT - 0.5 * CLEAR.allowance
+    reference = np.stack([np.linspace(80.0, 105.0, 51), np.full(51, 20.0), np.full(51, 5.0)], axis=1)
+    verdict = guard.check(env.space, reference, reference[0], 5.0, 3.0, CLEAR.accept, CLEAR.hard)
+    assert verdict.action != "clear" and verdict.where[0] < 100.0  # acted on before the body reaches the edge

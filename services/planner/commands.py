@@ -181,9 +181,10 @@ def plan_command(command: MissionCommand, vehicle: VehicleState, params: Planner
     would take the UAV out), and every reference sample is kept below the ceiling, said in the
     note. Samples are not moved across, into the arena: a path squeezed after it was timed is one
     the vehicle cannot follow (a sweep of mbzirc's part taken over crossed the notch, its samples
-    moved by up to 10.8 m: the vehicle flew 6.6 m out and missed two balloons). The arena's edge as
-    a constraint the plans are made against is not done; the run summary reports a UAV out of it. `approach_from`: the direction an approach tries first (the one the last approach to the
-    same target took). A command that cannot be planned is a hover, with the reason as the note."""
+    moved by up to 10.8 m: the vehicle flew 6.6 m out and missed two balloons). The plans are made
+    against the arena's edge as against a wall (FreeSpace.set_arena): routed round a notch, clipped
+    before the edge, an attack's overshoot cut. `approach_from`: the direction an approach tries
+    first (the one the last approach to the same target took). A command that cannot be planned is a hover, with the reason as the note."""
     if env is None or (problem := unplannable(command)) is not None:
         return _plan(command, vehicle, params, env, approach_from)
     command, aimed = _confined_command(command, env.airspace)

@@ -19,6 +19,15 @@ Three questions:
 - `blocked(low, high)`: the search grid over a box of voxels — a voxel is blocked when an occupied
   box lies closer than `search_radius` to its centre, kept as a count per voxel that each map
   message updates where it changed (services/voxels/clearance.py).
+The arena's edge is a wall to the planner (`set_arena`): the voxel columns of a band
+FENCE_BAND wide just outside the arena polygon count as occupied above the ground, as far out
+as makes a plan that keeps the plan clearance from them keep about `keep_inside` (the planner's
+fence_margin) inside the edge (`_set_fence`: the grid's 0.5 m steps make it 0.65-1.35 m for 1 m). Every part that asks about the map then keeps inside without a
+rule of its own: routes go round a notch, a timed reference is clipped before the edge, the
+pursuit's speed barrier slides along it, an attack's overshoot is shortened, and the guard brakes
+before the body crosses it. Where the band falls off the map's grid (an arena reaching the grid's
+edge) the edge is not known here; the planner still clamps what it aims at (Airspace.confine).
+
 A point anywhere in a voxel that is not blocked is at least search_radius − half the voxel's
 diagonal from every occupied box, so the search radius is the plans' `clearance` + half the map's
 voxel diagonal (+ half a sample step, so that a check at the plans' clearance can trust a free
@@ -31,8 +40,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 from schemas.voxels import STATE_TENTATIVE, STATE_UNKNOWN
+from services.geometry import distance_to_edges, point_in_polygon
 from services.voxels.clearance import add_counts, box_clearance, first_within, inflation_offsets, nearest_box
 from services.voxels.grid import GridGeometry
 from services.voxels.replica import MapReplica
@@ -42,6 +53,7 @@ NO_EXEMPTION = np.array([0.0, 0.0, 0.0, 0.0])
 MAX_OFFSETS = 100_000  # voxels of the inflation kernel at most (0.5 m voxels and 2.2 m: about 300)
 ESCAPE_LENGTH = 3.0  # m along which a polyline that starts too close must be clear again
 ESCAPE_TOLERANCE = 0.05  # m it may come closer than it started (the box distance is not smooth)
+FENCE_BAND = 1.0  # m: how wide the band of occupied columns that stands for the arena's edge is
 NEIGHBOURS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
 
 
@@ -81,6 +93,9 @@ class FreeSpace:
         self.ground_z: float | None = None
         self.floor_layer = -1  # voxel layers up to this one hold the ground (left out)
         self.offsets = np.zeros((0, 3), dtype=np.int64)
+        self.arena: np.ndarray | None = None  # (K, 2) the polygon plans stay inside; None: no edge
+        self.keep_inside = 0.0  # m inside the arena's edge a plan keeping clearance_kept stays
+        self.fence = np.zeros(0, dtype=bool)  # per voxel column (x, y): part of the arena's edge band
 
     @property
     def known(self) -> bool:
@@ -95,6 +110,40 @@ class FreeSpace:
         if self.geometry is not None:
             self._set_floor()
             self._rebuild()
+
+    def set_arena(self, arena: np.ndarray | None, keep_inside: float = 0.0) -> None:
+        """The polygon (K, 2) plans keep `keep_inside` m inside of (None: no edge); see the module."""
+        arena = None if arena is None or len(arena) < 3 else np.asarray(arena, dtype=np.float64).reshape(-1, 2)
+        same = (arena is None and self.arena is None) or (
+            arena is not None and self.arena is not None and np.array_equal(arena, self.arena))
+        if same and float(keep_inside) == self.keep_inside:
+            return
+        self.arena, self.keep_inside = arena, float(keep_inside)
+        if self.geometry is not None:
+            self._set_fence()
+            self._rebuild()
+
+    def _set_fence(self) -> None:
+        """The columns FENCE_BAND deep from clearance_kept (centre to centre) beyond every column a body
+        centre may be in (its centre inside the arena, keep_inside or more from the edge): a plan
+        keeping clearance_kept from their boxes stays within those columns, give or take the grid.
+        Measured on mbzirc's outline over four grid offsets (0.5 m voxels, 1.7 m clearance, 1 m
+        margin): the body stays 0.95-1.35 m inside a straight edge, 0.65 m or more at the notch's
+        corners. A distance transform, not the distance to the edges: beyond a re-entrant corner the
+        points that far from the edges form a square corner, and a body keeping its distance from its
+        tip could pass the corner 0.3 m from the edge."""
+        g = self.geometry
+        nx, ny = g.shape[0], g.shape[1]
+        self.fence = np.zeros(nx * ny, dtype=bool)
+        if self.arena is None:
+            return
+        i, j = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
+        centres = g.corner[:2] + (np.column_stack([i.ravel(), j.ravel()]) + 0.5) * g.voxel_size
+        allowed = point_in_polygon(centres, self.arena) & (distance_to_edges(centres, self.arena) >= self.keep_inside)
+        if not allowed.any():
+            return
+        apart = distance_transform_edt(~allowed.reshape(nx, ny), sampling=g.voxel_size).ravel()
+        self.fence = (apart >= self.clearance_kept) & (apart <= self.clearance_kept + FENCE_BAND)
 
     def apply_map(self, snapshot: bool, origin, shape, voxel_size: float, default_value: float,
                   indices: np.ndarray, values: np.ndarray) -> bool:
@@ -115,6 +164,7 @@ class FreeSpace:
             self.occupied = np.zeros(self.geometry.size, dtype=np.uint8)
             self.counts = np.zeros(self.geometry.size, dtype=np.uint16)
             self._set_floor()
+            self._set_fence()
             self._rebuild()
             return True
         if self.replica is None or not self.replica.apply(snapshot, origin, shape, voxel_size, default_value,
@@ -142,8 +192,10 @@ class FreeSpace:
             int(math.floor((self.ground_z - g.corner[2]) / g.voxel_size + 1e-6))
 
     def _occupancy(self, flats: np.ndarray) -> np.ndarray:
-        layer = flats % self.geometry.shape[2]
-        return ((self.replica.states[flats] >= STATE_TENTATIVE) & (layer > self.floor_layer)).astype(np.uint8)
+        depth = self.geometry.shape[2]
+        layer = flats % depth
+        occupied = (self.replica.states[flats] >= STATE_TENTATIVE) | self.fence[flats // depth]
+        return (occupied & (layer > self.floor_layer)).astype(np.uint8)
 
     def _rebuild(self) -> None:
         every = np.arange(self.geometry.size, dtype=np.int64)

@@ -111,6 +111,7 @@ class PlannerNode(Node):
             self.log.debug("world refused: %s", exc)
             return
         self.space.set_ground(ground)
+        self.space.set_arena(np.asarray(self.airspace.arena), self.params.fence_margin)
         if radius != self.clearances.body:
             self.clearances = Clearances(radius, self.params.obstacle_margin, self.params.tracking_allowance)
             self.log.info("body radius %.2f m: plans keep %.2f m from occupied voxels' boxes", radius,
@@ -122,6 +123,7 @@ class PlannerNode(Node):
         space = self._free_space()
         if old.ground_z is not None:
             space.set_ground(old.ground_z)
+        space.set_arena(old.arena, old.keep_inside)
         if old.replica is not None:
             r = old.replica
             flat = r.grid.reshape(-1)
