@@ -584,6 +584,23 @@ def test_a_target_that_turns_out_to_move_is_intercepted():
     assert any("intercepting" in n for n in rig.jm.notes)
 
 
+def test_a_target_locked_as_static_moves_when_a_fast_track_went_through_its_sighting():
+    """Locked on one far sighting, a drone seen now and then leaves the filter's gate between
+    sightings and its fit never learns that it moves; the tracker's confirmed track through the
+    sighting tells, and the UAV intercepts along it."""
+    rig = Rig().airborne()
+    rig.tick(1.1, detections=[drone_at(0.0)])
+    rig.tick(1.2, detections=[drone_at(0.0)])  # the same place twice: static to the filter
+    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "approach"
+    rig.tick(1.3)
+    assert rig.last.action == "approach"  # no track yet: still the place it was seen at
+    rig.jm.observe_tracks(s(1.4), np.array([5]), drone_at(0.2)[None], np.array([[3.0, 0.0, 0.0]]),
+                          [np.array([drone_at(0.2 + 0.25 * (i + 1)) for i in range(8)])], 0.25)
+    rig.tick(1.4)
+    assert rig.last.action == "intercept" and rig.jm.engagement.track_id == 5
+    assert any("(track 5): intercepting" in n for n in rig.jm.notes)
+
+
 def test_static_targets_come_first_even_while_intercepting():
     rig = Rig().airborne()
     far_balloon = np.array([40.0, 40.0, 4.0])  # not in view until t = 2.0

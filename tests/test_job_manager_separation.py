@@ -164,6 +164,31 @@ def test_a_yield_lasts_while_the_missions_way_is_blocked_even_when_the_hold_itse
     assert rig.last.action == "scan"
 
 
+def test_a_yield_is_not_held_for_a_plan_the_machine_has_moved_on_from():
+    """uav1, engaged (priority), hovers 9 m ahead on uav2's sweep line: uav2 holds. A balloon comes
+    into view and the machine, stopped, goes on to check it: the paused sweep is no longer the
+    mission's way, and the hold, clear of uav1, ends."""
+    rig = Rig(uav="uav2", team=("uav1", "uav2")).airborne()
+    start = np.array([60.0, 20.0, 5.0])  # in uav2's half
+    rig.jm.observe_reference(line(1.1, start, (5.0, 0.0, 0.0)))
+    rig.tick(1.1, position=start)
+    hovering = line(1.1, start + [9.0, 0.0, 0.0], (0.0, 0.0, 0.0), seconds=30.0)
+    partner(rig, 1.1, hovering, state="GOING_TO_TARGET")
+    rig.tick(1.2, position=start)
+    assert rig.last.action == "goto" and rig.last.target == tuple(start)
+    rig.jm.observe_reference(line(1.2, start, (0.0, 0.0, 0.0)))
+    balloon = start + [-5.0, 12.0, -1.0]
+    for t in np.arange(1.3, 2.5, 0.1):
+        partner(rig, round(t, 2), hovering, state="GOING_TO_TARGET")
+        rig.tick(round(t, 2), position=start, detections=[balloon])
+        if rig.jm.state is not State.GOING_AROUND:
+            break
+    assert rig.jm.state in (State.CHECKING_TARGET, State.GOING_TO_TARGET)
+    partner(rig, round(t + 0.1, 2), hovering, state="GOING_TO_TARGET")
+    rig.tick(round(t + 0.1, 2), position=start, detections=[balloon])
+    assert "separation from uav1 restored" in rig.jm.notes and rig.last.action != "goto"
+
+
 def test_a_hold_climbs_when_the_partners_plan_later_comes_through_it():
     """agile, 3 UAVs, seed 1: uav3 yielded to uav2's sweep 42 m away and held where it was, clear of
     the plan's first 6 s; the sweep went on through the spot, and uav2 flew into it."""

@@ -186,7 +186,8 @@ class JobManager:
         self._now = 0
         self.seen = Sightings(params)
         self.reference: PlannedPath | None = None  # the own planner's latest reference
-        self._paused: tuple[PlannedPath | None, int] | None = None  # a yield's: the mission's reference, since when
+        # a yield's: the mission's reference, since when, and in which state the machine made it
+        self._paused: tuple[PlannedPath | None, int, State] | None = None
         self.lidar = SensorTrust(params.sensor_settle_time)  # detections are not acted on while it fails or settles
         self.camera = SensorTrust(params.sensor_settle_time)
         self._previous_target: np.ndarray | None = None  # what was locked before CHECKING_TARGET
@@ -754,16 +755,29 @@ class JobManager:
 
     def _notice_motion(self, now: int) -> str:
         """A target locked as static that turns out to move is intercepted from now on (non-empty:
-        drop it instead)."""
-        e = self.engagement
-        if not e.moving and e.filter.moves(self.params.moving_speed, self.params.motion_sigmas):
-            if now < self._no_moving_until:
-                self.seen.last_mover = e.filter  # so it is known for a mover from now on
-                return "the target moves, and moving targets are skipped for now"
-            e.moving = True
-            self._sent_target = None
-            self.notes.append(f"target at {self._fmt(e.filter.last_position)} moves at {e.filter.speed():.1f} m/s: "
-                              f"intercepting")
+        drop it instead). It moves when its own fit says so, or when a fast confirmed track passed
+        through its last sighting (carried back at most target_time): a drone locked far off, seen in
+        a scan now and then, leaves the filter's gate between sightings and the fit never learns
+        that it moves (mbzirc, 2 UAVs: uav2 flew 12 s at the place its intruder had been)."""
+        e, p = self.engagement, self.params
+        if e.moving:
+            return ""
+        track = None
+        if not e.filter.tethered and now - e.last_seen() <= int(p.target_time * NS):
+            track = self.seen.moving_track(e.filter.last_position, now, e.last_seen())
+        if track is None and not e.filter.moves(p.moving_speed, p.motion_sigmas):
+            return ""
+        if now < self._no_moving_until:
+            self.seen.last_mover = e.filter  # so it is known for a mover from now on
+            return "the target moves, and moving targets are skipped for now"
+        e.moving = True
+        if track is not None:
+            e.track_id = track.track_id
+            e.filter.adopt_velocity(track.velocity)
+        self._sent_target = None
+        speed = e.filter.speed() if track is None else float(np.linalg.norm(track.velocity))
+        by = "" if track is None else f" (track {track.track_id})"
+        self.notes.append(f"target at {self._fmt(e.filter.last_position)} moves at {speed:.1f} m/s{by}: intercepting")
         return ""
 
     # -------------------------------------------------------------- decisions
@@ -786,7 +800,7 @@ class JobManager:
         if self._yield is None or self._yield[0] != partner.name:
             spot = _tuple(self.team.hold_spot(now, me, partner, self._separation))
             if self._yield is None:
-                self._paused = (self.reference, now)
+                self._paused = (self.reference, now, self.state)
             self._yield = (partner.name, spot)
             self.notes.append(f"yielding to {partner.name} "
                               f"({np.linalg.norm(self.team.position_now(partner, now) - position):.1f} m apart): "
@@ -804,10 +818,15 @@ class JobManager:
     def _mission_plan(self, now: int) -> PlannedPath | None:
         """The own plan the separation rules check: the reference; while yielding, the mission's
         reference as it would go on if taken up again now (a yield that ended whenever the hold
-        itself was clear would end and start again tick by tick while the mission's way is not)."""
+        itself was clear would end and start again tick by tick while the mission's way is not);
+        None once the machine has moved on to another state: that reference is no longer the
+        mission's (mbzirc, 2 UAVs: a UAV that left a balloon to its partner held 8 s for the
+        approach it had given up), and the next command's plan will be checked when it comes."""
         if self._yield is None or self._paused is None or self._paused[0] is None:
             return self.reference
-        plan, paused = self._paused
+        plan, paused, state = self._paused
+        if state is not self.state:
+            return None
         p = self.params
         return plan.resumed(paused, now, p.plan_horizon, p.plan_step)
 

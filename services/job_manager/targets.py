@@ -166,6 +166,12 @@ class TargetFilter:
         self._fit_anchor = (t_mean, at_mean)
         self._velocity_known = True
 
+    def adopt_velocity(self, velocity: np.ndarray) -> None:
+        """A velocity found elsewhere (the tracker's), taken while the filter has fitted none."""
+        if self._fit_anchor is None:
+            self.velocity = np.asarray(velocity, dtype=np.float64).reshape(3).copy()
+            self._velocity_known = True
+
     def speed(self) -> float:
         return float(np.linalg.norm(self.velocity))
 
