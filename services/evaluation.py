@@ -51,6 +51,11 @@ def found(targets: np.ndarray, positions: np.ndarray) -> np.ndarray:
     return matched(targets, positions)
 
 
+# s a target that went down still counts for an engagement aimed where it went down: the job
+# manager's t_m, how long a locked target must go unseen before it counts as gone
+UNSEEN_BEFORE_GONE = 3.0
+
+
 @dataclass(frozen=True)
 class Engagement:
     """One attack or interception a UAV started: where it aimed and at what."""

@@ -113,6 +113,33 @@ def test_the_monitor_judges_engagements_by_their_aim_and_scores_the_camera():
     assert engagement_line(uav1["engagements"][:1]) == "1 attack, all at a target (within 2 m)"
 
 
+def test_a_chase_taken_up_again_just_after_the_capture_aims_at_the_captured_drone_not_at_no_target():
+    """A UAV learns its drone is down only once unseen for t_m (3 s): an intercept re-sent 0.05 s after
+    the capture (after giving way) aims where the drone was; 3 s later the same aim is at nothing."""
+    from schemas.messages import MissionCommand, TargetTruth
+    monitor = RunMonitor()
+    drone = (60.0, 20.0, 6.0)
+
+    def truth(k: int, destroyed: bool) -> None:
+        monitor.handle("falconry/sim/truth", encode(GroundTruth(header=Header(stamp=k * S // 20), step=k, targets=[
+            TargetTruth(id="crosser", kind="drone", position=drone, velocity=(0, 0, 0), radius=0.3,
+                        destroyed=destroyed)])))
+
+    def command(k: int, action: str, target=None) -> None:
+        monitor.handle("falconry/uav1/command", encode(MissionCommand(
+            header=Header(stamp=k * S // 20), command_id=k, action=action, target=target)))
+
+    truth(20, False)
+    command(20, "intercept", drone)
+    truth(21, True)  # captured at t = 1.05 s
+    command(21, "stop")
+    command(22, "intercept", (60.1, 20.0, 6.0))  # taken up again 0.05 s after the capture
+    command(23, "stop")
+    command(22 + 20 * 4, "intercept", (60.1, 20.0, 6.0))  # 4 s after: nothing there
+    engagements = monitor.summary()["uavs"]["uav1"]["engagements"]
+    assert [e["target"] for e in engagements] == ["crosser", "crosser", None]
+
+
 def test_a_camera_detection_matches_within_a_tenth_of_its_distance_a_lidar_one_within_1_m():
     from services import evaluation
     target = np.array([[40.0, 0.0, 4.0]])

@@ -121,6 +121,7 @@ class RunMonitor:
         self.uavs: dict[str, UavSummary] = {}
         self.targets: dict[str, tuple[str, bool]] = {}
         self._target_positions: dict[str, tuple[float, float, float]] = {}
+        self._down: dict[str, tuple[float, tuple[float, float, float]]] = {}  # target -> (t down, where), s
         self.first_detected: dict[str, tuple[float, str]] = {}  # target → (mission time, UAV)
         self.min_separation: tuple[float, float, str] | None = None  # (m, mission time, "uavA-uavB")
         self.destroyed: list[tuple[float, str, str]] = []
@@ -210,7 +211,10 @@ class RunMonitor:
 
     def _on_command(self, uav: str, command: MissionCommand) -> None:
         """An engagement starts with the first attack or intercept command after any other one
-        (re-plans and re-sends of the same engagement follow it)."""
+        (re-plans and re-sends of the same engagement follow it). It is judged against the standing
+        targets and those down less than UNSEEN_BEFORE_GONE before, where they went down: a UAV
+        learns that its target is down only when it has not seen it for that long, and a chase
+        taken up again meanwhile (after giving way) aims where the drone was captured."""
         u = self._uav(uav)
         previous, action = u.last_action, command.action
         u.last_action = action
@@ -219,9 +223,12 @@ class RunMonitor:
         u.attacking = tuple(command.target) if action == "attack" and command.target is not None else None
         if action not in ("attack", "intercept") or command.target is None or action == previous:
             return
-        target, miss = evaluation.aimed_at(command.target, self._targets_at(command.header.stamp))
-        u.engagements.append(evaluation.Engagement(self._seconds(command.header.stamp), action,
-                                                   tuple(command.target), target, miss))
+        t = self._seconds(command.header.stamp)
+        aimable = dict(self._targets_at(command.header.stamp))
+        aimable.update({tid: where for tid, (down, where) in self._down.items()
+                        if 0.0 <= t - down <= evaluation.UNSEEN_BEFORE_GONE})
+        target, miss = evaluation.aimed_at(command.target, aimable)
+        u.engagements.append(evaluation.Engagement(t, action, tuple(command.target), target, miss))
 
     def _on_points_truth(self, uav: str, truth: PointTruth) -> None:
         where = self._targets_at(truth.header.stamp)
@@ -362,8 +369,8 @@ class RunMonitor:
             self.targets[target.id] = (target.kind, target.destroyed)
             if not target.destroyed:
                 self._target_positions[target.id] = target.position
-            else:
-                self._target_positions.pop(target.id, None)
+            elif target.id in self._target_positions:
+                self._down[target.id] = (t, self._target_positions.pop(target.id))
         self._truth_history[truth.header.stamp] = dict(self._target_positions)
         while len(self._truth_history) > 64:
             self._truth_history.pop(min(self._truth_history))
