@@ -20,7 +20,6 @@ import numpy as np
 from services.runtime.clock import NS
 
 
-
 @dataclass(frozen=True)
 class PlannedPath:
     """Positions (K, 3) at start + i·dt (dt in s); at rest before the first and after the last."""

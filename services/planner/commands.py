@@ -176,15 +176,14 @@ def start_state(trajectory: TrajectoryReference | None, now_ns: int, position: n
 def plan_command(command: MissionCommand, vehicle: VehicleState, params: PlannerParams,
                  env: Surroundings | None = None, approach_from: np.ndarray | None = None) -> Plan:
     """The path for one command from `vehicle` (its start state), kept clear of the map in `env`
-    (None: nothing known) and within its airspace: a target or a mover's predicted path beyond the
-    arena or its ceiling is aimed at the nearest point fence_margin inside (a meeting out there
-    would take the UAV out), and every reference sample is kept below the ceiling, said in the
-    note. Samples are not moved across, into the arena: a path squeezed after it was timed is one
-    the vehicle cannot follow (a sweep of mbzirc's part taken over crossed the notch, its samples
-    moved by up to 10.8 m: the vehicle flew 6.6 m out and missed two balloons). The plans are made
-    against the arena's edge as against a wall (FreeSpace.set_arena): routed round a notch, clipped
-    before the edge, an attack's overshoot cut. `approach_from`: the direction an approach tries
-    first (the one the last approach to the same target took). A command that cannot be planned is a hover, with the reason as the note."""
+    (None: nothing known) and within its airspace. The arena's edge is a wall the plan is made
+    against (FreeSpace.set_arena: routed round a notch, clipped before the edge, an attack's
+    overshoot cut); a target or a mover's predicted path beyond the arena or its ceiling is aimed
+    at the nearest point fence_margin inside (a meeting out there would take the UAV out); every
+    reference sample is kept below the ceiling, said in the note. Samples are never moved across,
+    into the arena, after timing: a path squeezed once timed is one the vehicle cannot follow.
+    `approach_from`: the direction an approach tries first (the one the last approach to the same
+    target took). A command that cannot be planned is a hover, with the reason as the note."""
     if env is None or (problem := unplannable(command)) is not None:
         return _plan(command, vehicle, params, env, approach_from)
     command, aimed = _confined_command(command, env.airspace)
