@@ -547,6 +547,26 @@ def test_a_pursuit_trailing_a_circling_drone_cuts_inside_its_turn_and_catches_it
     assert any(took is None for took in unled)
 
 
+def test_a_turning_prediction_is_carried_on_round_its_turn_not_along_its_last_step():
+    """A rendezvous may meet the target past the tracker's 2 s path: carried straight on from
+    there, a circling drone's meeting was planned where it never goes and moved on with every
+    update, and the UAV trailed it (mast's circler from bearing 4 rad, 40 s uncaught)."""
+    from services.tracker.view import PredictedPath
+
+    angle = 0.8 * 0.25 * np.arange(0, 9)  # 3.2 m/s on a 4 m circle, sampled every 0.25 s
+    circle = np.stack([4.0 * np.cos(angle), 4.0 * np.sin(angle), 6.0 + 0.1 * np.arange(0, 9)], axis=1)
+    predicted = PredictedPath(circle[0], np.array([0.0, 3.2, 0.4]), circle[1:], 0.25)
+    carried = predicted.turning_on(4.0)
+    positions, velocities = carried.state(np.arange(0, 4.01, 0.25))
+    assert np.allclose(positions[:9], circle)
+    assert np.allclose(np.linalg.norm(positions[:, :2], axis=1), 4.0, atol=0.01)  # round the same circle
+    assert np.allclose(positions[:, 2], 6.0 + 0.1 * np.arange(17))  # climbing on as it did
+    assert np.allclose(np.linalg.norm(velocities[:, :2], axis=1), np.linalg.norm(velocities[0, :2]))
+    assert predicted.turning_on(2.0) is predicted  # nothing to carry on
+    straight = PredictedPath(circle[0], np.zeros(3), circle[0] + np.outer(np.arange(1, 9), [0.5, 0.0, 0.0]), 0.25)
+    assert np.allclose(straight.turning_on(4.0).state([3.5])[0], straight.state([3.5])[0])
+
+
 @settings(max_examples=300, deadline=None)
 @given(radius=st.floats(2.0, 8.0), speed=st.floats(1.0, 6.0), bearing=st.floats(0.0, 2 * np.pi),
        distance=st.floats(1.0, 15.0), velocity=st.tuples(*[st.floats(-5.0, 5.0)] * 2, st.floats(-1.5, 1.5)),
@@ -569,7 +589,7 @@ def test_a_rendezvous_with_a_turning_target_stays_within_the_profile_and_meets_i
     assert positions[:, 2].min() >= min(1.0, uav[2]) - 1e-9
     meeting = law.meeting_length(uav, here, heading, **chase)
     if meeting:
-        (there,), (moving,) = predicted.state([meeting * DT])
+        (there,), (moving,) = predicted.turning_on(law.RENDEZVOUS_MAX_S).state([meeting * DT])  # turning on past its 2 s
         assert np.linalg.norm(positions[meeting] - there) < 1e-6
         arriving = (positions[meeting] - positions[meeting - 1]) / DT
         assert np.linalg.norm(arriving - moving) <= law.RENDEZVOUS_SLACK + 0.15  # a backward difference: ½·a·dt off

@@ -88,6 +88,21 @@ class PredictedPath:
         velocities[after] = steps[-1]
         return positions, velocities
 
+    def turning_on(self, until: float) -> PredictedPath:
+        """The prediction with its path carried on to `until` s at the turn rate (about the
+        vertical), speed and climb of its last step, where it ends before then (the straight line
+        `state` carries it on with is not where a turning target goes)."""
+        path = np.asarray(self.path, dtype=np.float64).reshape(-1, 3)
+        if len(path) < 2 or self.dt <= 0 or len(path) * self.dt >= until:
+            return self
+        knots = np.vstack([np.asarray(self.position, dtype=np.float64), path])
+        before, last = knots[-2] - knots[-3], knots[-1] - knots[-2]
+        turn = np.arctan2(before[0] * last[1] - before[1] * last[0], before[0] * last[0] + before[1] * last[1])
+        angles = turn * np.arange(1, int(np.ceil(until / self.dt)) - len(path) + 1)
+        steps = np.stack([np.cos(angles) * last[0] - np.sin(angles) * last[1],
+                          np.sin(angles) * last[0] + np.cos(angles) * last[1], np.full(len(angles), last[2])], axis=1)
+        return PredictedPath(self.position, self.velocity, np.vstack([path, path[-1] + np.cumsum(steps, axis=0)]), self.dt)
+
     def rebased(self, offset: float, count: int, dt: float) -> PredictedPath:
         """The same prediction seen from `offset` s later, its path resampled every dt (count points)."""
         (position,), (velocity,) = self.state([offset])
