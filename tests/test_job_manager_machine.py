@@ -151,6 +151,8 @@ def test_transition(name, setup, act, state, action):
     assert rig.jm.state is state, states(rig)
     if action is not None:
         assert rig.last.action == action and len(rig.decisions) > count
+    if action == "stop":  # as hard as the vehicle may: a pursuit at attack speed planned to brake so
+        assert rig.last.profile == "attack"  # (at the sweeping profile a lost chase ended in a tree)
 
 
 def test_going_around_stops_before_checking():
@@ -158,7 +160,7 @@ def test_going_around_stops_before_checking():
     rig.tick(1.1)
     assert rig.last.action == "scan" and rig.last.area and rig.last.spacing == 20.0
     rig.tick(1.2, detections=[BALLOON], velocity=[5.0, 0, 0])  # seen while sweeping at 5 m/s
-    assert rig.jm.state is State.GOING_AROUND and rig.last.action == "stop"
+    assert rig.jm.state is State.GOING_AROUND and rig.last.action == "stop" and rig.last.profile == "attack"
     rig.tick(1.3, detections=[BALLOON], velocity=[2.0, 0, 0])
     assert rig.jm.state is State.GOING_AROUND
     rig.tick(1.4, detections=[BALLOON], velocity=[0.2, 0, 0])
@@ -752,7 +754,7 @@ def test_with_gnss_the_odometry_health_is_not_asked():
     assert rig.jm.state is State.IDLE and rig.last.action != "stop"
 
 
-def test_degraded_positioning_flies_every_command_slower_and_tracking_again_restores_it():
+def test_degraded_positioning_flies_every_command_but_a_stop_slower_and_tracking_again_restores_it():
     rig = localized_rig()
     rig.tick(0.0, position=HOME - [0, 0, 5], positioning="tracking")
     rig.tick(1.0, position=HOME, positioning="tracking")
@@ -763,6 +765,8 @@ def test_degraded_positioning_flies_every_command_slower_and_tracking_again_rest
     assert any("positioning degraded" in note for note in rig.jm.notes)
     rig.tick(1.3, positioning="tracking")
     assert rig.last.action == "scan" and rig.last.profile == "sweeping"
+    rig.tick(1.4, detections=[BALLOON], velocity=[5.0, 0, 0], positioning="degraded")
+    assert rig.last.action == "stop" and rig.last.profile == "attack"  # braking never speeds up
 
 
 def test_lost_positioning_holds_then_lands_as_a_silent_lidar_does():
