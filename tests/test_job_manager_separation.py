@@ -224,3 +224,27 @@ def test_a_uav_with_priority_whose_new_plan_starts_towards_a_partner_gives_way_b
     partner(rig, 1.1, line(1.1, HOME + [9.0, 0.0, 1.0], (0.0, 0.0, 0.0)), name="uav2")  # holding ahead
     rig.tick(1.2, velocity=(0.2, 0.0, 0.0))
     assert rig.last.action == "stop" and "giving way to uav2" in rig.jm.notes[-1]
+
+
+def test_giving_way_lasts_while_the_missions_way_runs_into_the_partner_not_only_while_braking_does():
+    """intruder, 2 UAVs, seed 1943: uav1's chase gave way to uav2, and its braking reference, no
+    longer towards uav2, ended the give-way on the next tick; the chase, taken up again, gave way
+    again: 9 engagements in 1 s. The give-way now lasts while the paused mission's plan runs into
+    the partner, and ends when the partner has climbed clear of it."""
+    rig = Rig(uav="uav1").airborne()
+    rig.jm.observe_reference(line(1.1, HOME, (5.0, 0.0, 0.0)))  # the sweep, from rest
+    rig.tick(1.1, velocity=(0.0, 0.0, 0.0))
+    holding = line(1.1, HOME + [9.0, 0.0, 1.0], (0.0, 0.0, 0.0), seconds=30.0)
+    partner(rig, 1.1, holding, name="uav2")
+    rig.tick(1.2, velocity=(0.2, 0.0, 0.0))
+    stop = rig.last
+    assert stop.action == "stop" and "giving way to uav2" in rig.jm.notes[-1]
+    rig.jm.observe_reference(line(1.2, HOME, (0.0, 0.0, 0.0), seconds=30.0))  # the planner flies the stop
+    for t in np.arange(1.3, 4.0, 0.1):
+        partner(rig, round(t, 2), holding, name="uav2")
+        rig.tick(round(t, 2), velocity=(0.0, 0.0, 0.0))
+        assert rig.last == stop and not any("engaging again" in note for note in rig.jm.notes), f"{t:.1f} s"
+    climbed = line(4.0, HOME + [9.0, 0.0, 7.0], (0.0, 0.0, 0.0), seconds=30.0)  # 7 m above my plan
+    partner(rig, 4.0, climbed, name="uav2")
+    rig.tick(4.0, velocity=(0.0, 0.0, 0.0))
+    assert "uav2 is clear: engaging again" in rig.jm.notes and rig.last.action == "scan"

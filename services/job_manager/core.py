@@ -806,7 +806,7 @@ class JobManager:
             return None
         if self._yield is None or self._yield[0] != partner.name:
             spot = _tuple(self.team.hold_spot(now, me, partner, self._separation))
-            if self._yield is None:
+            if self._yield is None and self._giving_way_to is None:  # not the braking of a give-way
                 self._paused = (self.reference, now, self.state)
             self._yield = (partner.name, spot)
             self.notes.append(f"yielding to {partner.name} "
@@ -823,13 +823,14 @@ class JobManager:
                                profile="attack")
 
     def _mission_plan(self, now: int) -> PlannedPath | None:
-        """The own plan the separation rules check: the reference; while yielding, the mission's
-        reference as it would go on if taken up again now (a yield that ended whenever the hold
-        itself was clear would end and start again tick by tick while the mission's way is not);
+        """The own plan the separation rules check: the reference; while yielding or giving way, the
+        mission's reference as it would go on if taken up again now (a yield that ended whenever the
+        hold itself was clear would end and start again tick by tick while the mission's way is not;
+        intruder, 2 UAVs, seed 1943: a chase gave way and engaged again 9 times in 1 s);
         None once the machine has moved on to another state: that reference is no longer the
         mission's (mbzirc, 2 UAVs: a UAV that left a balloon to its partner held 8 s for the
         approach it had given up), and the next command's plan will be checked when it comes."""
-        if self._yield is None or self._paused is None or self._paused[0] is None:
+        if (self._yield is None and self._giving_way_to is None) or self._paused is None or self._paused[0] is None:
             return self.reference
         plan, paused, state = self._paused
         if state is not self.state:
@@ -841,13 +842,15 @@ class JobManager:
         """Giving way (team.py): a UAV with priority brakes to a hover rather than fly into a partner."""
         before = self._giving_way_to
         partner = None if self.team is None or self.state not in MISSION_STATES else self.team.give_way_to(
-            now, Mover(position, velocity, self.state.value, self.reference), self._separation, before)
+            now, Mover(position, velocity, self.state.value, self._mission_plan(now)), self._separation, before)
         self._giving_way_to = None if partner is None else partner.name
         if partner is None:
             if before is not None:
                 self.notes.append(f"{before} is clear: engaging again")
                 self._sent_target = None  # re-issue the mission command
             return None
+        if before is None and self._yield is None:
+            self._paused = (self.reference, now, self.state)
         if before != partner.name:
             offset = self.team.position_now(partner, now) - position
             self.notes.append(f"giving way to {partner.name} ({np.linalg.norm(offset):.1f} m apart, "
