@@ -248,3 +248,25 @@ def test_giving_way_lasts_while_the_missions_way_runs_into_the_partner_not_only_
     partner(rig, 4.0, climbed, name="uav2")
     rig.tick(4.0, velocity=(0.0, 0.0, 0.0))
     assert "uav2 is clear: engaging again" in rig.jm.notes and rig.last.action == "scan"
+
+
+def test_two_uavs_sent_down_together_near_each_other_land_one_after_the_other():
+    """intruder, 3 UAVs, seed 5372: the mission timer sent uav1 and uav2 down at once, landing 4.6 m
+    apart; nothing kept them apart while landing. uav2 (later in team order) holds, climbing above
+    uav1's descent, and lands once uav1 is down."""
+    rig = Rig(uav="uav2", duration=40.0).airborne()
+    here = HOME + [0.0, 0.0, 0.0]
+    rig.run(1.1, 24.9, position=here)
+    rig.tick(25.0, position=here)  # 40 s − landing margin 15 s
+    assert rig.jm.state is State.LANDING and rig.last.action == "land"
+    rig.jm.observe_reference(line(25.0, here, (0.0, 0.0, -1.0), seconds=5.0))
+    descending = line(25.0, here + [4.6, 0.0, 0.0], (0.0, 0.0, -1.0), seconds=5.0)  # uav1, landing beside
+    partner(rig, 25.0, descending, state="LANDING")
+    rig.tick(25.1, position=here)
+    assert rig.jm.state is State.LANDING and rig.last.action == "goto" and rig.last.target[2] > here[2]
+    assert "yielding to uav1" in rig.jm.notes[-1]
+    rig.jm.observe_reference(line(25.1, here, (0.0, 0.0, 0.0), seconds=30.0))
+    rig.jm.partner_status("uav1", s(31.0), flying_normally=False, airborne=False, position=tuple(here + [4.6, 0.0, 0.0]),
+                          state="LANDED", target=None, velocity=(0.0, 0.0, 0.0), plan=None)
+    rig.tick(31.0, position=here)
+    assert rig.last.action == "land" and "separation from uav1 restored" in rig.jm.notes

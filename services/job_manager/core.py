@@ -790,9 +790,10 @@ class JobManager:
     # -------------------------------------------------------------- decisions
     def _yielding(self, now: int, position: np.ndarray, velocity: np.ndarray, airborne: bool) -> MissionDecision | None:
         """Separation rule (team.py): hold (and climb above the partner's plan, if it passes near)
-        while too close or predicted to be."""
+        while too close or predicted to be; taking off and landing too (intruder, 3 UAVs, seed 5372:
+        two UAVs the mission timer sent down at once landed 4.6 m apart), not in an emergency landing."""
         p = self.params
-        if self.team is None or self.state not in (*MISSION_STATES, State.TAKING_OFF):
+        if self.team is None or self.state not in (*MISSION_STATES, State.TAKING_OFF, State.LANDING):
             self._yield = None
             return None
         current = self._yield[0] if self._yield else None

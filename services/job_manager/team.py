@@ -30,7 +30,7 @@ Rules (docs/architecture.md, "Mission"):
   its UAV's reference. When an active partner that is airborne or taking off is closer than
   `safety_distance`, or its plan and this UAV's come closer than that within plan_horizon (the
   partner's plan widened by `plan_widen_rate` m per second of its status's age), the
-  lower-priority UAV yields, before the distance breaks. Without plans on either side the
+  lower-priority UAV yields, before the distance breaks (also taking off and landing). Without plans on either side the
   prediction falls back to both UAVs' current velocities over `separation_lookahead`
   (`breach_time`). The yield holds where the UAV is — on the ground while it is still taking
   off — when the partner's plan stays safety_distance + `separation_hysteresis` clear of that
@@ -48,7 +48,8 @@ Rules (docs/architecture.md, "Mission"):
   to it, which brakes from its own speed before it can climb. A UAV moving towards a partner
   closer than `safety_distance` (faster than GIVE_WAY_SPEED) that is less than
   `vertical_separation` - GIVE_WAY_SLACK above or below it brakes to a hover, until the partner is
-  that far above or below or beyond safety_distance + `separation_hysteresis`. On unmapped's
+  that far above or below or beyond safety_distance + `separation_hysteresis`, judged by the
+  mission's plan it paused (core.py `_mission_plan`), not by its braking. On unmapped's
   first 20 s the interceptor of the circler, aiming ahead along its circle, flew into the partner
   yielding to it on every seed at 3 m/s; on agile with 3 UAVs (seed 1) a sweep flew into a
   partner holding on its line.
