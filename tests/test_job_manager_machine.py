@@ -108,6 +108,7 @@ def test_mission_timer_lands_and_late_start_stays_down():
     assert rig.jm.state is State.GOING_AROUND
     decision = rig.tick(25.0, position=[22.0, 30.0, 5.0])  # 40 s − landing margin 15 s
     assert rig.jm.state is State.LANDING and decision.action == "land" and decision.target == (22.0, 30.0, 0.0)
+    assert decision.profile == "attack"  # its lead-in brakes as any stop
     rig.tick(30.0, position=[22.0, 30.0, 0.05])
     assert rig.jm.state is State.LANDED and not rig.jm.flying_normally
     late = Rig(duration=20.0)

@@ -270,3 +270,20 @@ def test_two_uavs_sent_down_together_near_each_other_land_one_after_the_other():
                           state="LANDED", target=None, velocity=(0.0, 0.0, 0.0), plan=None)
     rig.tick(31.0, position=here)
     assert rig.last.action == "land" and "separation from uav1 restored" in rig.jm.notes
+
+
+def test_a_uav_with_priority_landing_from_speed_gives_way_to_a_partner_ahead():
+    """intruder, 3 UAVs, seed 5372: uav1, sent down by the mission timer while sweeping at 5 m/s
+    towards uav2 11 m off, braked over 8 m at the sweeping profile and came within 2.6 m of uav2
+    climbing clear of it. Its landing brakes at the attack profile and gives way as its sweep does."""
+    rig = Rig(uav="uav1", duration=40.0).airborne()
+    far = line(0.0, HOME + [40.0, 0.0, 0.0], (0.0, 0.0, 0.0), seconds=40.0)
+    for t in np.arange(1.1, 24.95, 0.1):
+        partner(rig, round(t, 2), far, name="uav2")  # heard all along: not fallen
+        rig.tick(round(t, 2))
+    decision = rig.tick(25.0, velocity=(5.0, 0.0, 0.0))
+    assert rig.jm.state is State.LANDING and decision.action == "land" and decision.profile == "attack"
+    rig.jm.observe_reference(line(25.0, HOME, (5.0, 0.0, -0.5), seconds=3.0))
+    partner(rig, 25.0, line(25.0, HOME + [7.0, 0.0, 0.5], (0.0, 0.0, 1.0)), name="uav2", state="LANDING")
+    rig.tick(25.1, velocity=(5.0, 0.0, 0.0))
+    assert rig.last.action == "stop" and "giving way to uav2" in rig.jm.notes[-1] and rig.jm.state is State.LANDING

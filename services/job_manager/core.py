@@ -76,7 +76,7 @@ _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "goi
           State.DESTROYING: "destroying_timeout"}
 
 
-# Every stop brakes as hard as the vehicle may: a pursuit at the attack profile's speed plans to brake
+# Every stop (and a landing's braking) brakes as hard as the vehicle may: a pursuit at the attack profile's speed plans to brake
 # at its acceleration before an obstacle; a stop replacing it at the sweeping profile's half of that
 # overshot by the difference (intruder, 2 UAVs, seed 3670: a chase lost from view 2 m before a tree's
 # crown ended in the crown at 1.9 m/s).
@@ -842,7 +842,8 @@ class JobManager:
     def _giving_way(self, now: int, position: np.ndarray, velocity: np.ndarray) -> MissionDecision | None:
         """Giving way (team.py): a UAV with priority brakes to a hover rather than fly into a partner."""
         before = self._giving_way_to
-        partner = None if self.team is None or self.state not in MISSION_STATES else self.team.give_way_to(
+        flying = self.team is not None and self.state in (*MISSION_STATES, State.LANDING)
+        partner = None if not flying else self.team.give_way_to(
             now, Mover(position, velocity, self.state.value, self._mission_plan(now)), self._separation, before)
         self._giving_way_to = None if partner is None else partner.name
         if partner is None:
@@ -883,10 +884,11 @@ class JobManager:
         if state in (State.GOING_TO_TARGET, State.DESTROYING):
             return self._engage(now)
         if state is State.LANDING:
-            return MissionDecision("land", height=self.ground_z, spacing=p.scan_spacing, target=self._landing_target)
+            return MissionDecision("land", height=self.ground_z, spacing=p.scan_spacing, target=self._landing_target,
+                                   profile=STOP_PROFILE)  # it brakes first (the planner's lead-in)
         if state is State.EMERGENCY_LANDING:
             return MissionDecision("emergency_land", height=self.ground_z, spacing=p.scan_spacing,
-                                   target=self._landing_target)
+                                   target=self._landing_target, profile=STOP_PROFILE)
         if state is State.PREFLIGHT:
             return MissionDecision("idle", height=p.search_height, spacing=p.scan_spacing)
         if state is State.CHECKING_TARGET:  # the stop manoeuvre (a no-op when already at rest)
