@@ -266,8 +266,9 @@ def test_two_uavs_sent_down_together_near_each_other_land_one_after_the_other():
     assert rig.jm.state is State.LANDING and rig.last.action == "goto" and rig.last.target[2] > here[2]
     assert "yielding to uav1" in rig.jm.notes[-1]
     rig.jm.observe_reference(line(25.1, here, (0.0, 0.0, 0.0), seconds=30.0))
-    rig.jm.partner_status("uav1", s(31.0), flying_normally=False, airborne=False, position=tuple(here + [4.6, 0.0, 0.0]),
-                          state="LANDED", target=None, velocity=(0.0, 0.0, 0.0), plan=None)
+    rig.jm.partner_status("uav1", s(31.0), flying_normally=False, airborne=False,
+                          position=tuple(here + [4.6, 0.0, 0.0]), state="LANDED", target=None,
+                          velocity=(0.0, 0.0, 0.0), plan=None)
     rig.tick(31.0, position=here)
     assert rig.last.action == "land" and "separation from uav1 restored" in rig.jm.notes
 

@@ -76,9 +76,9 @@ _TIMED = {State.CHECKING_TARGET: "checking_timeout", State.GOING_TO_TARGET: "goi
           State.DESTROYING: "destroying_timeout"}
 
 
-# Every stop (and a landing's braking) brakes as hard as the vehicle may: a pursuit at the attack profile's speed plans to brake
-# at its acceleration before an obstacle; a stop replacing it at the sweeping profile's half of that
-# overshot by the difference (intruder, 2 UAVs, seed 3670: a chase lost from view 2 m before a tree's
+# Every stop (and a landing's braking) brakes as hard as the vehicle may: a pursuit at the attack
+# profile's speed plans to brake at its acceleration before an obstacle; a stop replacing it at the
+# sweeping profile's half of that overshot by the difference (intruder, 2 UAVs, seed 3670: a chase lost from view 2 m before a tree's
 # crown ended in the crown at 1.9 m/s).
 STOP_PROFILE = "attack"
 
@@ -439,7 +439,8 @@ class JobManager:
         if not self.positioning_by_localizer or self.state not in _WATCHED:
             return decision
         if self.positioning == "lost":
-            return MissionDecision("stop", height=self.params.search_height, spacing=decision.spacing, profile=STOP_PROFILE)
+            return MissionDecision("stop", height=self.params.search_height, spacing=decision.spacing,
+                                   profile=STOP_PROFILE)
         if self.positioning == "degraded" and decision.action != "stop":  # braking never speeds up
             return replace(decision, profile="degraded")
         return decision
@@ -831,7 +832,8 @@ class JobManager:
         None once the machine has moved on to another state: that reference is no longer the
         mission's (mbzirc, 2 UAVs: a UAV that left a balloon to its partner held 8 s for the
         approach it had given up), and the next command's plan will be checked when it comes."""
-        if (self._yield is None and self._giving_way_to is None) or self._paused is None or self._paused[0] is None:
+        holding = self._yield is not None or self._giving_way_to is not None
+        if not holding or self._paused is None or self._paused[0] is None:
             return self.reference
         plan, paused, state = self._paused
         if state is not self.state:

@@ -30,10 +30,10 @@ Rules (docs/architecture.md, "Mission"):
   its UAV's reference. When an active partner that is airborne or taking off is closer than
   `safety_distance`, or its plan and this UAV's come closer than that within plan_horizon (the
   partner's plan widened by `plan_widen_rate` m per second of its status's age), the
-  lower-priority UAV yields, before the distance breaks (also taking off and landing). Without plans on either side the
-  prediction falls back to both UAVs' current velocities over `separation_lookahead`
-  (`breach_time`). The yield holds where the UAV is — on the ground while it is still taking
-  off — when the partner's plan stays safety_distance + `separation_hysteresis` clear of that
+  lower-priority UAV yields, before the distance breaks (also taking off and landing). Without
+  plans on either side the prediction falls back to both UAVs' current velocities over
+  `separation_lookahead` (`breach_time`). The yield holds where the UAV is — on the ground while
+  it is still taking off — when the partner's plan stays safety_distance + `separation_hysteresis` clear of that
   spot; else it also climbs to `vertical_separation` above the highest point of the partner's
   plan near it (`hold_spot`). It lasts until the distance exceeds safety_distance + hysteresis
   and no breach is predicted. Priority: a UAV engaging a target (GOING_TO_TARGET, DESTROYING)

@@ -188,8 +188,8 @@ def _rendezvous(p: np.ndarray, v: np.ndarray, targets: np.ndarray, velocities: n
     (MEETING_OFFSETS); the first whose acceleration (linear in time, so largest at an end) stays
     within `accel`, whose speeds stay within the profile and which keeps above `floor` (or the
     start's height) and arrives where the law can still stop a descent above it, nearest the
-    target's velocity. Its samples after the start and the velocity
-    it arrives at, or None when no meeting within `last` steps fits."""
+    target's velocity. Its samples after the start and the velocity it arrives at, or None when
+    no meeting within `last` steps fits."""
     k = np.arange(1, last + 1)
     if not len(k):
         return None
@@ -206,7 +206,9 @@ def _rendezvous(p: np.ndarray, v: np.ndarray, targets: np.ndarray, velocities: n
                 np.any(np.abs(velocity[:, 2]) > _MARGIN * profile.max_vertical_speed):
             continue
         samples = p + v * tau + 0.5 * first * tau**2 + jerk * tau**3 / 6.0
-        if samples[:, 2].min() < min(floor, p[2]) - 1e-9 or not _stops_above(samples[-1], velocity[-1], floor, profile):
+        if samples[:, 2].min() < min(floor, p[2]) - 1e-9:
+            continue
+        if not _stops_above(samples[-1], velocity[-1], floor, profile):
             continue
         apart = np.linalg.norm(targets[1:k[step] + 1] - samples, axis=1)
         closing = np.linalg.norm(velocity - velocities[1:k[step] + 1], axis=1)

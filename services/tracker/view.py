@@ -101,7 +101,8 @@ class PredictedPath:
         angles = turn * np.arange(1, int(np.ceil(until / self.dt)) - len(path) + 1)
         steps = np.stack([np.cos(angles) * last[0] - np.sin(angles) * last[1],
                           np.sin(angles) * last[0] + np.cos(angles) * last[1], np.full(len(angles), last[2])], axis=1)
-        return PredictedPath(self.position, self.velocity, np.vstack([path, path[-1] + np.cumsum(steps, axis=0)]), self.dt)
+        carried = path[-1] + np.cumsum(steps, axis=0)
+        return PredictedPath(self.position, self.velocity, np.vstack([path, carried]), self.dt)
 
     def rebased(self, offset: float, count: int, dt: float) -> PredictedPath:
         """The same prediction seen from `offset` s later, its path resampled every dt (count points)."""
