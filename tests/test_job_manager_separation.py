@@ -288,3 +288,23 @@ def test_a_uav_with_priority_landing_from_speed_gives_way_to_a_partner_ahead():
     partner(rig, 25.0, line(25.0, HOME + [7.0, 0.0, 0.5], (0.0, 0.0, 1.0)), name="uav2", state="LANDING")
     rig.tick(25.1, velocity=(5.0, 0.0, 0.0))
     assert rig.last.action == "stop" and "giving way to uav2" in rig.jm.notes[-1] and rig.jm.state is State.LANDING
+
+
+def test_a_give_way_begun_on_our_velocities_lasts_until_the_uav_no_longer_closes_on_the_partner():
+    """intruder, 2 UAVs, seed 3545: uav1 gave way to uav2 16 m off, the two closing at 8 m/s; on the
+    next tick uav2's plan was a braking one, no longer predicted to come near uav1's, and the
+    give-way ended with uav1 still at speed towards uav2, and began again the tick after."""
+    rig = Rig(uav="uav1").airborne()
+    rig.jm.observe_reference(turn(1.1, HOME, (5.0, 0.0, 0.0), (0.0, 0.0, 0.0), after=1.4))  # stops 7 m on
+    rig.tick(1.1, velocity=(5.0, 0.0, 0.0))
+    partner(rig, 1.1, line(1.1, HOME + [16.0, 0.0, 0.0], (-3.0, 0.0, 0.0)), name="uav2")
+    rig.tick(1.2, velocity=(5.0, 0.0, 0.0))
+    stop = rig.last
+    assert stop.action == "stop" and "giving way to uav2" in rig.jm.notes[-1]
+    braking = turn(1.3, HOME + [15.6, 0.0, 0.0], (-1.0, 0.0, 0.0), (0.0, 0.0, 0.0), after=0.2, seconds=30.0)
+    partner(rig, 1.3, braking, name="uav2")  # its plan no longer comes near mine
+    rig.tick(1.3, velocity=(5.0, 0.0, 0.0))  # but I am still closing on it at speed
+    assert rig.last == stop and not any("engaging again" in note for note in rig.jm.notes)
+    partner(rig, 1.5, braking, name="uav2")
+    rig.tick(1.5, velocity=(0.0, 0.0, 0.0))  # braked
+    assert "uav2 is clear: engaging again" in rig.jm.notes

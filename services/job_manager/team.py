@@ -223,12 +223,17 @@ class Team:
         age = min(max(now - (p.heard if p.heard is not None else now), 0), self.lost_link_ns) / NS
         return p.position + p.velocity * age
 
+    @staticmethod
+    def _flying(p: Partner) -> bool:
+        """An active partner that is airborne or taking off, where it is known."""
+        return not p.fallen_reason and (p.airborne or p.state == "TAKING_OFF") and p.position is not None
+
     def _near(self, now: int, me: Mover, rule: SeparationRule, radius: float) -> list[tuple[Partner, np.ndarray, float]]:
         """(partner, its offset from me now, distance) of every active partner that is airborne or
         taking off and closer than `radius` now or predicted to be (`predicted_breach`)."""
         found = []
         for p in self.partners.values():
-            if p.fallen_reason or not (p.airborne or p.state == "TAKING_OFF") or p.position is None:
+            if not self._flying(p):
                 continue
             offset = self.position_now(p, now) - me.position
             distance = float(np.linalg.norm(offset))
@@ -278,9 +283,19 @@ class Team:
         return spot
 
     def give_way_to(self, now: int, me: Mover, rule: SeparationRule, giving_way_to: str | None) -> Partner | None:
-        """The partner a UAV must brake for now (None: no one); see the module docstring."""
+        """The partner a UAV must brake for now (None: no one); see the module docstring. A give-way
+        lasts while the partner is near or I am still closing on it as fast as made me brake: it began
+        on our velocities, and ending it on our plans alone (the partner's now a braking one) let it
+        end on the next tick and begin again on the one after (intruder, 2 UAVs, seed 3545: 16 m apart)."""
+        near = self._near(now, me, rule, rule.safety_distance + rule.hysteresis)
+        held = self.partners.get(giving_way_to) if giving_way_to is not None else None
+        if held is not None and self._flying(held) and all(p is not held for p, _, _ in near):
+            offset = self.position_now(held, now) - me.position
+            distance = float(np.linalg.norm(offset))
+            if self._closing(me, held, offset, distance, rule):
+                near.append((held, offset, distance))
         best, best_distance = None, np.inf
-        for p, offset, distance in self._near(now, me, rule, rule.safety_distance + rule.hysteresis):
+        for p, offset, distance in near:
             if abs(offset[2]) >= rule.vertical_separation - GIVE_WAY_SLACK:
                 continue
             if p.name != giving_way_to and not self._flying_into(now, me, p, offset, distance, rule):
@@ -288,6 +303,13 @@ class Team:
             if distance < best_distance:
                 best, best_distance = p, distance
         return best
+
+    @staticmethod
+    def _closing(me: Mover, p: Partner, offset: np.ndarray, distance: float, rule: SeparationRule) -> bool:
+        """Flying towards the partner (faster than GIVE_WAY_SPEED) and inside the safety distance
+        within rule.lookahead by our velocities."""
+        return float(me.velocity @ offset) > GIVE_WAY_SPEED * distance and \
+            breach_time(offset, p.velocity - me.velocity, rule.safety_distance) <= rule.lookahead
 
     def _flying_into(self, now: int, me: Mover, p: Partner, offset: np.ndarray, distance: float,
                      rule: SeparationRule) -> bool:
@@ -297,8 +319,7 @@ class Team:
         interception) was seen only once under way: agile, 3 UAVs, seed 1, 6.7 m apart, 4.1 m at the
         closest. The plans' horizon is kept short: the partner yielding to me changes its plan in
         answer to mine, and two UAVs acting on each other's plans seconds ahead take turns holding."""
-        by_velocity = float(me.velocity @ offset) > GIVE_WAY_SPEED * distance and \
-            breach_time(offset, p.velocity - me.velocity, rule.safety_distance) <= rule.lookahead
+        by_velocity = self._closing(me, p, offset, distance, rule)
         if by_velocity or me.plan is None:
             return by_velocity
         heading = me.plan.at(np.array([now + NS]))[0] - me.plan.at(np.array([now]))[0]
