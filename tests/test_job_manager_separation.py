@@ -308,3 +308,18 @@ def test_a_give_way_begun_on_our_velocities_lasts_until_the_uav_no_longer_closes
     partner(rig, 1.5, braking, name="uav2")
     rig.tick(1.5, velocity=(0.0, 0.0, 0.0))  # braked
     assert "uav2 is clear: engaging again" in rig.jm.notes
+
+
+def test_a_yield_holds_where_braking_ends_not_back_where_it_began():
+    """intruder, 3 UAVs, seeds 3435 and 1109: uav2 yielded to uav1 and held at the spot where the
+    yield began; braked past it, it flew back faster than it climbed, towards uav1 braking towards
+    it, and they came within 4.4 and 4.5 m. The hold is where braking (at the attack profile's
+    3 m/s²) ends."""
+    rig = Rig(uav="uav2").airborne()
+    rig.jm.observe_reference(line(1.1, HOME, (2.0, 0.0, 0.0)))
+    rig.tick(1.1, velocity=(2.0, 0.0, 0.0))
+    crossing = turn(1.1, HOME + [-2.0, -10.0, 0.0], (0.0, 8.0, 0.0), (0.0, 0.0, 0.0), after=1.25)  # stops 2 m behind
+    partner(rig, 1.1, crossing, state="GOING_TO_TARGET")
+    rig.tick(1.2, velocity=(2.0, 0.0, 0.0))
+    assert rig.last.action == "goto" and "yielding to uav1" in " ".join(rig.jm.notes)
+    assert rig.last.target[:2] == pytest.approx((HOME[0] + 4.0 / 6.0, HOME[1]))  # 2 m/s braked at 3 m/s²

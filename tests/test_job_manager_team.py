@@ -201,7 +201,8 @@ def test_a_head_on_meeting_is_resolved_before_the_safety_distance_is_broken():
     far.tick(1.1, velocity=south)
     flying(far, "uav1", 1.1, position=HOME + [0.0, -25.0, 0.0], state="GOING_TO_TARGET", velocity=north)
     far.tick(1.2)
-    assert far.last.action == "goto" and far.last.target == (HOME[0], HOME[1], HOME[2] + 6.0)
+    assert far.last.action == "goto"  # held where braking at 3 m/s² ends, 6 m above uav1's way
+    assert far.last.target == pytest.approx((HOME[0], HOME[1] - 4.5**2 / 6.0, HOME[2] + 6.0))
     assert "yielding to uav1 (24.7 m apart)" in " ".join(far.jm.notes)  # carried on 0.1 s at 3 m/s
     early = Rig(uav="uav2").airborne()  # 30 m: 3.3 s to the breach, later than the 3 s lookahead
     early.tick(1.1, velocity=south)

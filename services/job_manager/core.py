@@ -868,7 +868,8 @@ class JobManager:
     def _separation(self) -> SeparationRule:
         p = self.params
         return SeparationRule(p.safety_distance, p.vertical_separation, p.separation_hysteresis,
-                              p.separation_lookahead, p.plan_horizon, p.plan_step, p.plan_widen_rate)
+                              p.separation_lookahead, p.plan_horizon, p.plan_step, p.plan_widen_rate,
+                              p.attack_acceleration)
 
     def _decision_for(self, now: int, position: np.ndarray) -> MissionDecision:
         p, state = self.params, self.state

@@ -263,12 +263,18 @@ class Team:
         return approach.breach <= rule.plan_horizon
 
     def hold_spot(self, now: int, me: Mover, p: Partner, rule: SeparationRule, at: np.ndarray | None = None) -> np.ndarray:
-        """Where a UAV yielding to `p` holds: where it is (or `at`, the spot it holds at), when the
-        partner's plan keeps safety_distance + hysteresis from there over the horizon (and on the
-        ground while it is still taking off); else also vertical_separation above the highest point
-        of that plan within that reach. Asked again on every tick of a yield: a plan that passes
-        clear now may come through the spot later (agile, 3 UAVs, seed 1: a sweep 42 m away)."""
+        """Where a UAV yielding to `p` holds: where it comes to rest braking from its velocity at
+        `rule.braking` (or `at`, the spot it holds at), when the partner's plan keeps safety_distance
+        + hysteresis from there over the horizon (and on the ground while it is still taking off);
+        else also vertical_separation above the highest point of that plan within that reach. Asked
+        again on every tick of a yield: a plan that passes clear now may come through the spot later
+        (agile, 3 UAVs, seed 1: a sweep 42 m away). Not where the yield began: braked past it, the
+        UAV flew back faster than it climbed, towards the partner braking towards it (intruder,
+        3 UAVs, seeds 3435 and 1109: 4.4 and 4.5 m)."""
         spot = np.asarray(me.position if at is None else at, dtype=np.float64).copy()
+        if at is None and me.airborne:
+            speed = float(np.linalg.norm(me.velocity[:2]))
+            spot[:2] += me.velocity[:2] * speed / (2.0 * rule.braking)
         theirs, age = self.partner_plan(p, now, rule)
         reach = rule.safety_distance + rule.hysteresis
         here = PlannedPath(now, rule.plan_step, spot[None])
@@ -364,6 +370,7 @@ class SeparationRule:
     plan_horizon: float = 6.0  # s of plans compared
     plan_step: float = 0.25  # s between the compared samples
     widen_rate: float = 2.0  # m per s of a partner plan's age added to the distance it must keep
+    braking: float = 3.0  # m/s² a yielding UAV brakes at (the attack profile's): its hold is where it stops
 
 
 def breach_time(offset: np.ndarray, relative_velocity: np.ndarray, radius: float) -> float:
