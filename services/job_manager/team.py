@@ -32,10 +32,10 @@ Rules (docs/architecture.md, "Mission"):
   partner's plan widened by `plan_widen_rate` m per second of its status's age), the
   lower-priority UAV yields, before the distance breaks (also taking off and landing). Without
   plans on either side the prediction falls back to both UAVs' current velocities over
-  `separation_lookahead` (`breach_time`). The yield holds where the UAV is — on the ground while
-  it is still taking off — when the partner's plan stays safety_distance + `separation_hysteresis` clear of that
-  spot; else it also climbs to `vertical_separation` above the highest point of the partner's
-  plan near it (`hold_spot`). It lasts until the distance exceeds safety_distance + hysteresis
+  `separation_lookahead` (`breach_time`). The yield holds where the UAV's braking ends — on the
+  ground while it is still taking off — when the partner's plan stays safety_distance +
+  `separation_hysteresis` clear of that spot; else it also climbs to `vertical_separation` above
+  the highest point of the partner's plan near it (`hold_spot`). It lasts until the distance exceeds safety_distance + hysteresis
   and no breach is predicted. Priority: a UAV engaging a target (GOING_TO_TARGET, DESTROYING)
   over one that is not, then the team order. A partner's position is its last status's, carried
   on at its velocity to now (at most for `lost_link_time`: beyond that it is unaccounted, a no-fly
@@ -49,7 +49,8 @@ Rules (docs/architecture.md, "Mission"):
   closer than `safety_distance` (faster than GIVE_WAY_SPEED) that is less than
   `vertical_separation` - GIVE_WAY_SLACK above or below it brakes to a hover, until the partner is
   that far above or below or beyond safety_distance + `separation_hysteresis`, judged by the
-  mission's plan it paused (core.py `_mission_plan`), not by its braking. On unmapped's
+  mission's plan it paused (core.py `_mission_plan`), not by its braking, and never while it
+  still closes on the partner as fast as made it brake. On unmapped's
   first 20 s the interceptor of the circler, aiming ahead along its circle, flew into the partner
   yielding to it on every seed at 3 m/s; on agile with 3 UAVs (seed 1) a sweep flew into a
   partner holding on its line.
