@@ -26,8 +26,8 @@ Rules (docs/architecture.md, "Mission"):
 - **One chaser per target**: a partner's claimed target (its status `target`) filters out my
   detections within `claim_radius` of it — unless I claim the same target and am closer to it
   (ties: the UAV earlier in the team order keeps it).
-- **Separation, planned ahead** (plans.py): every status carries the next `plan_horizon` s of
-  its UAV's reference. When an active partner that is airborne or taking off is closer than
+- **Separation, planned ahead** (plans.py): every status carries the next `plan_horizon` s of its
+  UAV's reference. When an active partner that is airborne or taking off is closer than
   `safety_distance`, or its plan and this UAV's come closer than that within plan_horizon (the
   partner's plan widened by `plan_widen_rate` m per second of its status's age), the
   lower-priority UAV yields, before the distance breaks (also taking off and landing). Without
@@ -37,13 +37,14 @@ Rules (docs/architecture.md, "Mission"):
   `separation_hysteresis` clear of that spot; else it also climbs to `vertical_separation` above
   the highest point of the partner's plan near it (`hold_spot`). It lasts until the distance
   exceeds safety_distance + hysteresis and no breach is predicted. Priority: a UAV engaging a
-  target (GOING_TO_TARGET, DESTROYING) over one that is not, then the team order. A partner's position is its last status's, carried
-  on at its velocity to now (at most for `lost_link_time`: beyond that it is unaccounted, a no-fly
-  column). Reacting only inside the safety distance was too late: on street (seed 4) a sweeping
-  UAV at 4.5 m/s and an interceptor at 3 m/s met head-on; two braking distances at those speeds
-  plus a tick are about 6 m. Reacting to current velocities was too late as well: two sweeps
-  turning into each other, two take-offs side by side and two chasers converging on one drone
-  came within 4.0-4.6 m (the velocities said nothing of the turn ahead).
+  target (GOING_TO_TARGET, DESTROYING) over one that is not, then the team order. A partner's
+  position is its last status's, carried on at its velocity to now (at most for `lost_link_time`:
+  beyond that it is unaccounted, a no-fly column). Reacting only inside the safety distance was
+  too late: on street (seed 4) a sweeping UAV at 4.5 m/s and an interceptor at 3 m/s met head-on;
+  two braking distances at those speeds plus a tick are about 6 m. Reacting to current velocities
+  was too late as well: two sweeps turning into each other, two take-offs side by side and two
+  chasers converging on one drone came within 4.0-4.6 m (the velocities said nothing of the turn
+  ahead).
 - **Giving way**: the UAV with priority does not yield, but it must not fly into the one yielding
   to it, which brakes from its own speed before it can climb. A UAV moving towards a partner
   closer than `safety_distance` (faster than GIVE_WAY_SPEED) that is less than
