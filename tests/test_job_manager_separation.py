@@ -323,3 +323,23 @@ def test_a_yield_holds_where_braking_ends_not_back_where_it_began():
     rig.tick(1.2, velocity=(2.0, 0.0, 0.0))
     assert rig.last.action == "goto" and "yielding to uav1" in " ".join(rig.jm.notes)
     assert rig.last.target[:2] == pytest.approx((HOME[0] + 4.0 / 6.0, HOME[1]))  # 2 m/s braked at 3 m/s²
+
+
+@pytest.mark.parametrize("me, other", [("uav1", "uav2"), ("uav2", "uav1")])
+def test_two_uavs_whose_fresh_plans_pass_apart_do_not_brake_for_each_other_on_their_velocities(me, other):
+    """intruder, 2 UAVs, seed 3545 (campaign run 11): two chases 15-16 m apart closing at 10 m/s by their
+    velocities, their plans turning apart (6.6 m at the closest): both braked, again and again, and
+    both targets got away. Velocities are the fallback where a plan is missing or the plans say the
+    distance breaks; fresh plans that keep it make neither UAV brake."""
+    rig = Rig(uav=me).airborne()
+    sign = 1.0 if me == "uav1" else -1.0
+    start = HOME if me == "uav1" else HOME + [16.0, 0.0, 0.0]
+    away = HOME + [16.0, 0.0, 0.0] if me == "uav1" else HOME
+    mine = turn(1.1, start, (5.0 * sign, 0.0, 0.0), (4.0 * sign, 3.0 * sign, 0.0), after=0.5)
+    theirs = turn(1.1, away, (-5.0 * sign, 0.0, 0.0), (-4.0 * sign, -3.0 * sign, 0.0), after=0.5)
+    assert 5.0 < closest(mine, theirs, 1.1, 6.0) < 7.0
+    rig.jm.observe_reference(mine)
+    rig.tick(1.1, position=start, velocity=(5.0 * sign, 0.0, 0.0))
+    partner(rig, 1.1, theirs, name=other, state="GOING_TO_TARGET")
+    rig.tick(1.2, position=mine.at(np.array([s(1.2)]))[0], velocity=(5.0 * sign, 0.0, 0.0))
+    assert rig.last.action == "scan" and not any("giving way" in n or "yielding" in n for n in rig.jm.notes)

@@ -51,7 +51,8 @@ Rules (docs/architecture.md, "Mission"):
   `vertical_separation` - GIVE_WAY_SLACK above or below it brakes to a hover, until the partner is
   that far above or below or beyond safety_distance + `separation_hysteresis`, judged by the
   mission's plan it paused (core.py `_mission_plan`), not by its braking, and never while it
-  still closes on the partner as fast as made it brake. On unmapped's
+  still closes on the partner as fast as made it brake. Its velocity counts there only where a
+  plan is missing or the plans break safety_distance within plan_horizon. On unmapped's
   first 20 s the interceptor of the circler, aiming ahead along its circle, flew into the partner
   yielding to it on every seed at 3 m/s; on agile with 3 UAVs (seed 1) a sweep flew into a
   partner holding on its line.
@@ -326,10 +327,14 @@ class Team:
         our plans. By velocities alone a plan that starts towards a partner (a sweep taken up after an
         interception) was seen only once under way: agile, 3 UAVs, seed 1, 6.7 m apart, 4.1 m at the
         closest. The plans' horizon is kept short: the partner yielding to me changes its plan in
-        answer to mine, and two UAVs acting on each other's plans seconds ahead take turns holding."""
-        by_velocity = self._closing(me, p, offset, distance, rule)
-        if by_velocity or me.plan is None:
-            return by_velocity
+        answer to mine, and two UAVs acting on each other's plans seconds ahead take turns holding.
+        Velocities count only where a plan is missing or the plans break the safety distance within
+        plan_horizon: two chases closing fast by their velocities while their plans turned apart both
+        braked, again and again, and both targets got away (intruder, 2 UAVs, seed 3545, 15-16 m)."""
+        if self._closing(me, p, offset, distance, rule):
+            return me.plan is None or p.plan is None or self.predicted_breach(now, me, p, rule, rule.safety_distance)
+        if me.plan is None:
+            return False
         heading = me.plan.at(np.array([now + NS]))[0] - me.plan.at(np.array([now]))[0]
         if float(heading @ offset) <= GIVE_WAY_SPEED * distance:
             return False
