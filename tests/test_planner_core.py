@@ -1,6 +1,6 @@
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from schemas.messages import ConstraintProfile
@@ -571,6 +571,7 @@ def test_a_turning_prediction_is_carried_on_round_its_turn_not_along_its_last_st
 @given(radius=st.floats(2.0, 8.0), speed=st.floats(1.0, 6.0), bearing=st.floats(0.0, 2 * np.pi),
        distance=st.floats(1.0, 15.0), velocity=st.tuples(*[st.floats(-5.0, 5.0)] * 2, st.floats(-1.5, 1.5)),
        climb=st.floats(-1.0, 1.0))
+@example(radius=6.0, speed=4.0, bearing=5.0, distance=4.0, velocity=(1.0, 1.0, 1.0), climb=-1.0)  # a turn starved
 def test_a_rendezvous_with_a_turning_target_stays_within_the_profile_and_meets_it(radius, speed, bearing, distance,
                                                                                   velocity, climb):
     from services.planner import pursuit as law
