@@ -84,7 +84,15 @@ def aimed_at(aim, targets: dict[str, tuple[float, float, float]]) -> tuple[str |
 @dataclass
 class TrackRecord:
     confirmed_at: float  # mission time it was first seen confirmed, s
+    at: tuple[float, float, float]  # where it was then
     matched: bool = False
+    nearest_m: float = float("inf")  # its closest approach to a standing target while confirmed
+    last_t: float = 0.0  # the last time it was seen confirmed, s
+
+    def summary(self, track_id: int) -> dict:
+        return {"id": track_id, "t": round(self.confirmed_at, 2), "at": [round(v, 2) for v in self.at],
+                "until": round(self.last_t, 2),
+                "nearest_m": round(self.nearest_m, 2) if np.isfinite(self.nearest_m) else None}
 
 
 @dataclass
@@ -120,10 +128,15 @@ class PerceptionScore:
 
     def add_tracks(self, t: float, ids: list[int], positions: np.ndarray, targets: np.ndarray) -> None:
         """Confirmed tracks of one Tracks message."""
+        positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
+        targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
         hit = matched(positions, targets)
-        for track_id, ok in zip(ids, hit.tolist()):
-            record = self.tracks.setdefault(track_id, TrackRecord(t))
+        gaps = np.linalg.norm(positions[:, None] - targets[None], axis=2).min(axis=1, initial=np.inf)
+        for track_id, ok, gap, position in zip(ids, hit.tolist(), gaps.tolist(), positions.tolist()):
+            record = self.tracks.setdefault(track_id, TrackRecord(t, tuple(position)))
             record.matched = record.matched or ok
+            record.nearest_m = min(record.nearest_m, gap)
+            record.last_t = t
 
     def false_tracks(self, after: float = 0.0) -> int:
         return sum(1 for r in self.tracks.values() if not r.matched and r.confirmed_at >= after)
@@ -137,6 +150,7 @@ class PerceptionScore:
             "recall": {kind: round(1.0 - self.missed[kind] / n, 3) for kind, n in sorted(self.in_sight.items())},
             "confirmed_tracks": len(self.tracks), "false_tracks": self.false_tracks(),
             "false_tracks_after_10s": self.false_tracks(after=10.0),
+            "false_track_list": [r.summary(i) for i, r in sorted(self.tracks.items()) if not r.matched],
         }
 
 
