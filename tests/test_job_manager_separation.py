@@ -343,3 +343,33 @@ def test_two_uavs_whose_fresh_plans_pass_apart_do_not_brake_for_each_other_on_th
     partner(rig, 1.1, theirs, name=other, state="GOING_TO_TARGET")
     rig.tick(1.2, position=mine.at(np.array([s(1.2)]))[0], velocity=(5.0 * sign, 0.0, 0.0))
     assert rig.last.action == "scan" and not any("giving way" in n or "yielding" in n for n in rig.jm.notes)
+
+
+def test_an_interception_is_taken_up_after_a_yield_only_on_a_fresh_sighting():
+    """intruder, 3 UAVs, seed 5144 (campaign run 2): uav3 yielded mid-interception; when separation
+    was restored the dodger had been unseen 1.8 s, and the interception taken up again was aimed at
+    its prediction, 4.9 m from it. The UAV holds and looks until the target is seen again."""
+    def drone(t: float) -> np.ndarray:
+        return HOME + np.array([38.0 + 3.0 * t, 0.0, 1.0])  # in uav2's half
+
+    def sighting(t: float) -> None:
+        rig.jm.observe_tracks(s(t), np.array([7]), drone(t)[None], np.array([[3.0, 0.0, 0.0]]))
+        rig.tick(t, detections=[drone(t)])
+
+    rig = Rig(uav="uav2").airborne()
+    sighting(1.1)
+    sighting(1.2)
+    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "intercept"
+    crossing = line(1.3, HOME + [0.0, 8.0, 0.0], (0.0, -3.0, 0.0), seconds=30.0)  # uav1 across my way
+    for t in np.arange(1.3, 2.75, 0.1):  # scans without the drone: it is out of sight
+        partner(rig, round(t, 2), crossing, state="GOING_TO_TARGET")  # engaged as well, first in team order
+        rig.tick(round(t, 2))
+    assert "yielding to uav1" in " ".join(rig.jm.notes) and rig.last.action == "goto"
+    far = line(2.8, HOME + [0.0, 60.0, 0.0], (0.0, 0.0, 0.0), seconds=30.0)
+    partner(rig, 2.8, far, state="GOING_TO_TARGET")  # gone far away: separation restored, the drone unseen for 1.6 s
+    rig.tick(2.8)
+    assert "separation from uav1 restored" in " ".join(rig.jm.notes)
+    assert rig.jm.state is State.GOING_TO_TARGET and rig.last.action == "stop"
+    assert "target last seen 1.6 s ago: holding until it is seen again" in rig.jm.notes[-1]
+    sighting(2.9)
+    assert rig.last.action == "intercept" and rig.last.target_seen == s(2.9)

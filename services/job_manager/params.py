@@ -47,6 +47,9 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     track_gate: float = 2.0  # m between a detection and a track for them to be the same object
     intercept_replan_distance: float = 0.3  # m a new prediction must part from the sent one (over 1 s ahead) before a new intercept goes out
     intercept_refresh: float = 1.0  # s: an intercept's prediction is sent again at least this often (below the planner's pursuit_trust)
+    # s: an interception is taken up (after a yield or give-way, or on a lock) only on a sighting at most this
+    # old; an older one has the UAV hold and look until the target is seen again (or lost after t_m)
+    intercept_sighting_age: float = 1.0
     velocity_window: float = 1.0  # s of detections the target filter fits a target's velocity to
     filter_sigma: float = 0.15  # m, target filter measurement noise
     filter_process_sigma: float = 0.05  # m/√s, target filter process noise (a balloon sways)
