@@ -85,9 +85,12 @@ def aimed_at(aim, targets: dict[str, tuple[float, float, float]]) -> tuple[str |
 class TrackRecord:
     confirmed_at: float  # mission time it was first seen confirmed, s
     at: tuple[float, float, float]  # where it was then
-    matched: bool = False
     nearest_m: float = float("inf")  # its closest approach to a standing target while confirmed
     last_t: float = 0.0  # the last time it was seen confirmed, s
+
+    @property
+    def matched(self) -> bool:
+        return self.nearest_m <= MATCH_DISTANCE
 
     def summary(self, track_id: int) -> dict:
         return {"id": track_id, "t": round(self.confirmed_at, 2), "at": [round(v, 2) for v in self.at],
@@ -130,11 +133,9 @@ class PerceptionScore:
         """Confirmed tracks of one Tracks message."""
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
-        hit = matched(positions, targets)
         gaps = np.linalg.norm(positions[:, None] - targets[None], axis=2).min(axis=1, initial=np.inf)
-        for track_id, ok, gap, position in zip(ids, hit.tolist(), gaps.tolist(), positions.tolist()):
+        for track_id, gap, position in zip(ids, gaps.tolist(), positions.tolist()):
             record = self.tracks.setdefault(track_id, TrackRecord(t, tuple(position)))
-            record.matched = record.matched or ok
             record.nearest_m = min(record.nearest_m, gap)
             record.last_t = t
 
