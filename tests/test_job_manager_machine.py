@@ -669,6 +669,37 @@ def test_a_partners_track_coasting_unseen_is_no_sighting():
     assert run(lambda t: s(0.5)) is State.GOING_AROUND  # coasting since 0.5 s: nothing seen
 
 
+def test_a_lock_on_a_partners_track_counts_its_age_from_the_partners_last_scan_of_it():
+    """agile, 2 UAVs, seed 1852 (campaign run 27): uav2, braking to a stop, locked the dodger on a
+    partner's track 0.5 s past its last correction, and took the interception up 0.65 s later: the
+    sighting was 1.15 s old, its prediction 2.9 m from the drone. A partner's track counts as seen
+    when its partner last scanned it, so the UAV holds and looks instead."""
+    def drone(t: float) -> np.ndarray:
+        return np.array([80.0 + 1.0 * t, 40.0, 6.0])
+
+    def run(corrected_at):
+        rig, rig.said = Rig(uav="uav2"), []
+        rig.tick(0.0, position=[70.0, 30.0, 0.0])
+        rig.tick(1.0, position=[70.0, 30.0, 5.0])
+        t = 1.1
+        while t < 2.25:
+            rig.jm.observe_tracks(s(t), np.array([2_000_005]), drone(t)[None], np.array([[1.0, 0.0, 0.0]]),
+                                  fleet=np.array([True]), covariances=np.eye(3)[None] * 0.04,
+                                  corrected=np.array([corrected_at(t)], dtype=np.int64))
+            rig.jm.partner_status("uav1", s(t), flying_normally=True, position=(20.0, 20.0, 5.0))  # far off
+            rig.tick(t, velocity=[3.0, 0.0, 0.0] if t < 2.15 else [0.0, 0.0, 0.0])  # braking until 2.15
+            rig.said += rig.jm.notes
+            t = round(t + 0.05, 2)
+        return rig
+
+    stale = run(lambda t: s(min(t, 1.05)))  # the partner lost it at 1.05 s: sightings until 1.55 s
+    assert stale.jm.state is State.GOING_TO_TARGET and stale.last.action == "stop"
+    assert "target last seen 1.1 s ago: holding until it is seen again" in " ".join(stale.said)
+    fresh = run(lambda t: s(t - 0.05))  # still scanned by the partner
+    assert fresh.jm.state is State.GOING_TO_TARGET and fresh.last.action == "intercept"
+    assert fresh.last.target_seen == s(2.1)  # the partner's scan the lock was made on
+
+
 def test_an_intercept_is_renewed_at_least_every_intercept_refresh_and_says_when_its_target_was_seen():
     """The planner follows a prediction pursuit_trust s past the sighting only; a mover that keeps
     to its prediction would otherwise get no new command, and the UAV would stop following it."""

@@ -67,6 +67,11 @@ class Seen:
     covariances: np.ndarray  # (N, 3, 3), NaN where the detector gave none
     tethered: bool = False  # from the camera's balloon detector
     confirmed: bool = False  # partners' confirmed tracks (the fleet): seen consistently by their keepers
+    observed: np.ndarray | None = None  # (N,) ns: when each was really seen (a partner's last scan of it); None: stamp
+
+    def made(self) -> np.ndarray:
+        """(N,) ns: when each detection was really made."""
+        return np.full(len(self.positions), self.stamp, dtype=np.int64) if self.observed is None else self.observed
 
 
 class Sightings:
@@ -104,25 +109,31 @@ class Sightings:
         return positions, covariances
 
     def _remember(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None,
-                  tethered: bool = False, confirmed: bool = False) -> None:
+                  tethered: bool = False, confirmed: bool = False, observed: np.ndarray | None = None) -> None:
         if covariances is None:
             covariances = np.full((len(positions), 3, 3), np.nan)
-        self.recent.append(Seen(stamp, positions, covariances, tethered, confirmed))
+        self.recent.append(Seen(stamp, positions, covariances, tethered, confirmed, observed))
         while self.recent and stamp - self.recent[0].stamp > int(self.params.target_time * NS):
             self.recent.popleft()
 
     def confirmed_tracks(self, tracks: ConfirmedTracks) -> None:
         self.tracks = tracks
 
-    def fleet(self, stamp: int, positions: np.ndarray,
-              covariances: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    def fleet(self, stamp: int, positions: np.ndarray, covariances: np.ndarray | None = None,
+              observed: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
         """The confirmed tracks only partners see (the tracker's fleet picture), as detections: they
         join the scans' in view and in the recent scans, so a target in our working area that
-        only a partner sees can be locked, and a locked one stays seen while a partner sees it."""
+        only a partner sees can be locked, and a locked one stays seen while a partner sees it.
+        `observed` (N,): when the partner last corrected each (its position at `stamp` is predicted
+        from then); returns positions, covariances and those times of the finite rows."""
+        observed = np.full(len(np.asarray(positions).reshape(-1, 3)), stamp, dtype=np.int64) if observed is None \
+            else np.minimum(np.asarray(observed, dtype=np.int64).reshape(-1), stamp)
+        finite = np.isfinite(np.asarray(positions, dtype=np.float64).reshape(-1, 3)).all(axis=1)
         positions, covariances = _finite(positions, covariances)
+        observed = observed[finite]
         self.fleet_latest, self.fleet_stamp = positions, stamp
-        self._remember(stamp, positions, covariances, confirmed=True)
-        return positions, covariances
+        self._remember(stamp, positions, covariances, confirmed=True, observed=observed)
+        return positions, covariances, observed
 
     def in_view(self, now: int) -> np.ndarray | None:
         """The latest scan's, camera frame's and partners' (fleet) detections, those not older than

@@ -50,7 +50,8 @@ class TargetFilter:
     def __init__(self, position: np.ndarray, stamp: int, *, gate: float, measurement_sigma: float,
                  process_sigma: float, max_gap_ns: int, history_ns: int = 2 * NS,
                  velocity: np.ndarray | None = None, max_speed: float = 5.0,
-                 covariance: np.ndarray | None = None, tethered: bool = False) -> None:
+                 covariance: np.ndarray | None = None, tethered: bool = False,
+                 observed: int | None = None) -> None:
         from filterpy.kalman import KalmanFilter  # imported here: see services/runtime/warmup.py
 
         self._floor = measurement_sigma**2
@@ -68,6 +69,9 @@ class TargetFilter:
         self.max_gap_ns = max_gap_ns
         self.history_ns = history_ns
         self.last_seen = stamp
+        # When the newest taken detection was really made: a partner's track is a detection at its
+        # message's stamp, predicted there from the partner's last scan of it (`observed`).
+        self.last_observed = stamp if observed is None else min(observed, stamp)
         self.streak_start = stamp
         self.updates = 1
         self._last_predict = stamp
@@ -115,9 +119,10 @@ class TargetFilter:
         return (self.velocity_sigma * (stamp / NS - self._fit_anchor[0])) ** 2
 
     def update(self, positions: np.ndarray, stamp: int, covariances: np.ndarray | None = None,
-               tethered: bool = False) -> bool:
+               tethered: bool = False, observed: np.ndarray | None = None) -> bool:
         """One scan's or frame's detections (N, 3) with their covariances (N, 3, 3) if known,
-        `tethered` when they come from the balloon detector; True when one of them was taken."""
+        `tethered` when they come from the balloon detector, `observed` (N,) when each was really
+        made if earlier than `stamp`; True when one of them was taken."""
         elapsed = max(stamp - self._last_predict, 0) / NS
         self._kf.Q = np.eye(3) * self._process_variance * max(elapsed, 1e-3)  # a static target may still sway
         self._kf.predict()
@@ -141,6 +146,8 @@ class TargetFilter:
         if stamp - self.last_seen > self.max_gap_ns:
             self.streak_start = stamp
         self.last_seen = stamp
+        made = stamp if observed is None else min(int(np.asarray(observed).reshape(-1)[best]), stamp)
+        self.last_observed = max(self.last_observed, made)
         self.updates += 1
         self._history.append((stamp, positions[best].copy(), self._weight(noises[best])))
         while stamp - self._history[0][0] > self.history_ns:
