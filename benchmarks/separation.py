@@ -46,6 +46,7 @@ def figures(summary: dict) -> dict:
         "emergency_landings": sum("EMERGENCY_LANDING" in [s for _, s in u.get("states", [])]
                                   for u in summary.get("uavs", {}).values()),
         "outcome": summary.get("outcome", "?"),
+        "started_without": summary.get("started_without", []),
     }
 
 
@@ -59,6 +60,8 @@ def failures(where: str, f: dict) -> list[str]:
     missed += [f"{where}: geofence breach {g}" for g in f["geofence"]]
     if f["outcome"] != "finished":
         missed.append(f"{where}: {f['outcome']}")
+    if f["started_without"]:  # a loaded machine's start-up wait ran out: not the seed's mission
+        missed.append(f"{where}: started without {', '.join(f['started_without'])}")
     return missed
 
 
