@@ -5,7 +5,10 @@ Evaluation only: the launcher and the viewer read truth, no flying service does.
   the scan's stamp; otherwise it is false;
 - a target was in sight in a scan when at least MIN_HITS of the scan's rays hit it (points_truth),
   and missed when no detection of that scan matched it;
-- a confirmed track is false when it never came within MATCH_DISTANCE of any target;
+- a confirmed track is false when it never came within MATCH_DISTANCE of any target, in any UAV's
+  picture: a partner's track shown in the fleet picture is its keeper's track (`origin`), so the
+  copy of a track that followed a target is no false track, although it shows up only once its
+  target was captured (the partner's track coasts on; the own one, fused with it until then, ends);
 - an engagement (the job manager's first attack or intercept command at a target) went for a
   target when it was aimed within AIM_DISTANCE of one's true position, else at something that is
   no target (a pole, a tree, a red wall, nothing).
@@ -81,10 +84,14 @@ def aimed_at(aim, targets: dict[str, tuple[float, float, float]]) -> tuple[str |
     return (ids[k] if gaps[k] <= AIM_DISTANCE else None), float(gaps[k])
 
 
+TrackOrigin = tuple[str, int]  # the UAV whose tracker keeps a track, and its id there
+
+
 @dataclass
 class TrackRecord:
     confirmed_at: float  # mission time it was first seen confirmed, s
     at: tuple[float, float, float]  # where it was then
+    origin: TrackOrigin | None = None  # None: the track is its own (no fleet picture)
     nearest_m: float = float("inf")  # its closest approach to a standing target while confirmed
     last_t: float = 0.0  # the last time it was seen confirmed, s
 
@@ -129,29 +136,40 @@ class PerceptionScore:
             self.in_sight[kind] = self.in_sight.get(kind, 0) + 1
             self.missed[kind] = self.missed.get(kind, 0) + (not hit)
 
-    def add_tracks(self, t: float, ids: list[int], positions: np.ndarray, targets: np.ndarray) -> None:
-        """Confirmed tracks of one Tracks message."""
+    def add_tracks(self, t: float, ids: list[int], positions: np.ndarray, targets: np.ndarray,
+                   origins: list[TrackOrigin] | None = None) -> None:
+        """Confirmed tracks of one Tracks message (with each one's keeper and id there, if known)."""
         positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
         targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
         gaps = np.linalg.norm(positions[:, None] - targets[None], axis=2).min(axis=1, initial=np.inf)
-        for track_id, gap, position in zip(ids, gaps.tolist(), positions.tolist()):
-            record = self.tracks.setdefault(track_id, TrackRecord(t, tuple(position)))
+        origins = origins if origins is not None else [None] * len(ids)
+        for track_id, gap, position, origin in zip(ids, gaps.tolist(), positions.tolist(), origins):
+            record = self.tracks.setdefault(track_id, TrackRecord(t, tuple(position), origin))
             record.nearest_m = min(record.nearest_m, gap)
             record.last_t = t
 
-    def false_tracks(self, after: float = 0.0) -> int:
-        return sum(1 for r in self.tracks.values() if not r.matched and r.confirmed_at >= after)
+    def matched_origins(self) -> set[TrackOrigin]:
+        """The keepers' tracks that matched a target in this UAV's picture."""
+        return {r.origin for r in self.tracks.values() if r.matched and r.origin is not None}
 
-    def summary(self) -> dict:
+    def _false(self, matched_elsewhere: set[TrackOrigin]) -> dict[int, TrackRecord]:
+        return {i: r for i, r in sorted(self.tracks.items())
+                if not r.matched and (r.origin is None or r.origin not in matched_elsewhere)}
+
+    def false_tracks(self, after: float = 0.0, matched_elsewhere: set[TrackOrigin] = frozenset()) -> int:
+        return sum(1 for r in self._false(matched_elsewhere).values() if r.confirmed_at >= after)
+
+    def summary(self, matched_elsewhere: set[TrackOrigin] = frozenset()) -> dict:
+        """`matched_elsewhere`: tracks that matched a target in any UAV's picture (matched_origins)."""
         minutes = max((self.last_t - (self.first_t or 0.0)) / 60.0, 1e-9)
         return {
             "detections": self.detections, "matched": self.matched, "false": self.false,
             "false_per_minute": round(self.false / minutes, 2) if self.detections else 0.0,
             "in_sight": dict(sorted(self.in_sight.items())), "missed": dict(sorted(self.missed.items())),
             "recall": {kind: round(1.0 - self.missed[kind] / n, 3) for kind, n in sorted(self.in_sight.items())},
-            "confirmed_tracks": len(self.tracks), "false_tracks": self.false_tracks(),
-            "false_tracks_after_10s": self.false_tracks(after=10.0),
-            "false_track_list": [r.summary(i) for i, r in sorted(self.tracks.items()) if not r.matched],
+            "confirmed_tracks": len(self.tracks), "false_tracks": self.false_tracks(0.0, matched_elsewhere),
+            "false_tracks_after_10s": self.false_tracks(10.0, matched_elsewhere),
+            "false_track_list": [r.summary(i) for i, r in self._false(matched_elsewhere).items()],
         }
 
 

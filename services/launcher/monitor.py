@@ -41,6 +41,7 @@ from services.geometry import distance_to_edges, pairwise_gaps, point_in_polygon
 from services.runtime.clock import StampOrigin, seconds
 from services.simulator import contact
 from services.simulator.specs import pole_name
+from services.tracker.fleet import FLEET_ID_BASE
 from services.tracker.view import track_positions
 
 _LENGTH = struct.Struct("<I")
@@ -260,7 +261,7 @@ class RunMonitor:
             positions = track_positions(confirmed)
             targets = np.array(list(self._targets_at(tracks.header.stamp).values())).reshape(-1, 3)
             u.perception.add_tracks(self._seconds(tracks.header.stamp), [track.id for track in confirmed],
-                                    positions, targets)
+                                    positions, targets, [_origin(uav, track) for track in confirmed])
 
     def _seconds(self, stamp: int) -> float:
         """Mission time of a stamp (a flight's wall-clock stamps count from the first one)."""
@@ -462,6 +463,7 @@ class RunMonitor:
                 f"confirmed tracks {tracks}")
 
     def summary(self) -> dict:
+        matched_anywhere = set().union(*(u.perception.matched_origins() for u in self.uavs.values()))
         return {
             "finished": self.finished,
             "mission_time": round(self.mission_time, 3),
@@ -493,7 +495,7 @@ class RunMonitor:
                        "detections": u.detections, "confirmed_tracks": len(u.confirmed_tracks),
                        "states": [[round(t, 2), state] for t, state in u.states],
                        "decisions": [[round(t, 2), state, reason] for t, state, reason in u.decisions],
-                       "perception": u.perception.summary(),
+                       "perception": u.perception.summary(matched_anywhere),
                        "camera": {key: value for key, value in u.camera.summary().items()
                                   if key in ("detections", "matched", "false", "false_per_minute")},
                        "engagements": [e.summary() for e in u.engagements]}
@@ -502,6 +504,14 @@ class RunMonitor:
             "events": [f"{seconds(self._origin.mission_ns(e.header.stamp)):.2f} {e.kind} {e.subject} {e.detail}".rstrip()
                        for e in self.events],
         }
+
+
+def _origin(uav: str, track) -> evaluation.TrackOrigin:
+    """Whose tracker keeps the track, and its id there: a partner's track in the fleet picture
+    carries the fleet id partner number x FLEET_ID_BASE + the partner's own id."""
+    if track.source in ("", uav):
+        return uav, int(track.id)
+    return track.source, int(track.id) % FLEET_ID_BASE
 
 
 def _closer(best: tuple[float, str, float] | None, sample: tuple[float, str, float]) -> tuple[float, str, float]:
