@@ -72,7 +72,8 @@ def test_the_corpus_has_every_subscribed_type():
 @pytest.mark.parametrize("msg_type", sorted(SUBSCRIBERS, key=lambda t: t.__name__), ids=lambda t: t.__name__)
 def test_every_subscriber_survives_and_counts(msg_type, runs, monkeypatch, gigabytes_refused):
     # a fuzzed lockstep tick bounds keys nothing will send: give up waiting at once (counted as a timeout)
-    monkeypatch.setattr(runtime_node, "LOCKSTEP_TIMEOUT_S", 0.0)
+    monkeypatch.setattr(runtime_node, "INPUT_WAIT_S", 0.0)
+    monkeypatch.setattr(runtime_node, "MESSAGE_WAIT_S", 0.0)
     # a map message may ask for any grid: refusing one takes the same path at 4 M voxels as at 268 M,
     # and holding the largest accepted one stays cheap (the default map is 2.5 M)
     monkeypatch.setattr(MapReplica, "MAX_VOXELS", 1 << 22)

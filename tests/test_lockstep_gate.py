@@ -12,8 +12,10 @@ def test_waits_for_upstream_ack_and_named_messages():
     gate = make_gate()
     gate.begin(5, {"falconry/uav1/odometry": 7})
     assert "ack of classifier" in gate.missing(UP)
+    assert gate.awaiting_upstream(UP) and not gate.awaiting_upstream(set())  # still working / gone
     gate.record_ack("classifier", 5, {"falconry/uav1/detections": 3})
     assert set(gate.missing(UP)) == {"falconry/uav1/odometry#7", "falconry/uav1/detections#3"}
+    assert not gate.awaiting_upstream(UP)  # only messages already sent are missing now
     gate.hold("falconry/uav1/odometry", 7, "odo7")
     gate.hold("falconry/uav1/detections", 3, "det3")
     assert gate.missing(UP) == []
@@ -153,3 +155,20 @@ def test_a_joined_service_never_waits_for_what_was_sent_before_it_joined():
     assert gate.missing(UP) == ["falconry/uav1/command#7"]  # news: wait for it
     gate.hold("falconry/uav1/command", 7, "cmd7")
     assert [i for _, i in gate.release(UP)] == ["cmd7"]
+
+
+def test_a_message_given_up_on_is_not_waited_for_again_but_released_if_it_comes():
+    gate = make_gate()
+    gate.begin(1, {"falconry/uav1/tracks": 8})
+    gate.record_ack("classifier", 1, {})
+    assert gate.missing(UP) == ["falconry/uav1/tracks#8"]
+    gate.give_up(UP)  # lost on the way (its publisher's session dropped and came back)
+    assert gate.release(UP) == []
+    gate.begin(2, {"falconry/uav1/tracks": 8})  # the publisher has sent nothing newer since
+    gate.record_ack("classifier", 2, {})
+    assert gate.missing(UP) == []
+    gate.hold("falconry/uav1/tracks", 8, "late")
+    assert [item for _, item in gate.release(UP)] == ["late"]
+    gate.begin(3, {"falconry/uav1/tracks": 9})
+    gate.record_ack("classifier", 3, {})
+    assert gate.missing(UP) == ["falconry/uav1/tracks#9"]  # the next one is waited for as ever

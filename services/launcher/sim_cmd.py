@@ -499,7 +499,11 @@ def health_totals(usage: list[ServiceHealth], stopped: set[str] = frozenset()) -
                 missed["missed_while_stopped" if was_stopped else "lost_own_uav"] += max(0, published[key] - n)
     return {"decode_errors": sum(sum(h.decode_errors.values()) for h in usage),
             "handler_errors": sum(h.handler_errors for h in usage),
-            "lockstep_timeouts": sum(h.lockstep_timeouts for h in usage), **missed,
+            "lockstep_timeouts": sum(h.lockstep_timeouts for h in usage),
+            # the master's own: a tick that went on without a service it still waited for (a frozen
+            # one it does not wait for, and whatever waits that freeze caused downstream are not)
+            "ticks_gone_on_without": sum(h.lockstep_timeouts for h in usage if h.service == "simulator"),
+            **missed,
             "dropped_backlog": sum(sum(h.dropped_backlog.values()) for h in usage),
             "dropped_stale": sum(sum(h.dropped_stale.values()) for h in usage),
             "services_answering": len(usage)}
@@ -523,6 +527,9 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
         f"wall (real-time factor {s['mission_time'] / max(s['wall_time'], 1e-9):.2f}x)",
         *([f"started without {', '.join(s['started_without'])}: not up within the simulator's start-up "
            "timeout, so this run is not the one its seed names"] if s.get("started_without") else []),
+        *([f"lockstep went on {s['health']['ticks_gone_on_without']} times without a service that did not "
+           "answer in time, so this run is not the one its seed names"]
+          if s["lockstep"] and (s.get("health") or {}).get("ticks_gone_on_without") else []),
         f"targets destroyed or captured: {len(s['destroyed'])}/{s['targets']}"
         + "".join(f"\n  t={d['t']:.1f} s {d['target']} by {d['by']}" + _since_detection(d) for d in s["destroyed"]),
     ]

@@ -38,9 +38,8 @@ from services.recorder.mcap_io import ReadReport, header_of, read_recording
 from services.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Publish, Tick, ack_owner
 from services.recorder.selection import DEFAULT_REPLAY_KEYS, KeyFilter, pipeline_order
 from services.runtime.errors import UsageError
+from services.runtime.lockstep import ACK_WAIT_S, TICK_RESEND_S
 
-RESEND_S = 0.5
-ACK_TIMEOUT_S = 10.0
 SETTLE_S = 0.3  # lets services see the stand-in tokens before the first tick
 LINGER_S = 0.3  # lets the last messages leave before the session closes
 
@@ -291,7 +290,7 @@ class Replayer:
 
     def _wait_for_acks(self, step: int, names: list[str] | None = None) -> None:
         started = time.monotonic()
-        resend = started + RESEND_S
+        resend = started + TICK_RESEND_S
         while not self.stop.is_set():
             with self._cond:
                 live = self._alive - set(self._tokens)
@@ -301,11 +300,11 @@ class Replayer:
                     return
                 self._cond.wait(0.05)
             now = time.monotonic()
-            if now - started > ACK_TIMEOUT_S:
+            if now - started > ACK_WAIT_S:
                 self.stats.ack_timeouts += 1
                 self.say(f"warning: tick {step}: no acknowledgement from {', '.join(waiting)}; going on")
                 return
             if now > resend and self._tick_payload is not None:
                 self._publish(keys.CLOCK, self._tick_payload, count=False)  # a service may have joined late
                 self.stats.resent_ticks += 1
-                resend = now + RESEND_S
+                resend = now + TICK_RESEND_S

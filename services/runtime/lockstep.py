@@ -25,6 +25,22 @@ from schemas import keys
 
 Item = TypeVar("Item")
 
+# How long the lockstep master (the simulator, or replay standing in for it) waits for a live
+# service's acknowledgement of a tick before it goes on without it. Going on makes the run another
+# than its seed's, so the wait is long: a service compiling its kernels on a loaded machine (a cold
+# numba cache) can be busy for many seconds, and must not change the run. A service that is gone
+# (its token vanished) or frozen by a fault is not waited for at all.
+TICK_RESEND_S = 0.5  # a tick nobody acknowledged is sent again (a service may have joined late)
+ACK_WAIT_S = 30.0
+# A service waits for an upstream that is still working on the tick (its acknowledgement missing)
+# as long as the master would, and at most INPUT_WAIT_S: longer than the master's wait, so the
+# master alone decides when a tick goes on without someone (its next tick ends this wait). A
+# message the tick names has been published already; one that has not come MESSAGE_WAIT_S after
+# the last missing acknowledgement did is lost on the way (a publisher whose session dropped and
+# came back, e.g. after a freeze longer than the lease) and is not waited for any longer.
+INPUT_WAIT_S = 2 * ACK_WAIT_S
+MESSAGE_WAIT_S = 5.0
+
 
 class LockstepGate(Generic[Item]):
     def __init__(
@@ -136,6 +152,19 @@ class LockstepGate(Generic[Item]):
             if not any(seq == bound for seq, _, _ in self._fifo.get(key, ())):
                 waits.append(f"{key}#{bound}")
         return waits
+
+    def give_up(self, alive_upstream: set[str]) -> None:
+        """The messages tick `step` still waits for are lost on the way: no later tick waits for
+        them (one that comes after all is released with the tick it comes in)."""
+        for key, bound in self.bounds(alive_upstream).items():
+            if self._wants(key) and bound and not any(seq == bound for seq, _, _ in self._fifo.get(key, ())):
+                self._floor[key] = max(self._floor.get(key, 0), bound)
+
+    def awaiting_upstream(self, alive_upstream: set[str]) -> bool:
+        """Whether a live upstream service has yet to acknowledge tick `step` (it is still working
+        on it), as against only messages still on their way."""
+        return self.step is not None and not (self.joining and self.step > 0) and any(
+            service in alive_upstream and self.step not in self._acks.get(service, {}) for service in self.upstream)
 
     def release(self, alive_upstream: set[str]) -> list[tuple[str, Item]]:
         """Pop the messages that belong to this tick, in a deterministic order."""

@@ -34,7 +34,7 @@ from schemas.messages import Decision, FaultCommand, Header, ServiceHealth, SimC
 from services.runtime.clock import MissionClock, WallClock
 from services.runtime.delivery import DeliveryFaults, Freshness, Reorderer
 from services.runtime.health import process_usage
-from services.runtime.lockstep import FaultWindows, LockstepGate
+from services.runtime.lockstep import INPUT_WAIT_S, MESSAGE_WAIT_S, FaultWindows, LockstepGate
 from services.runtime.typed import Counters, M, Subscription, TypedPublisher
 from services.runtime.zenoh_config import OpenCancelled, ZenohSettings, init_logging, open_session, undeclare_all
 
@@ -42,7 +42,6 @@ POLL_S = 0.1  # how often the loop looks at stop requests when idle
 KEEP = 1  # real time: per key, only the newest message waits unread (keep-last); older ones are shed
 MAX_CLOCK_JUMP_S = 1e9  # s (~30 years): a clock_jump beyond is not a clock (NaN and infinity included)
 CLOCK_STEP_WARN_S = 0.5  # a system clock moved this far against the monotonic one is reported
-LOCKSTEP_TIMEOUT_S = 5.0
 
 
 class NoParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -511,14 +510,19 @@ class Node:
         return {p.key: p.seq for p in self._publishers if p is not self._ack_pub}
 
     def _wait_for_gate(self, step: int) -> None:
-        deadline = time.monotonic() + LOCKSTEP_TIMEOUT_S
-        while missing := self._gate.missing(self._answering_upstream()):
-            remaining = deadline - time.monotonic()
+        began = time.monotonic()
+        deadline = began + MESSAGE_WAIT_S
+        while missing := self._gate.missing(upstream := self._answering_upstream()):
+            now = time.monotonic()
+            if self._gate.awaiting_upstream(upstream):  # its pace is the run's, up to the master's wait
+                deadline = min(now + MESSAGE_WAIT_S, began + INPUT_WAIT_S)
+            remaining = deadline - now
             if self._stop.is_set():
                 return
             if self._deferred_clock is not None or remaining <= 0:
                 self.counters.lockstep_timeouts += 1
                 self.log.warning("tick %d: gave up waiting for %s", step, ", ".join(missing[:5]))
+                self._gate.give_up(upstream)
                 return
             item = self._next_item(min(remaining, POLL_S))
             if item is None:

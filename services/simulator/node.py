@@ -50,7 +50,7 @@ from services.geometry import heading_quaternion, wrap_angle, yaw_of
 from services.runtime.clock import seconds, to_ns
 from services.runtime.errors import UsageError
 from services.runtime.counted import CountedWarnings
-from services.runtime.lockstep import LockstepGate
+from services.runtime.lockstep import ACK_WAIT_S, TICK_RESEND_S, LockstepGate
 from services.runtime.node import Node
 from services.simulator.core import ImuSamples, Simulation
 from services.simulator.imu import ImuParams
@@ -58,8 +58,6 @@ from services.simulator.positioning import EstimateRelay
 from services.simulator.checks import check_team
 from services.simulator.scenario import load_scenario
 
-RESEND_S = 0.5  # re-send a tick nobody acknowledged (a service may have joined late)
-ACK_TIMEOUT_S = 10.0
 
 
 class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -280,7 +278,7 @@ class SimulatorNode(Node):
 
     def wait_for_acks(self, tick: SimClock) -> None:
         started = time.monotonic()
-        resend = started + RESEND_S
+        resend = started + TICK_RESEND_S
         while True:
             # a frozen, cut-off or killed service cannot answer: not waiting is part of the fault
             expected = self.fault_windows.unaffected(self._alive, seconds(tick.header.stamp))
@@ -288,17 +286,22 @@ class SimulatorNode(Node):
             if not waiting or self.stopping:
                 break
             now = time.monotonic()
-            if now - started > ACK_TIMEOUT_S:
+            if now - started > ACK_WAIT_S:
                 self.counters.lockstep_timeouts += 1
                 self.log.warning("tick %d: no acknowledgement from %s; going on", tick.step, ", ".join(waiting))
                 break
             if now > resend:
                 self.clock_pub.put(tick)
-                resend = now + RESEND_S
+                resend = now + TICK_RESEND_S
             self.pump(0.05)
         self.inputs.begin(tick.step + 1, self.bounds())
-        deadline = time.monotonic() + ACK_TIMEOUT_S
-        while self.inputs.missing(set()) and not self.stopping and time.monotonic() < deadline:
+        deadline = time.monotonic() + ACK_WAIT_S
+        while (missing := self.inputs.missing(set())) and not self.stopping:
+            if time.monotonic() > deadline:
+                self.counters.lockstep_timeouts += 1
+                self.log.warning("tick %d: gave up waiting for %s", tick.step + 1, ", ".join(missing[:5]))
+                self.inputs.give_up(set())
+                break
             self.pump(0.05)
 
     def pace(self, wall_deadline: float) -> None:
