@@ -59,7 +59,6 @@ from services.simulator.checks import check_team
 from services.simulator.scenario import load_scenario
 
 
-
 class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     # s of wall time to wait for every service before starting anyway. A machine's first run
     # compiles every service's kernels before its token (each core's warm_up): 3 UAVs took 53 s to
