@@ -151,6 +151,23 @@ def test_messages_missed_by_a_stopped_service_are_counted_apart_from_the_deliver
     assert health_totals(usage, whole_uav)["lost_own_uav"] == 0
 
 
+def test_only_the_masters_own_give_ups_make_a_lockstep_run_another_than_its_seeds():
+    """A frozen service's downstream gives up on it by design; the simulator going on without a
+    live service is what changes the run."""
+    from schemas.messages import Header, ServiceHealth
+    from services.launcher.sim_cmd import health_totals
+
+    def health(uav, service, timeouts):
+        return ServiceHealth(header=Header(), uav=uav, service=service, pid=1, uptime=1.0, state="running",
+                             lockstep_timeouts=timeouts)
+
+    frozen_downstream = [health("sim", "simulator", 0), health("uav1", "job_manager", 12)]
+    assert health_totals(frozen_downstream)["ticks_gone_on_without"] == 0
+    assert health_totals(frozen_downstream)["lockstep_timeouts"] == 12
+    went_on = [health("sim", "simulator", 2), health("uav1", "job_manager", 2)]
+    assert health_totals(went_on)["ticks_gone_on_without"] == 2
+
+
 def test_the_launchers_light_service_entry_is_falconry_run():
     """The launcher starts services with `python -m services.launcher.run_service`: the same `run`
     command (its options, its one-line errors) without importing every other command."""
