@@ -17,7 +17,6 @@ from services.classifier.core import ClassifierCore, ClassifierParams, SensorPos
 from services.geometry import rotation_matrix
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
-from services.runtime.warmup import preload
 
 
 class ClassifierNode(Node):
@@ -26,7 +25,7 @@ class ClassifierNode(Node):
     params_type = ClassifierParams
 
     def setup(self) -> None:
-        preload("scipy.stats")  # p_hit's Gaussian CDF, beside start-up
+        self.import_when_up("scipy.stats")  # p_hit's Gaussian CDF, after the token
         warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.core = ClassifierCore(self.params)
         self.detections_pub = self.publisher(self.topic("detections"), Detections)

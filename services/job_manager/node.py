@@ -35,7 +35,6 @@ from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 from services.tracker.view import (path_step, track_path, track_position, track_position_covariance, track_positions,
                                    track_velocities, track_velocity)
-from services.runtime.warmup import preload
 
 # Pre-flight check (seed 004 §3.6): every service this UAV's mission depends on is alive,
 # and one detector (the classifier, or the evaluation oracle that replaces it).
@@ -52,7 +51,7 @@ class JobManagerNode(Node):
         self._refused_worlds = 0
         self._bad_input = CountedWarnings(self.log)
         self._refused_plans = 0
-        preload("filterpy.kalman")  # the target filter's library: off the restart's critical path
+        self.import_when_up("filterpy.kalman")  # the target filter's library: off the restart's critical path
         self.core = JobManager(self.params, self.uav)
         p = self.params
         self.profiles = {

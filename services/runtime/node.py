@@ -36,6 +36,7 @@ from services.runtime.delivery import DeliveryFaults, Freshness, Reorderer
 from services.runtime.health import process_usage
 from services.runtime.lockstep import INPUT_WAIT_S, MESSAGE_WAIT_S, FaultWindows, LockstepGate
 from services.runtime.typed import Counters, M, Subscription, TypedPublisher
+from services.runtime.warmup import import_modules
 from services.runtime.zenoh_config import OpenCancelled, ZenohSettings, init_logging, open_session, undeclare_all
 
 POLL_S = 0.1  # how often the loop looks at stop requests when idle
@@ -93,6 +94,7 @@ class Node:
         self._zenoh_handles: list[Any] = []
         self._publishers: list[TypedPublisher] = []
         self._liveliness_handlers: list[tuple[str, Callable[[str, bool], None], bool]] = []
+        self._import_when_up: tuple[str, ...] = ()  # see import_when_up
         self._tick_alive: set[str] = set()  # lockstep: the alive set of the last tick
         self._pending_live: list[tuple[Callable, str, bool]] = []  # token events before the first tick
         self._alive_upstream: set[str] = set()
@@ -151,6 +153,11 @@ class Node:
         self._liveliness_handlers.append((key_expr, handler, internal))
         if self._declared:
             self._declare_liveliness_subscriber(key_expr, handler, internal)
+
+    def import_when_up(self, *modules: str) -> None:
+        """Import these slow libraries right after the liveliness token, not before it
+        (services/runtime/warmup.py); call from setup."""
+        self._import_when_up += modules
 
     def subscribe_runtime(self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None]) -> None:
         """A subscription to run plumbing (acknowledgements and the like): handled as it arrives,
@@ -258,6 +265,7 @@ class Node:
         try:
             self.declare()
             token = self.session.liveliness().declare_token(keys.alive(self.scope, self.service))
+            import_modules(self._import_when_up)
             self.state = "running"
             # Everything set up so far (modules, numba's dispatchers, scipy) lives as long as the
             # process: out of the collector's sight, the final collection at exit no longer walks

@@ -1,22 +1,22 @@
-"""Load slow-to-import libraries beside a service's start-up.
+"""Slow-to-import libraries loaded after a service is up, on its own thread of control.
 
 filterpy (with the scipy it pulls in) takes over a second to import. A service that imports it
 at module level is that much later to declare its liveliness token — too late for the
 launcher's 2 s restart promise on a loaded machine. Such services import it where they use it
-and call `preload` in setup, so the import runs on a thread while the node comes up and is
-usually done before the first use (which otherwise just waits for it).
+and name it in setup with `Node.import_when_up`: the node imports it on its main thread right
+after declaring its token, before it serves its first message.
+
+Not on a thread beside start-up: an import on a second thread while the main thread imports (numba
+loads modules as it compiles the warm-up kernels) can hang the process for good on CPython 3.11
+(python/cpython#82272, the import lock's deadlock detection itself deadlocking). A classifier
+started that way never came up in one fresh-clone `make test`: the simulator waited out its
+120 s start-up and the seeded run began without it.
 """
 from __future__ import annotations
 
 import importlib
-import threading
 
 
-def preload(*modules: str) -> threading.Thread:
-    def load() -> None:
-        for name in modules:
-            importlib.import_module(name)
-
-    thread = threading.Thread(target=load, name="preload", daemon=True)
-    thread.start()
-    return thread
+def import_modules(names: tuple[str, ...]) -> None:
+    for name in names:
+        importlib.import_module(name)
