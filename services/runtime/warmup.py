@@ -1,4 +1,4 @@
-"""Slow-to-import libraries loaded after a service is up, on its own thread of control.
+"""Slow-to-import libraries loaded right after a service is up, on its main thread.
 
 filterpy (with the scipy it pulls in) takes over a second to import. A service that imports it
 at module level is that much later to declare its liveliness token — too late for the
@@ -8,9 +8,8 @@ after declaring its token, before it serves its first message.
 
 Not on a thread beside start-up: an import on a second thread while the main thread imports (numba
 loads modules as it compiles the warm-up kernels) can hang the process for good on CPython 3.11
-(python/cpython#82272, the import lock's deadlock detection itself deadlocking). A classifier
-started that way never came up in one fresh-clone `make test`: the simulator waited out its
-120 s start-up and the seeded run began without it.
+(python/cpython#82272, the import lock's deadlock detection itself deadlocking), and a service
+that never declares its token makes a lockstep run start without it.
 """
 from __future__ import annotations
 
