@@ -151,6 +151,34 @@ def test_messages_missed_by_a_stopped_service_are_counted_apart_from_the_deliver
     assert health_totals(usage, whole_uav)["lost_own_uav"] == 0
 
 
+def test_health_is_asked_again_until_a_message_still_on_its_way_has_arrived():
+    """The planner's reference of the last tick reaches the job manager after the question did once
+    in a while: asked again, it is received; a message the network lost stays lost."""
+    from schemas.messages import Header, ServiceHealth
+    from services.launcher.sim_cmd import health_totals, until_received
+
+    reference = "falconry/uav1/reference"
+
+    def answers(received, *, job_manager=True):
+        planner = ServiceHealth(header=Header(), uav="uav1", service="planner", pid=1, uptime=1.0,
+                                state="running", published={reference: 900})
+        manager = ServiceHealth(header=Header(), uav="uav1", service="job_manager", pid=2, uptime=1.0,
+                                state="running", received={reference: received})
+        return [planner, manager] if job_manager else [planner]
+
+    def lost(usage):
+        return health_totals(usage)["lost_own_uav"]
+
+    later = iter([answers(0, job_manager=False), answers(900)])  # an answer lost on the way, then the full one
+    settled = until_received(answers(899), lambda: next(later), lost, pause_s=0.0)
+    assert lost(settled) == 0
+    asked = []
+    gone = until_received(answers(899), lambda: asked.append(1) or answers(899), lost, attempts=3, pause_s=0.0)
+    assert (lost(gone), len(asked)) == (1, 3)
+    assert until_received(answers(900), lambda: asked.append(1) or answers(0), lost, pause_s=0.0) is not None
+    assert len(asked) == 3  # nothing missing: not asked again
+
+
 def test_only_the_masters_own_give_ups_make_a_lockstep_run_another_than_its_seeds():
     """A frozen service's downstream gives up on it by design; the simulator going on without a
     live service is what changes the run."""

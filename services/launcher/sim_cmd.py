@@ -12,7 +12,7 @@ import json
 import queue
 import signal
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import msgspec
@@ -39,6 +39,7 @@ from services.viz.settings import web_address
 
 VIEWER = "sim/viewer"
 LEAVING_STATES = ("LANDING", "EMERGENCY_LANDING")
+SETTLE_ATTEMPTS, SETTLE_PAUSE_S = 8, 0.25  # asking again for a lockstep run's last messages: 2 s at most
 RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, keys.WORLD) + tuple(
     keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth", "camera_detections",
@@ -289,7 +290,12 @@ class SimRun:
         while True:
             usage = query_health(self.session, timeout=1.0)
             if {f"{h.uav}/{h.service}" for h in usage} >= expected or time.monotonic() >= deadline:
-                return usage
+                break
+        if not self.args.lockstep:
+            return usage
+        stopped = stopped_services(self.scenario.faults, self.restarted)
+        return until_received(usage, lambda: query_health(self.session, timeout=1.0),
+                              lambda answers: health_totals(answers, stopped)["lost_own_uav"])
 
     # ----------------------------------------------------------------- report
     def report(self, outcome: str) -> int:
@@ -476,6 +482,27 @@ def stopped_services(faults: Iterable[FaultSpec | FaultCommand], restarted: set[
         if fault.kind in ("kill", "freeze"):
             stopped.add(f"{fault.uav}/{fault.service}")
     return stopped
+
+
+def until_received(usage: list[ServiceHealth], ask: Callable[[], list[ServiceHealth]],
+                   lost: Callable[[list[ServiceHealth]], int], attempts: int = SETTLE_ATTEMPTS,
+                   pause_s: float = SETTLE_PAUSE_S) -> list[ServiceHealth]:
+    """The health answers once the messages still on their way have arrived. Health is asked as soon
+    as the master's last tick is acknowledged, but what a service published in that tick for one
+    that is not downstream of it (the planner's reference for the job manager) is read in the next
+    tick, which never comes: if it is still on its way when the question overtakes it, it counts as
+    lost. So while messages are missing, ask again, up to `attempts` times: a message still on its
+    way arrives, one the network lost stays lost."""
+    missing = lost(usage)
+    for _ in range(attempts):
+        if missing == 0:
+            break
+        time.sleep(pause_s)
+        again = ask()
+        if {(h.uav, h.service) for h in again} < {(h.uav, h.service) for h in usage}:
+            continue  # an answer lost on the way is not a message received
+        usage, missing = again, lost(again)
+    return usage
 
 
 def health_totals(usage: list[ServiceHealth], stopped: set[str] = frozenset()) -> dict[str, int]:
