@@ -454,6 +454,33 @@ def test_a_mover_the_detector_loses_stays_in_sight_while_its_track_takes_scan_up
     assert run(corrected_by_scans=False) is State.CHECKING_TARGET  # unseen for 3 s: checked again
 
 
+def test_a_mover_that_turns_out_of_sight_is_followed_on_its_track_when_seen_again():
+    """The detector loses the drone at 1.4 s and the tracker's scans at 1.6 s; out of sight it turns
+    north. When the tracker's scans find it again (2.6 s), the line the target filter fitted has run
+    on east and the track's fresh positions fall outside its gate. They are scans of the same
+    drone, so the filter starts again from them and the target stays in sight; the same track
+    coasting on without scans still ends the engagement."""
+    def drone(t: float) -> np.ndarray:
+        return np.array([25.0 + 3.0 * t, 25.0, 6.0]) if t <= 1.6 else np.array([29.8, 25.0 + 3.0 * (t - 1.6), 6.0])
+
+    def run(scanned_again: bool):
+        rig = Rig().airborne()
+        for t in np.arange(1.1, 6.05, 0.1):
+            t = round(float(t), 2)
+            velocity = np.array([[3.0, 0.0, 0.0] if t <= 1.6 else [0.0, 3.0, 0.0]])
+            seen = [drone(t)] if t <= 1.3 else []
+            scanned = t <= 1.5 or (scanned_again and t >= 2.6)
+            rig.jm.observe_tracks(s(t), np.array([7]), drone(t)[None], velocity, covariances=np.eye(3)[None] * 0.04,
+                                  corrected=np.array([s(t) if scanned else s(min(t, 1.5))]))
+            rig.tick(t, detections=seen)
+        return rig
+
+    followed = run(scanned_again=True)
+    assert followed.jm.state is State.GOING_TO_TARGET
+    assert np.linalg.norm(followed.jm.engagement.position(s(6.0)) - drone(6.0)) < 0.5
+    assert run(scanned_again=False).jm.state is State.CHECKING_TARGET
+
+
 def test_a_far_target_is_not_lost_while_out_of_reliable_range():
     rig = Rig().engaged()  # locked at 1.2 from HOME, 14 m away
     far = BALLOON + [25.0, 0.0, 1.0]

@@ -290,7 +290,8 @@ class JobManager:
         self.seen.confirmed_tracks(ConfirmedTracks.of(stamp, ids, positions, velocities, paths, path_dt))
         if corrected is not None:
             self._track_sees_the_mover(stamp, np.asarray(ids).reshape(-1), np.asarray(positions).reshape(-1, 3),
-                                       np.asarray(corrected).reshape(-1), covariances)
+                                       np.asarray(velocities).reshape(-1, 3), np.asarray(corrected).reshape(-1),
+                                       covariances)
         if fleet is None:
             return
         fleet = np.asarray(fleet, dtype=bool).copy()
@@ -309,11 +310,13 @@ class JobManager:
         if self.engagement is not None:
             self.engagement.filter.update(seen[above], stamp, _rows(covs, above), observed=made[above])
 
-    def _track_sees_the_mover(self, stamp: int, ids: np.ndarray, positions: np.ndarray, corrected: np.ndarray,
-                              covariances: np.ndarray | None) -> None:
+    def _track_sees_the_mover(self, stamp: int, ids: np.ndarray, positions: np.ndarray, velocities: np.ndarray,
+                              corrected: np.ndarray, covariances: np.ndarray | None) -> None:
         """The tracker's scan updates keep a mover in sight when the detector loses it: near trees
         and walls the classifier calls its cluster background (rule A, d_close 1.5 m), while the
-        tracker, which knows it is a target, still takes its returns (occupied_distance 0.8 m)."""
+        tracker, which knows it is a target, still takes its returns (occupied_distance 0.8 m).
+        Where the target filter's gate refuses the track's fresh position (the drone turned while
+        out of sight, away from the line fitted before), the filter starts again from the track."""
         e = self.engagement
         if e is None or not e.moving or e.track_id is None:
             return
@@ -324,7 +327,12 @@ class JobManager:
         if corrected[k] <= e.track_corrected or stamp - corrected[k] > int(TRACK_SEEN_WITHIN * NS):
             return
         e.track_corrected = int(corrected[k])
-        e.filter.update(positions[k][None], stamp, _rows(covariances, found[:1]))
+        covariance = _rows(covariances, found[:1])
+        if not e.filter.update(positions[k][None], stamp, covariance):
+            e.filter.reanchor(positions[k], stamp, velocities[k], None if covariance is None else covariance[0],
+                              observed=int(corrected[k]))
+            self.notes.append(f"track {e.track_id} seen at {self._fmt(positions[k])}, off the target's predicted "
+                              "line: following it from there")
 
     def plan_report(self, stamp: int, action: str, outcome: str, note: str = "") -> None:
         """What the planner made of the latest command (PlanReport): an approach or attack of a

@@ -155,6 +155,30 @@ class TargetFilter:
         self._fit_velocity()
         return True
 
+    def reanchor(self, position: np.ndarray, stamp: int, velocity: np.ndarray,
+                 covariance: np.ndarray | None = None, observed: int | None = None) -> None:
+        """Start again from a sighting the gate refused, on the tracker's word that it is the
+        target: the same confirmed track, corrected by a scan just now. A drone that brakes and
+        turns while out of sight leaves the straight line fitted before for good, and every later
+        sighting falls outside the gate; without this the target counts as gone while the tracker
+        still sees it a few centimetres from where it is. The fit starts afresh from here, along
+        the tracker's velocity until it has points of its own."""
+        position = np.asarray(position, dtype=np.float64).reshape(3)
+        noise = self._noise(covariance)
+        self._kf.x = position.reshape(3, 1).copy()
+        self._kf.P = noise.copy()
+        self._last_predict = stamp
+        if stamp - self.last_seen > self.max_gap_ns:
+            self.streak_start = stamp
+        self.last_seen = stamp
+        self.last_observed = max(self.last_observed, stamp if observed is None else min(observed, stamp))
+        self.updates += 1
+        self._history = deque([(stamp, position.copy(), self._weight(noise))])
+        self.velocity = np.asarray(velocity, dtype=np.float64).reshape(3).copy()
+        self.velocity_sigma = math.inf
+        self._fit_anchor = None
+        self._velocity_known = True
+
     def _fit_velocity(self) -> None:
         """Weighted least-squares line through the history: velocity, its standard error, and the
         weighted mean time and position the line passes through."""
