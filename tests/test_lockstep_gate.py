@@ -68,7 +68,7 @@ def test_release_order_is_by_key_not_arrival():
     assert [i for _, i in gate.release(UP)] == ["a", "b"]
 
 
-def test_joining_mid_run_does_not_wait_but_the_first_step_of_a_run_does():
+def test_joining_mid_run_does_not_wait_but_the_first_step_of_a_run_does_for_those_it_counted():
     late = LockstepGate(("classifier",), wants=lambda key: True)
     late.begin(10, {"falconry/uav1/points": 400})
     assert late.missing(UP) == []
@@ -83,6 +83,13 @@ def test_joining_mid_run_does_not_wait_but_the_first_step_of_a_run_does():
     late.rejoin()  # missed ticks (a cut link): the next one waits for nothing again
     late.begin(30, {"falconry/uav1/points": 900})
     assert late.missing(UP) == []
+    # the master began without us (its start-up wait ran out): step 0 was sent before we were there
+    uncounted = LockstepGate(("classifier",), wants=lambda key: True)
+    uncounted.begin(0, {"falconry/sim/truth": 1}, counted=False)
+    assert uncounted.missing(UP) == [] and not uncounted.awaiting_upstream(UP)
+    uncounted.release(UP)
+    uncounted.begin(1, {"falconry/sim/truth": 2})
+    assert set(uncounted.missing(UP)) == {"ack of classifier", "falconry/sim/truth#2"}
 
 
 def test_fault_windows_silence_only_the_faulted_services_for_their_duration():

@@ -65,6 +65,7 @@ class LockstepGate(Generic[Item]):
         # A service joining a run already under way (started late, restarted, or back after
         # missing ticks) cannot have what was sent before: its first tick waits for nothing.
         self.joining = joining
+        self._counted = True  # whether the master counted us as there when it sent this tick
         self._cut: Callable[[str], bool] = _never
         self._reconnecting: set[str] = set()  # keys whose link is back but nothing came through yet
 
@@ -99,10 +100,13 @@ class LockstepGate(Generic[Item]):
         again before what was released."""
         self._released_mark.clear()
 
-    def begin(self, step: int, clock_bounds: dict[str, int], cut: Callable[[str], bool] | None = None) -> None:
+    def begin(self, step: int, clock_bounds: dict[str, int], cut: Callable[[str], bool] | None = None,
+              counted: bool = True) -> None:
         """Tick `step` with the simulator's bounds; `cut(key)`: the key comes over a radio link
-        that is down at this tick."""
+        that is down at this tick; `counted`: the master saw us when it sent the tick (not: we
+        came up after the run began, even at step 0, when the master stopped waiting for us)."""
         self.step = step
+        self._counted = counted
         self._clock_bounds = clock_bounds
         self._cut = cut or _never
         for key in [k for k in self._fifo if self._cut(k)]:
@@ -134,7 +138,7 @@ class LockstepGate(Generic[Item]):
         """What tick `step` still waits for; empty when it can be processed."""
         if self.step is None:
             return ["clock tick"]
-        if self.joining and self.step > 0:  # at step 0 everyone was there from the start
+        if self._joins_late():
             self._floor.update(self.bounds(alive_upstream))
             return []
         waits = [
@@ -163,8 +167,13 @@ class LockstepGate(Generic[Item]):
     def awaiting_upstream(self, alive_upstream: set[str]) -> bool:
         """Whether a live upstream service has yet to acknowledge tick `step` (it is still working
         on it), as against only messages still on their way."""
-        return self.step is not None and not (self.joining and self.step > 0) and any(
+        return self.step is not None and not self._joins_late() and any(
             service in alive_upstream and self.step not in self._acks.get(service, {}) for service in self.upstream)
+
+    def _joins_late(self) -> bool:
+        """Joining a run under way: at step 0 only when the master began without us (at step 0
+        everyone it counted was there from the start)."""
+        return self.joining and (self.step > 0 or not self._counted)
 
     def release(self, alive_upstream: set[str]) -> list[tuple[str, Item]]:
         """Pop the messages that belong to this tick, in a deterministic order."""

@@ -498,7 +498,8 @@ class Node:
             return
         if self._last_step >= 0 and tick.step != self._last_step + 1:
             self._gate.rejoin()  # we missed ticks (cut off, frozen): what was sent then is gone
-        self._gate.begin(tick.step, tick.bounds, self._radio_cut(tick.header.stamp / 1e9))
+        self._gate.begin(tick.step, tick.bounds, self._radio_cut(tick.header.stamp / 1e9),
+                         counted=self.sender in tick.alive)
         self._wait_for_gate(tick.step)
         if self._stop.is_set():
             return
