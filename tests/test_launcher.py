@@ -106,7 +106,7 @@ def run_lockstep(tmp_path, name: str, seed: int, duration: float, scenario: str 
         falconry_argv("sim", scenario, "--uavs", "2", "--lockstep", "--seed", str(seed), "--duration", str(duration),
                       "--config", str(config),
                       "--quiet", "--truth-log", str(truth), "--summary-json", str(summary), "--wall-timeout", "240",
-                      "--digest-json", str(digests)),
+                      "--digest-json", str(digests), "--log-file", str(tmp_path / f"{name}.services.log")),
         capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     return truth.read_bytes(), read_summary(summary)
@@ -193,6 +193,10 @@ def test_two_uav_mission_flies_and_reports(tmp_path):
     assert set(summary["cpu"]) == expected
     assert all(seconds > 0 for seconds in summary["cpu"].values()), summary["cpu"]
     assert summary["killed_at_shutdown"] == []  # every process stopped within the launcher's grace
+    # a normal end: the simulator stops first, after its last tick said so, and nobody takes it for a fault
+    log = (tmp_path / "mission.services.log").read_text()
+    assert "simulator stopped after the mission's last tick" in log
+    assert "simulator out of reach" not in log
 
 
 def test_a_run_that_began_before_its_team_was_up_says_so(tmp_path):

@@ -110,6 +110,7 @@ class Node:
         self._deferred_clock: SimClock | None = None
         self._last_ack: StepAck | None = None
         self._simulator_lost = False
+        self._mission_over = False  # the last tick said the mission is finished
         self._warned_no_clock = False
         self._fault_windows = FaultWindows()
         self._delivery_faults = DeliveryFaults(self.scope, self.service)
@@ -489,6 +490,7 @@ class Node:
             return  # a re-sent tick we already processed
         first = self._lockstep is None
         self._lockstep = tick.lockstep
+        self._mission_over = tick.finished
         if first:
             self._flush_pending()
         self.clock.advance_to(tick.header.stamp)
@@ -606,7 +608,10 @@ class Node:
     def _on_simulator_liveliness(self, key: str, alive: bool) -> None:
         if not alive and self._last_step >= 0:
             # Gone for good and restarted, or only out of reach (a router restart): its next tick tells.
-            self.log.warning("simulator out of reach; its next tick tells whether it restarted")
+            if self._mission_over:
+                self.log.info("the simulator stopped after the mission's last tick")
+            else:
+                self.log.warning("simulator out of reach; its next tick tells whether it restarted")
             self._simulator_lost = True
 
     def _follow_restarted_simulator(self, tick: SimClock) -> None:
