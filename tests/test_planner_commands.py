@@ -126,9 +126,8 @@ def test_a_pursuit_follows_a_prediction_only_so_long_past_the_last_sighting():
 def test_targets_beyond_the_arena_are_aimed_inside_and_no_reference_rises_above_the_ceiling():
     """A target or a mover's meeting beyond the arena's edge (non-convex here) or above its ceiling
     is aimed at fence_margin (1 m) inside, and no reference sample rises above max_height - 1 m
-    (13 - 1 m). What this does not hold: a pursuit aimed inside may still overshoot the edge (the
-    arena is not yet a constraint the plans are made against; samples moved in after timing made
-    references the vehicle could not follow), which the run summary reports as a geofence breach."""
+    (13 - 1 m). That a plan does not overshoot the edge is the freespace's (the arena's edge is a
+    wall to it: test_planner_obstacles.py), not this aim's."""
     from services.planner.avoid import Airspace, Clearances, Surroundings
     from services.planner.freespace import FreeSpace
 
