@@ -86,3 +86,49 @@ def test_counted_warnings_speak_at_the_first_refusal_and_at_each_power_of_ten(ca
     assert [m for m in said if m.startswith("points dropped")] == [
         "points dropped so far: 2", "points dropped so far: 18", "points dropped so far: 198",
         "points dropped so far: 2000"]
+
+
+def test_a_subscription_a_lockstep_wait_gave_up_on_is_declared_again_and_receives(hub):
+    """A subscription that no longer reaches its publisher (here undeclared behind the node's back,
+    as a declaration lost on the way would be) delivers nothing; declared again after a give-up, it
+    does, and the old declaration is gone. Not more than once per REDECLARE_EVERY_S."""
+    from schemas.messages import Detections
+    from services.runtime.node import Node
+    from services.runtime.zenoh_config import open_session, undeclare_all
+
+    session, endpoint = hub
+    key = keys.uav("uav1", "detections")
+
+    class Listener(Node):
+        service = "tracker"
+
+    node = Listener("uav1", ZenohSettings(connect=[endpoint], shared_memory=False))
+    node.subscribe(key, Detections, lambda msg, k: None)
+    node.session = open_session(ZenohSettings(connect=[endpoint], shared_memory=False))
+    try:
+        node._declare_subscriber(node._subs[0])
+        lost = node._subscribers[0]
+        lost.undeclare()
+        payload = b"any bytes: the inbox holds them undecoded"
+
+        def heard() -> bool:
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                session.put(key, payload)
+                try:
+                    return node._inbox.get(timeout=0.2)[2] == key
+                except queue.Empty:
+                    pass
+            return False
+
+        assert not heard()
+        node._declare_again([key])
+        assert node._subscribers[0] is not lost and lost not in node._zenoh_handles
+        assert heard()
+        again = node._subscribers[0]
+        node._declare_again([key])  # within REDECLARE_EVERY_S: left alone
+        node._declare_again(["falconry/uav1/status"])  # another key: not this subscription's
+        assert node._subscribers[0] is again and len(node._zenoh_handles) == 1
+    finally:
+        undeclare_all(node._zenoh_handles)
+        node.session.close()

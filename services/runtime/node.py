@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import gc
 import logging
+import math
 import os
 import queue
 import signal
@@ -40,6 +41,7 @@ from services.runtime.warmup import import_modules
 from services.runtime.zenoh_config import OpenCancelled, ZenohSettings, init_logging, open_session, undeclare_all
 
 POLL_S = 0.1  # how often the loop looks at stop requests when idle
+REDECLARE_EVERY_S = 10.0  # a subscription a lockstep wait gave up on is declared again at most this often
 KEEP = 1  # real time: per key, only the newest message waits unread (keep-last); older ones are shed
 MAX_CLOCK_JUMP_S = 1e9  # s (~30 years): a clock_jump beyond is not a clock (NaN and infinity included)
 CLOCK_STEP_WARN_S = 0.5  # a system clock moved this far against the monotonic one is reported
@@ -92,6 +94,8 @@ class Node:
         self._stop = threading.Event()
         self._subs: list[Subscription] = []
         self._zenoh_handles: list[Any] = []
+        self._subscribers: dict[int, Any] = {}  # Subscription.index -> its Zenoh subscriber
+        self._declared_again: dict[int, float] = {}  # Subscription.index -> monotonic s of its last re-declaration
         self._publishers: list[TypedPublisher] = []
         self._liveliness_handlers: list[tuple[str, Callable[[str, bool], None], bool]] = []
         self._import_when_up: tuple[str, ...] = ()  # see import_when_up
@@ -219,7 +223,32 @@ class Node:
                     queued[key] = queued.get(key, 0) + 1
             inbox.put(("data", sub, key, sample.payload.to_bytes()))
 
-        self._zenoh_handles.append(self.session.declare_subscriber(sub.key_expr, on_sample))
+        handle = self.session.declare_subscriber(sub.key_expr, on_sample)
+        self._zenoh_handles.append(handle)
+        self._subscribers[sub.index] = handle
+
+    def _declare_again(self, keys_missing: list[str]) -> None:
+        """Declare the subscriptions a lockstep wait gave up on again, at most once per
+        REDECLARE_EVERY_S each. Once in about 150 campaign runs on a loaded machine, a tracker got
+        not one of its own UAV's detections for the whole run, while the acknowledgements naming
+        them came from the same publisher's session over the same link: its subscription had not
+        reached that publisher. A new declaration reaches it again; the old one is undeclared
+        after, so nothing is missed in between (a message both deliver is a duplicate, dropped)."""
+        now = time.monotonic()
+        for sub in self._subs:
+            if sub.internal or now - self._declared_again.get(sub.index, -math.inf) < REDECLARE_EVERY_S:
+                continue
+            expr = zenoh.KeyExpr(sub.key_expr)
+            if not any(expr.intersects(zenoh.KeyExpr(key)) for key in keys_missing):
+                continue
+            self._declared_again[sub.index] = now
+            old = self._subscribers.pop(sub.index, None)
+            self._declare_subscriber(sub)
+            if old is not None:
+                self._zenoh_handles.remove(old)
+                undeclare_all([old])
+            self.log.warning("declared the subscription %s again: what a live publisher sent on it did not come",
+                             sub.key_expr)
 
     def _declare_liveliness_subscriber(self, key_expr, handler, internal: bool) -> None:
         inbox = self._inbox
@@ -534,6 +563,7 @@ class Node:
                 self.counters.lockstep_timeouts += 1
                 self.log.warning("tick %d: gave up waiting for %s", step, ", ".join(missing[:5]))
                 self._gate.give_up(upstream)
+                self._declare_again([m.split("#")[0] for m in missing if "#" in m])
                 return
             item = self._next_item(min(remaining, POLL_S))
             if item is None:
