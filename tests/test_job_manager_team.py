@@ -160,6 +160,26 @@ def test_an_engaged_uav_has_priority_over_a_sweeping_one():
     assert rig.last.action == "goto"  # uav1 outranks by order, but uav2 is attacking
 
 
+def test_a_partner_that_does_not_answer_outranks_an_engaged_uav():
+    """Killed while engaging, a partner comes down in its emergency landing where its last status
+    left it; its rank there (below this engaged UAV by team order) must not make it the one to
+    yield: its job manager's token gone, or silent for lost_link_time, it outranks everyone."""
+    def engaged_near(token_gone: bool, silent_for: float):
+        rig = Rig(uav="uav1").airborne()
+        rig.tick(1.1, detections=[HOME + [12.0, 0.0, 1.0]])
+        rig.tick(1.2, detections=[HOME + [12.0, 0.0, 1.0]])
+        assert rig.jm.state is State.GOING_TO_TARGET
+        flying(rig, "uav2", 1.25, position=HOME + [4.0, 0.0, 0.0], state="GOING_TO_TARGET")
+        if token_gone:
+            rig.jm.partner_token("uav2", False, s(1.26))
+        rig.tick(1.3 + silent_for, detections=[HOME + [12.0, 0.0, 1.0]])
+        return rig
+
+    assert engaged_near(token_gone=False, silent_for=0.0).last.action != "goto"  # uav1 ranks first: uav2 yields
+    assert engaged_near(token_gone=True, silent_for=0.0).last.action == "goto"  # uav2 cannot: uav1 climbs
+    assert engaged_near(token_gone=False, silent_for=1.6).last.action == "goto"  # stale (lost_link_time 1.5 s)
+
+
 def test_an_engaged_uav_brakes_rather_than_fly_into_the_partner_yielding_to_it():
     """unmapped, every seed: the circler's interceptor, with priority, flew at 3 m/s into the
     partner that had yielded to it and was still braking, before it could climb."""
