@@ -36,8 +36,9 @@ Rules (docs/architecture.md, "Mission"):
   ground while it is still taking off — when the partner's plan stays safety_distance +
   `separation_hysteresis` clear of that spot; else it also climbs to `vertical_separation` above
   the highest point of the partner's plan near it (`hold_spot`). It lasts until the distance
-  exceeds safety_distance + hysteresis and no breach is predicted. Priority: a UAV engaging a
-  target (GOING_TO_TARGET, DESTROYING) over one that is not, then the team order. A partner's
+  exceeds safety_distance + hysteresis and no breach is predicted. Priority: a partner that
+  does not answer (stale, or its job manager's token gone: it cannot yield) over everyone, then a
+  UAV engaging a target (GOING_TO_TARGET, DESTROYING) over one that is not, then the team order. A partner's
   position is its last status's, carried on at its velocity to now (at most for `lost_link_time`:
   beyond that it is unaccounted, a no-fly column). Reacting only inside the safety distance was
   too late: on street (seed 4) a sweeping UAV at 4.5 m/s and an interceptor at 3 m/s met head-on;
