@@ -373,3 +373,21 @@ def test_an_interception_is_taken_up_after_a_yield_only_on_a_fresh_sighting():
     assert "target last seen 1.6 s ago: holding until it is seen again" in rig.jm.notes[-1]
     sighting(2.9)
     assert rig.last.action == "intercept" and rig.last.target_seen == s(2.9)
+
+
+@pytest.mark.parametrize("token_gone", [False, True])
+def test_a_partner_killed_on_its_way_is_kept_clear_of_where_it_stopped_not_where_its_plan_went(token_gone):
+    """Its last plan goes north, away from my line; killed, its autopilot holds or lands where it
+    was, 3 m beside my line 12 m ahead. Answering, it flies its plan and I keep mine; not answering,
+    it cannot yield and may have stopped there: I yield before I get within 5 m."""
+    rig = Rig(uav="uav1").airborne()
+    target = HOME + [30.0, 0.0, 1.0]
+    for t in (1.0, 1.1, 1.2):
+        rig.tick(t, detections=[target])
+    assert rig.jm.state is State.GOING_TO_TARGET
+    rig.jm.observe_reference(line(1.3, HOME, (3.0, 0.0, 0.0)))
+    partner(rig, 1.3, line(1.3, HOME + [12.0, 3.0, 0.0], (0.0, 3.0, 0.0)), state="GOING_TO_TARGET", name="uav2")
+    if token_gone:
+        rig.jm.partner_token("uav2", False, s(1.32))
+    rig.tick(1.35, detections=[target])
+    assert (rig.last.action == "goto") is token_gone

@@ -269,7 +269,13 @@ class Team:
                                                                  rule.plan_step)
         theirs, age = self.partner_plan(p, now, rule)
         approach = first_breach(mine, theirs, now, rule.plan_horizon, rule.plan_step, radius, age, rule.widen_rate)
-        return approach.breach <= rule.plan_horizon
+        if approach.breach <= rule.plan_horizon or not self.unanswering(p, now):
+            return approach.breach <= rule.plan_horizon
+        # one that does not answer may fly its plan (a cut radio) or have stopped where it was (killed:
+        # its autopilot holds or lands there, where its last plan went on towards its target)
+        halted = straight_on(self.position_now(p, now), np.zeros(3), now, rule.plan_horizon, rule.plan_step)
+        return first_breach(mine, halted, now, rule.plan_horizon, rule.plan_step, radius, age,
+                            rule.widen_rate).breach <= rule.plan_horizon
 
     def hold_spot(self, now: int, me: Mover, p: Partner, rule: SeparationRule, at: np.ndarray | None = None) -> np.ndarray:
         """Where a UAV yielding to `p` holds: where it comes to rest braking from its velocity at
