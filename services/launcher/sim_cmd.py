@@ -40,6 +40,8 @@ from services.viz.settings import web_address
 VIEWER = "sim/viewer"
 LEAVING_STATES = ("LANDING", "EMERGENCY_LANDING")
 SETTLE_ATTEMPTS, SETTLE_PAUSE_S = 8, 0.25  # asking again for a lockstep run's last messages: 2 s at most
+SIMULATOR = "sim/simulator"
+SIMULATOR_GONE_S = 1.0  # s to wait, at the end, for the stopped simulator's token to vanish from the router
 RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, keys.WORLD) + tuple(
     keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth", "camera_detections",
@@ -230,7 +232,7 @@ class SimRun:
             if args.progress and monitor.mission_time >= next_progress:
                 supervisor.say(monitor.progress(self.duration))
                 next_progress += args.progress
-            if supervisor.children["sim/simulator"].failed:
+            if supervisor.children[SIMULATOR].failed:
                 outcome = "simulator failed"
                 break
             if args.wall_timeout and time.time() - self.started_wall > args.wall_timeout:
@@ -267,7 +269,9 @@ class SimRun:
             # lives (not after Ctrl-C: no waiting then); a link just restored needs a moment to reconnect
             self.usage = self._ask_health(wait=RECONNECT_S if restored else 0.0)
         # the router last but one: the others stop cleanly while they still reach each other
-        self.killed = self.supervisor.stop_all(last={ROUTER: 2.0, VIEWER: DRAIN_S + 10.0})
+        # the simulator first: the clock master's end is what every service should see end the run
+        self.killed = self.supervisor.stop_all(first={SIMULATOR: 2.0}, after_first=self._await_simulator_gone,
+                                               last={ROUTER: 2.0, VIEWER: DRAIN_S + 10.0})
         viewer = self.supervisor.children.get(VIEWER)
         if viewer is not None and viewer.process is not None and viewer.process.returncode not in (0, None):
             viewer.failed = True  # e.g. a live viewer that went away: its own log line says what it missed
@@ -282,6 +286,22 @@ class SimRun:
         if self.network:
             self.network.teardown()
         shm.remove_orphans(shm.segments() - self.segments_before)
+
+    def _await_simulator_gone(self) -> None:
+        """Until the router no longer holds the stopped simulator's token (so the services, on the
+        same router, have been told), at most SIMULATOR_GONE_S."""
+        if self.session is None:
+            return
+        deadline = time.monotonic() + SIMULATOR_GONE_S
+        while time.monotonic() < deadline:
+            try:
+                replies = list(self.session.liveliness().get(keys.alive("sim", "simulator"), timeout=0.2))
+            except Exception:  # a router already gone: nobody left to tell
+                return
+            if not any(reply.ok is not None for reply in replies):
+                time.sleep(0.05)  # the services' own callbacks, on their Zenoh threads
+                return
+            time.sleep(0.02)
 
     def _ask_health(self, wait: float) -> list[ServiceHealth]:
         expected = {name for name, child in self.supervisor.children.items()

@@ -154,13 +154,21 @@ class Supervisor:
         child = self.children.get(name)
         return child.process.pid if child and child.process else None
 
-    def stop_all(self, grace: float = 2.0, last: dict[str, float] | None = None) -> list[str]:
+    def stop_all(self, grace: float = 2.0, last: dict[str, float] | None = None,
+                 first: dict[str, float] | None = None, after_first: Callable[[], None] | None = None) -> list[str]:
         """SIGTERM everyone, SIGKILL what is still there after `grace` s; returns the killed ones.
-        The children named in `last` are stopped after all others, each with its own grace (a
-        viewer that still has to write what it received)."""
+        The children named in `first` are stopped before all others, each with its own grace, and
+        `after_first` runs once they are gone (the simulator, whose end the services should see);
+        those named in `last` after all others (a viewer that still has to write what it received)."""
         self._stopping = True
-        last = {name: g for name, g in (last or {}).items() if name in self.children}
-        killed = self._stop([c for c in self.children.values() if c.name not in last], grace)
+        first = {name: g for name, g in (first or {}).items() if name in self.children}
+        last = {name: g for name, g in (last or {}).items() if name in self.children and name not in first}
+        killed = []
+        for name, early_grace in first.items():
+            killed += self._stop([self.children[name]], early_grace)
+        if first and after_first is not None:
+            after_first()
+        killed += self._stop([c for c in self.children.values() if c.name not in last and c.name not in first], grace)
         for name, late_grace in last.items():
             killed += self._stop([self.children[name]], late_grace)
         for child in self.children.values():
