@@ -232,8 +232,12 @@ class Node:
         REDECLARE_EVERY_S each. Once in about 150 campaign runs on a loaded machine, a tracker got
         not one of its own UAV's detections for the whole run, while the acknowledgements naming
         them came from the same publisher's session over the same link: its subscription had not
-        reached that publisher. A new declaration reaches it again; the old one is undeclared
-        after, so nothing is missed in between (a message both deliver is a duplicate, dropped)."""
+        reached that publisher. The old one is undeclared first: Zenoh sends nothing for a second
+        subscriber on a key its session already subscribes (the twin shares the first one's
+        declaration) nor for undeclaring one of two, so declared first, the new one never left the
+        process. The gap misses nothing the wait has not given up on: this service's ack of the
+        tick follows the declaration on the same link, so the router knows the new subscriber
+        before the next tick's messages are published."""
         now = time.monotonic()
         for sub in self._subs:
             if sub.internal or now - self._declared_again.get(sub.index, -math.inf) < REDECLARE_EVERY_S:
@@ -243,10 +247,10 @@ class Node:
                 continue
             self._declared_again[sub.index] = now
             old = self._subscribers.pop(sub.index, None)
-            self._declare_subscriber(sub)
             if old is not None:
                 self._zenoh_handles.remove(old)
                 undeclare_all([old])
+            self._declare_subscriber(sub)
             self.log.warning("declared the subscription %s again: what a live publisher sent on it did not come",
                              sub.key_expr)
 
