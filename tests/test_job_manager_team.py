@@ -176,7 +176,7 @@ def test_a_partner_that_does_not_answer_outranks_an_engaged_uav():
         return rig
 
     assert engaged_near(token_gone=False, silent_for=0.0).last.action != "goto"  # uav1 ranks first: uav2 yields
-    assert engaged_near(token_gone=True, silent_for=0.0).last.action == "goto"  # uav2 cannot: uav1 climbs
+    assert engaged_near(token_gone=True, silent_for=0.0).last.action == "goto"  # uav2 cannot: uav1 gives way
     assert engaged_near(token_gone=False, silent_for=1.6).last.action == "goto"  # stale (lost_link_time 1.5 s)
 
 
@@ -340,3 +340,20 @@ def test_an_unaccounted_partner_is_a_no_fly_column_until_it_is_seen_landed():
                           state="LANDED")
     rig.tick(5.2, detections=[near, far])
     assert sorted(rig.jm.candidates(s(5.2), rig.position).tolist()) == sorted([near, far])
+
+
+def test_two_uavs_cut_off_from_each_other_both_yield_and_only_the_later_in_team_order_climbs():
+    """A lasting link cut takes each UAV's token from the other's view: each sees a partner that
+    does not answer, so both yield. Both climbing alike, two UAVs 3 m apart would stay 3 m apart;
+    the later in team order climbs above the other's plan and the earlier holds at its height."""
+    def cut_off(me: str, partner: str):
+        rig = Rig(uav=me).airborne()
+        rig.tick(1.1)
+        flying(rig, partner, 1.2, position=HOME + [3.0, 0, 0])
+        rig.jm.partner_token(partner, False, s(1.21))
+        rig.tick(1.3)
+        return rig.last
+
+    first, second = cut_off("uav1", "uav2"), cut_off("uav2", "uav1")
+    assert first.action == "goto" and first.target[2] == pytest.approx(HOME[2])
+    assert second.action == "goto" and second.target[2] == pytest.approx(HOME[2] + 6.0)  # vertical_separation

@@ -37,7 +37,7 @@ Rules (docs/architecture.md, "Mission"):
   `separation_hysteresis` clear of that spot; else it also climbs to `vertical_separation` above
   the highest point of the partner's plan near it (`hold_spot`). It lasts until the distance
   exceeds safety_distance + hysteresis and no breach is predicted. Priority: a partner that
-  does not answer (stale, or its job manager's token gone: it cannot yield) over everyone, then a
+  does not answer (stale, or its job manager's token gone: killed, it cannot yield) over everyone, then a
   UAV engaging a target (GOING_TO_TARGET, DESTROYING) over one that is not, then the team order. A partner's
   position is its last status's, carried on at its velocity to now (at most for `lost_link_time`:
   beyond that it is unaccounted, a no-fly column). Reacting only inside the safety distance was
@@ -285,7 +285,8 @@ class Team:
         again on every tick of a yield: a plan that passes clear now may come through the spot later
         (agile, 3 UAVs, seed 1: a sweep 42 m away). Not where the yield began: braked past it, the
         UAV flew back faster than it climbed, towards the partner braking towards it (intruder,
-        3 UAVs, seeds 3435 and 1109: 4.4 and 4.5 m)."""
+        3 UAVs, seeds 3435 and 1109: 4.4 and 4.5 m). Level against a partner that does not answer
+        and comes after me in team order: cut off, it yields to me too and climbs (`yield_to`)."""
         spot = np.asarray(me.position if at is None else at, dtype=np.float64).copy()
         if at is None and me.airborne:
             speed = float(np.linalg.norm(me.velocity[:2]))
@@ -295,6 +296,8 @@ class Team:
         here = PlannedPath(now, rule.plan_step, spot[None])
         if me.state == "TAKING_OFF" and not me.airborne:
             return spot
+        if self.unanswering(p, now) and self.members.index(self.me) < self.members.index(p.name):
+            return spot  # level: cut off, it yields to me by the same rule on the same picture and climbs
         if first_breach(here, theirs, now, rule.plan_horizon, rule.plan_step, reach, age, rule.widen_rate).breach == np.inf:
             return spot
         times = now + np.round(np.arange(int(rule.plan_horizon / rule.plan_step) + 1) * rule.plan_step * NS).astype(np.int64)
@@ -356,9 +359,12 @@ class Team:
 
     def yield_to(self, now: int, me: Mover, rule: SeparationRule, yielding_to: str | None) -> Partner | None:
         """The partner this UAV must give way to now (None: no one). A partner that does not answer
-        (stale, or its job manager's token gone) outranks everyone: it cannot yield. Killed while
-        engaging, its last status still ranked it below an engaged UAV that flew on at it as it
-        came down in its emergency landing (campaign run 11, intruder, 2 UAVs: 2.8 m)."""
+        (stale, or its job manager's token gone) outranks everyone: killed, it cannot yield. Killed
+        while engaging, its last status still ranked it below an engaged UAV that flew on at it as
+        it came down in its emergency landing (campaign run 11, intruder, 2 UAVs: 2.8 m). Only cut
+        off, it still flies by these rules and sees me not answering either, so both yield; only
+        the later in team order climbs (`hold_spot`), as in every other yield: both climbing
+        alike, two UAVs already closer than the safety distance would stay so."""
         order = self.members.index(self.me)
         engaged = me.state in ENGAGED_STATES
         best, best_distance = None, np.inf

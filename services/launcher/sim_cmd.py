@@ -39,7 +39,9 @@ from services.viz.settings import web_address
 
 VIEWER = "sim/viewer"
 LEAVING_STATES = ("LANDING", "EMERGENCY_LANDING")
-SETTLE_ATTEMPTS, SETTLE_PAUSE_S = 8, 0.25  # asking again for a lockstep run's last messages: 2 s at most
+# asking again for a lockstep run's last messages: 2 s of pauses, and each question's own wait
+# (its 1 s timeout when a service does not answer: 10 s at most, only while messages are missing)
+SETTLE_ATTEMPTS, SETTLE_PAUSE_S = 8, 0.25
 SIMULATOR = "sim/simulator"
 SIMULATOR_GONE_S = 1.0  # s to wait, at the end, for the stopped simulator's token to vanish from the router
 RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
