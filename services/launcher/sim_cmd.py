@@ -301,7 +301,7 @@ class SimRun:
             except Exception:  # a router already gone: nobody left to tell
                 return
             if not any(reply.ok is not None for reply in replies):
-                time.sleep(0.05)  # the services' own callbacks, on their Zenoh threads
+                time.sleep(0.1)  # the services' own callbacks and main loops, on a loaded machine too
                 return
             time.sleep(0.02)
 
