@@ -88,25 +88,33 @@ def test_counted_warnings_speak_at_the_first_refusal_and_at_each_power_of_ten(ca
         "points dropped so far: 2000"]
 
 
-def test_a_subscription_a_lockstep_wait_gave_up_on_is_declared_again_and_receives(hub):
-    """A subscription that no longer reaches its publisher (here undeclared behind the node's back,
-    as a declaration lost on the way would be) delivers nothing; declared again after a give-up, it
-    does, and the old declaration is gone. Not more than once per REDECLARE_EVERY_S."""
+def detections_listener(endpoint: str):
+    """A tracker node of uav1 subscribed to its detections over a real session to `endpoint`, its
+    subscription declared as the node declares it: (node, key)."""
     from schemas.messages import Detections
     from services.runtime.node import Node
-    from services.runtime.zenoh_config import open_session, undeclare_all
-
-    session, endpoint = hub
-    key = keys.uav("uav1", "detections")
+    from services.runtime.zenoh_config import open_session
 
     class Listener(Node):
         service = "tracker"
 
+    key = keys.uav("uav1", "detections")
     node = Listener("uav1", ZenohSettings(connect=[endpoint], shared_memory=False))
     node.subscribe(key, Detections, lambda msg, k: None)
     node.session = open_session(ZenohSettings(connect=[endpoint], shared_memory=False))
+    node._declare_subscriber(node._subs[0])
+    return node, key
+
+
+def test_a_subscription_a_lockstep_wait_gave_up_on_is_declared_again_and_receives(hub):
+    """A subscription that no longer reaches its publisher (here undeclared behind the node's back,
+    as a declaration lost on the way would be) delivers nothing; declared again after a give-up, it
+    does, and the old declaration is gone. Not more than once per REDECLARE_EVERY_S."""
+    from services.runtime.zenoh_config import undeclare_all
+
+    session, endpoint = hub
+    node, key = detections_listener(endpoint)
     try:
-        node._declare_subscriber(node._subs[0])
         lost = node._subscribers[0]
         lost.undeclare()
         payload = b"any bytes: the inbox holds them undecoded"
@@ -139,24 +147,14 @@ def test_declaring_a_subscription_again_reaches_the_publisher_while_the_old_one_
     Zenoh sends nothing for a second subscriber on the same key nor for undeclaring one of two, so
     a new declaration made beside the old one never reaches the network; undeclared first, the
     publisher sees the subscription go and come back."""
-    from schemas.messages import Detections
-    from services.runtime.node import Node
-    from services.runtime.zenoh_config import open_session, undeclare_all
+    from services.runtime.zenoh_config import undeclare_all
 
     session, endpoint = hub
-    key = keys.uav("uav1", "detections")
     seen: queue.Queue = queue.Queue()
-    publisher = session.declare_publisher(key)
+    publisher = session.declare_publisher(keys.uav("uav1", "detections"))
     listener = publisher.declare_matching_listener(lambda status: seen.put(status.matching))
-
-    class Listener(Node):
-        service = "tracker"
-
-    node = Listener("uav1", ZenohSettings(connect=[endpoint], shared_memory=False))
-    node.subscribe(key, Detections, lambda msg, k: None)
-    node.session = open_session(ZenohSettings(connect=[endpoint], shared_memory=False))
+    node, key = detections_listener(endpoint)
     try:
-        node._declare_subscriber(node._subs[0])
         assert seen.get(timeout=2.0) is True
         node._declare_again([key])
         assert [seen.get(timeout=2.0), seen.get(timeout=2.0)] == [False, True]
