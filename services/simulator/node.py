@@ -58,6 +58,8 @@ from services.simulator.positioning import EstimateRelay
 from services.simulator.checks import check_team
 from services.simulator.scenario import load_scenario
 
+KILL_WAIT_S = 5.0  # s of wall time a lockstep tick waits for the processes a kill takes down to be gone
+
 
 class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     # s of wall time to wait for every service before starting anyway. A machine's first run
@@ -108,6 +110,7 @@ class SimulatorNode(Node):
         self.sim = Simulation(self.scenario, self.uav_names, self.seed, imu=self.params.imu,
                               positioning=self.positioning)
         self._alive: set[str] = set()
+        self._vanished: set[str] = set()  # services whose token went since a kill was asked of them
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
         self._refused_references = 0
         self._tallies: dict[str, int] = {}
@@ -142,6 +145,7 @@ class SimulatorNode(Node):
             self._alive.add(name)
         else:
             self._alive.discard(name)
+            self._vanished.add(name)
             self._acks.pop(name, None)
 
     def _on_ack(self, ack: StepAck, key: str) -> None:
@@ -209,9 +213,12 @@ class SimulatorNode(Node):
                         crashed.append(subject)
             now = to_ns(step * self.tick_s)
             self.clock.advance_to(now)
+            killed = set()
             for uav in crashed:
-                self.announce_crash(uav, now)
-            self.inject_faults(now)
+                killed |= self.announce_crash(uav, now)
+            killed |= self.inject_faults(now)
+            if self.run_lockstep and killed:
+                self.await_killed(killed)
             self.publish_state(step, now)
             rtf = (seconds(now) - mission_start) / max(time.monotonic() - wall_start, 1e-9)
             tick = SimClock(header=Header(stamp=now), step=step, dt=self.tick_s, lockstep=self.run_lockstep,
@@ -311,7 +318,9 @@ class SimulatorNode(Node):
             self.pump(min(remaining, 0.05))
 
     # ------------------------------------------------------------ faults
-    def inject_faults(self, now: int) -> None:
+    def inject_faults(self, now: int) -> set[str]:
+        """The faults due by `now` injected or announced; returns the services a kill takes down."""
+        killed: set[str] = set()
         while self._undo_jumps and self._undo_jumps[0][0] <= now:
             _, uav, offset = self._undo_jumps.pop(0)
             self.sim.jump_odometry(uav, -offset)
@@ -335,14 +344,42 @@ class SimulatorNode(Node):
             target = "/".join(filter(None, (spec.uav, spec.service))) or "router"
             # the event first: the command may take the router (and with it every event) down
             self.event("fault_injected", target, spec.kind + (f" for {spec.duration:g} s" if spec.duration else ""))
+            killed |= self._taken_down(command)
             self.faults_pub.put(command)
+        return killed
 
-    def announce_crash(self, uav: str, now: int) -> None:
+    def announce_crash(self, uav: str, now: int) -> set[str]:
         """A crashed UAV is out of the mission as a whole-UAV kill for good (the launcher's fault
-        executor takes its processes down), announced as a scheduled kill is."""
+        executor takes its processes down), announced as a scheduled kill is; returns its services."""
         command = FaultCommand(header=Header(stamp=now), kind="kill", uav=uav)
         self.fault_windows.add(command)  # before this tick's wait, not when it comes back to us
+        killed = self._taken_down(command)
         self.faults_pub.put(command)
+        return killed
+
+    def _taken_down(self, command: FaultCommand) -> set[str]:
+        """The live services a kill command takes down (none for other faults)."""
+        if command.kind != "kill":
+            return set()
+        prefix = f"{command.uav}/"
+        names = {prefix + command.service} if command.service else {n for n in self._alive if n.startswith(prefix)}
+        names &= self._alive
+        self._vanished -= names
+        return names
+
+    def await_killed(self, names: set[str]) -> None:
+        """In lockstep, the tick a kill happens at goes out once the killed processes' tokens are
+        gone. The launcher kills them in wall time: going on at once, a killed service acted on
+        one more tick in one run than in another of the same seed (campaign run 30, agile, 3 UAVs,
+        uav3 killed at 10.2 s: its kill started at 10.15 s in one run and 10.20 in the other, and
+        the rows differed). At most KILL_WAIT_S of wall time: without a launcher nobody kills."""
+        deadline = time.monotonic() + KILL_WAIT_S
+        while not names <= self._vanished and not self.stopping:
+            if time.monotonic() > deadline:
+                self.log.warning("killed, still there after %g s: %s; going on", KILL_WAIT_S,
+                                 ", ".join(sorted(names - self._vanished)))
+                return
+            self.pump(0.02)
 
     # ------------------------------------------------------------ output
     def publish_world(self) -> None:
