@@ -357,3 +357,20 @@ def test_two_uavs_cut_off_from_each_other_both_yield_and_only_the_later_in_team_
     first, second = cut_off("uav1", "uav2"), cut_off("uav2", "uav1")
     assert first.action == "goto" and first.target[2] == pytest.approx(HOME[2])
     assert second.action == "goto" and second.target[2] == pytest.approx(HOME[2] + 6.0)  # vertical_separation
+
+
+def test_a_uav_on_the_ground_yields_by_staying_there_whatever_its_state():
+    """cutclose (an arena written against the link-cut rule): uav2, cut off on the ground beside
+    uav1, decided to land where it was (lost link) and, yielding to uav1 in LANDING, climbed 10 m
+    over uav1's plan: off the ground, 4.3 m from it. A UAV not airborne holds on the ground."""
+    from services.job_manager.team import Mover
+
+    rig = Rig(uav="uav2").airborne()
+    rig.tick(1.1)
+    flying(rig, "uav1", 1.2, position=HOME + [3.0, 0, 0])
+    team = rig.jm.team
+    on_ground = HOME - [0.0, 0.0, HOME[2]]
+    for state in ("LANDING", "TAKING_OFF", "IDLE"):
+        me = Mover(on_ground, np.zeros(3), state, plan=None, airborne=False)
+        spot = team.hold_spot(s(1.3), me, team.partners["uav1"], rig.jm._separation)
+        assert np.allclose(spot, on_ground), (state, spot)

@@ -33,7 +33,7 @@ Rules (docs/architecture.md, "Mission"):
   lower-priority UAV yields, before the distance breaks (also taking off and landing). Without
   plans on either side the prediction falls back to both UAVs' current velocities over
   `separation_lookahead` (`breach_time`). The yield holds where the UAV's braking ends — on the
-  ground while it is still taking off — when the partner's plan stays safety_distance +
+  ground while it is not airborne — when the partner's plan stays safety_distance +
   `separation_hysteresis` clear of that spot; else it also climbs to `vertical_separation` above
   the highest point of the partner's plan near it (`hold_spot`). It lasts until the distance
   exceeds safety_distance + hysteresis and no breach is predicted. Priority: a partner that
@@ -280,7 +280,7 @@ class Team:
     def hold_spot(self, now: int, me: Mover, p: Partner, rule: SeparationRule, at: np.ndarray | None = None) -> np.ndarray:
         """Where a UAV yielding to `p` holds: where it comes to rest braking from its velocity at
         `rule.braking` (or `at`, the spot it holds at), when the partner's plan keeps safety_distance
-        + hysteresis from there over the horizon (and on the ground while it is still taking off);
+        + hysteresis from there over the horizon (and on the ground while it is not airborne);
         else also vertical_separation above the highest point of that plan within that reach. Asked
         again on every tick of a yield: a plan that passes clear now may come through the spot later
         (agile, 3 UAVs, seed 1: a sweep 42 m away). Not where the yield began: braked past it, the
@@ -294,8 +294,8 @@ class Team:
         theirs, age = self.partner_plan(p, now, rule)
         reach = rule.safety_distance + rule.hysteresis
         here = PlannedPath(now, rule.plan_step, spot[None])
-        if me.state == "TAKING_OFF" and not me.airborne:
-            return spot
+        if not me.airborne:
+            return spot  # on the ground, taking off or landing: it stays there (cutclose: one rose 10 m to yield)
         if self.unanswering(p, now) and self.members.index(self.me) < self.members.index(p.name):
             return spot  # level: cut off, it yields to me by the same rule on the same picture and climbs
         if first_breach(here, theirs, now, rule.plan_horizon, rule.plan_step, reach, age, rule.widen_rate).breach == np.inf:
