@@ -140,26 +140,3 @@ def test_a_subscription_a_lockstep_wait_gave_up_on_is_declared_again_and_receive
     finally:
         undeclare_all(node._zenoh_handles)
         node.session.close()
-
-
-def test_declaring_a_subscription_again_reaches_the_publisher_while_the_old_one_is_still_declared(hub):
-    """What a declaration lost on the way leaves behind: a subscriber the service still holds.
-    Zenoh sends nothing for a second subscriber on the same key nor for undeclaring one of two, so
-    a new declaration made beside the old one never reaches the network; undeclared first, the
-    publisher sees the subscription go and come back."""
-    from services.runtime.zenoh_config import undeclare_all
-
-    session, endpoint = hub
-    seen: queue.Queue = queue.Queue()
-    publisher = session.declare_publisher(keys.uav("uav1", "detections"))
-    listener = publisher.declare_matching_listener(lambda status: seen.put(status.matching))
-    node, key = detections_listener(endpoint)
-    try:
-        assert seen.get(timeout=2.0) is True
-        node._declare_again([key])
-        assert [seen.get(timeout=2.0), seen.get(timeout=2.0)] == [False, True]
-    finally:
-        listener.undeclare()
-        publisher.undeclare()
-        undeclare_all(node._zenoh_handles)
-        node.session.close()
