@@ -5,10 +5,12 @@ import argparse
 import sys
 from dataclasses import dataclass, field
 
-from schemas.keys import uav_services
+from schemas.keys import SIM, uav_services
 from services.launcher.netns import UavNetwork
 from services.runtime import tls
 from services.runtime.zenoh_config import ZenohSettings
+
+SIMULATOR = f"{SIM}/simulator"  # the simulator's child name (its scope and service)
 
 
 @dataclass
@@ -71,7 +73,7 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
     # With namespaces, the simulator is reached by each UAV over that UAV's airframe link only (never
     # over the radio bridge, which a link_cut takes down), and by the ground over loopback.
     sim_listen = ["tcp/127.0.0.1:0"] + [f"tcp/{network.sim_address(u)}:{port}" for u in uavs] if network else []
-    plan.children["sim/simulator"] = base + [
+    plan.children[SIMULATOR] = base + [
         "simulator", *extra, *zenoh_args([loopback_hub], sim_listen, gossip_connect=network is None),
         "--scenario", args.scenario,
         "--uavs", str(len(uavs)), "--seed", str(seed), "--duration", str(duration), "--rtf", str(args.rtf),

@@ -24,7 +24,7 @@ from services.launcher.common import CliError, add_zenoh_options
 from services.launcher.faults import ROUTER, FaultExecutor
 from services.launcher.monitor import RunMonitor
 from services.launcher.params import ParamsError, params_for, read_tables
-from services.launcher.plan import own_router_wanted, plan_run
+from services.launcher.plan import SIMULATOR, own_router_wanted, plan_run
 from services.launcher.registry import node_class
 from services.launcher.supervisor import Supervisor, describe_exit
 from services.launcher.view_cmd import DRAIN_S, add_view_options, check_view_options
@@ -42,7 +42,6 @@ LEAVING_STATES = ("LANDING", "EMERGENCY_LANDING")
 # asking again for a lockstep run's last messages: 2 s of pauses, and each question's own wait
 # (its 1 s timeout when a service does not answer: 10 s at most, only while messages are missing)
 SETTLE_ATTEMPTS, SETTLE_PAUSE_S = 8, 0.25
-SIMULATOR = "sim/simulator"
 SIMULATOR_GONE_S = 1.0  # s to wait, at the end, for the stopped simulator's token to vanish from the router
 RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, keys.WORLD) + tuple(
@@ -297,7 +296,7 @@ class SimRun:
         deadline = time.monotonic() + SIMULATOR_GONE_S
         while time.monotonic() < deadline:
             try:
-                replies = list(self.session.liveliness().get(keys.alive("sim", "simulator"), timeout=0.2))
+                replies = list(self.session.liveliness().get(keys.alive(*SIMULATOR.split("/")), timeout=0.2))
             except Exception:  # a router already gone: nobody left to tell
                 return
             if not any(reply.ok is not None for reply in replies):
