@@ -140,3 +140,41 @@ def test_a_subscription_a_lockstep_wait_gave_up_on_is_declared_again_and_receive
     finally:
         undeclare_all(node._zenoh_handles)
         node.session.close()
+
+
+def test_the_old_subscription_is_gone_from_the_network_before_the_new_one_is_declared(hub):
+    """Zenoh sends nothing for a second subscriber on a key the session already subscribes, nor for
+    undeclaring one of two; so a re-declaration made beside the old subscriber never leaves the
+    process. At the moment the new one is declared, the publisher must already see no subscriber
+    (polled, so no two declarations can arrive as one), and afterwards see it again."""
+    from services.runtime.zenoh_config import undeclare_all
+
+    session, endpoint = hub
+    publisher = session.declare_publisher(keys.uav("uav1", "detections"))
+    node, key = detections_listener(endpoint)
+
+    def publisher_sees(matching: bool) -> bool:
+        deadline = time.monotonic() + 3.0
+        while publisher.matching_status.matching != matching:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.01)
+        return True
+
+    seen_when_declared: list[bool] = []
+    declare = node._declare_subscriber
+
+    def declare_watched(sub) -> None:
+        seen_when_declared.append(publisher_sees(False))
+        declare(sub)
+
+    try:
+        assert publisher_sees(True)
+        node._declare_subscriber = declare_watched
+        node._declare_again([key])
+        assert seen_when_declared == [True], "the old subscriber was still declared on the network"
+        assert publisher_sees(True)
+    finally:
+        publisher.undeclare()
+        undeclare_all(node._zenoh_handles)
+        node.session.close()
