@@ -97,16 +97,20 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
 
 
 def run_lockstep(tmp_path, name: str, seed: int, duration: float, scenario: str = "mbzirc",
-                 lidar: str | None = None) -> tuple[bytes, dict]:
-    """A seeded lockstep run of 2 UAVs; `lidar`: another LiDAR model than the scenario's."""
-    truth, summary, digests = tmp_path / f"{name}.truth", tmp_path / f"{name}.json", tmp_path / f"{name}.digests"
+                 lidar: str | None = None, landing_margin: float | None = None,
+                 digests: bool = False) -> tuple[bytes, dict]:
+    """A seeded lockstep run of 2 UAVs; `lidar`: another LiDAR model than the scenario's;
+    `landing_margin`: the job manager's; `digests`: write every key's message digests to NAME.digests."""
+    truth, summary = tmp_path / f"{name}.truth", tmp_path / f"{name}.json"
     config = tmp_path / f"{name}.toml"
-    config.write_text(f'[sensor_driver]\nmodel = "{lidar}"\n' if lidar else "")
+    config.write_text((f'[sensor_driver]\nmodel = "{lidar}"\n' if lidar else "")
+                      + (f"[job_manager]\nlanding_margin = {landing_margin}\n" if landing_margin is not None else ""))
+    digest_args = ["--digest-json", str(tmp_path / f"{name}.digests")] if digests else []
     result = subprocess.run(
         falconry_argv("sim", scenario, "--uavs", "2", "--lockstep", "--seed", str(seed), "--duration", str(duration),
                       "--config", str(config),
                       "--quiet", "--truth-log", str(truth), "--summary-json", str(summary), "--wall-timeout", "240",
-                      "--digest-json", str(digests), "--log-file", str(tmp_path / f"{name}.services.log")),
+                      *digest_args, "--log-file", str(tmp_path / f"{name}.services.log")),
         capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     return truth.read_bytes(), read_summary(summary)
@@ -150,10 +154,11 @@ FAULT_KEYS = ("falconry/sim/events", "falconry/sim/faults")  # the faulted run a
 def test_lockstep_runs_with_the_same_seed_give_identical_ground_truth_whatever_the_network_does(tmp_path):
     # A light LiDAR: every message is compared whatever its size, and the two runs take 53 s instead
     # of 66 (the shipped sensor flies in test_two_uav_mission_flies_and_reports); the camera stays in.
-    first, s1 = run_lockstep(tmp_path, "a", seed=7, duration=20, lidar="os0-32-512")
+    first, s1 = run_lockstep(tmp_path, "a", seed=7, duration=20, lidar="os0-32-512", digests=True)
     faulted = tmp_path / "faulted.toml"
     faulted.write_text((SCENARIO_DIR / "mbzirc.toml").read_text() + DELIVERY_FAULTS)
-    second, s2 = run_lockstep(tmp_path, "b", seed=7, duration=20, scenario=str(faulted), lidar="os0-32-512")
+    second, s2 = run_lockstep(tmp_path, "b", seed=7, duration=20, scenario=str(faulted), lidar="os0-32-512",
+                              digests=True)
     # not only the truth: every message every service published (clock aside) is the same
     for summary in (s1, s2):  # a start without the team or a wait given up makes another run than the seed's
         assert not summary["started_without"] and not summary["health"]["ticks_gone_on_without"], summary["health"]
@@ -175,7 +180,8 @@ def test_lockstep_runs_with_the_same_seed_give_identical_ground_truth_whatever_t
 
 
 def test_two_uav_mission_flies_and_reports(tmp_path):
-    _, summary = run_lockstep(tmp_path, "mission", seed=1, duration=40)
+    # lands at 25 s as with the default margin at 40 s; both UAVs are down by about 29.6 s
+    _, summary = run_lockstep(tmp_path, "mission", seed=1, duration=30, landing_margin=5.0)
     assert summary["outcome"] == "finished" and summary["finished"]
     assert sorted(summary["uavs"]) == ["uav1", "uav2"]
     for name, uav in summary["uavs"].items():

@@ -21,13 +21,17 @@ PARTNER_TIMEOUT = 15.0  # t_s, the job manager's default
 
 def run_mission(tmp_path: Path, port: int, faults: str, *, uavs: int, duration: float, seed: int = 1,
                 lease_ms: int | None = None, lockstep: bool = True, extra: tuple[str, ...] = (),
-                base: str = "mbzirc", light_lidar: bool = True) -> tuple[dict, str]:
+                base: str = "mbzirc", light_lidar: bool = True,
+                landing_margin: float | None = None) -> tuple[dict, str]:
     """`base` (mbzirc) with `faults` added, on the oracle detector and a light LiDAR (OS0-32 × 512: these
-    tests are about the team's decisions, and the light sensor keeps each run under a minute)."""
+    tests are about the team's decisions, and the light sensor keeps each run under a minute).
+    `landing_margin`: the job manager's, s before the end; a run that ends soon after the team has
+    landed flies the same mission as a longer one with the default margin, in less time."""
     scenario = tmp_path / "mission.toml"
     scenario.write_text((SCENARIO_DIR / f"{base}.toml").read_text() + faults)
     light = tmp_path / "light.toml"
-    light.write_text('[sensor_driver]\nmodel = "os0-32-512"\n' if light_lidar else "")
+    light.write_text(('[sensor_driver]\nmodel = "os0-32-512"\n' if light_lidar else "")
+                     + (f"[job_manager]\nlanding_margin = {landing_margin}\n" if landing_margin is not None else ""))
     summary = tmp_path / "summary.json"
     argv = ["sim", str(scenario), "--uavs", str(uavs), "--seed", str(seed), "--duration", str(duration),
             "--detector", "oracle", "--port", str(port), "--quiet", "--progress", "0", "--summary-json", str(summary),
@@ -73,7 +77,8 @@ def check_separation(summary: dict) -> None:
 @pytest.mark.timeout(600)
 def test_revenge_after_the_partner_is_killed(tmp_path, port):
     faults = '\n[[faults]]\ntime = 20.0\nkind = "kill"\nuav = "uav2"\n'
-    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=150)
+    # lands at 135 s as with the default margin at 150 s (the fifth balloon falls at about 131 s)
+    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=139, landing_margin=4.0)
     check_revenge(summary, output, 20.0)
 
 
@@ -136,7 +141,8 @@ def balloons_left_from(truth_log: Path, uav: str, at: float) -> list[float]:
 @pytest.mark.timeout(600)
 def test_silent_lidar_lands_that_uav_only_and_three_uavs_share_its_area(tmp_path, port):
     faults = '\n[[faults]]\ntime = 10.0\nkind = "lidar_silent"\nuav = "uav2"\nduration = 5.0\n'
-    summary, output = run_mission(tmp_path, port, faults, uavs=3, duration=40)
+    # lands at 25 s as with the default margin at 40 s; the last UAV is down by about 30.2 s
+    summary, output = run_mission(tmp_path, port, faults, uavs=3, duration=31, landing_margin=6.0)
     states = {name: [s for _, s in u["states"]] for name, u in summary["uavs"].items()}
     emergency = [t for t, s in summary["uavs"]["uav2"]["states"] if s == "EMERGENCY_LANDING"]
     assert emergency and 11.0 <= emergency[0] <= 11.5, summary["uavs"]["uav2"]["states"]
@@ -156,7 +162,8 @@ def test_the_partner_keeps_clear_of_a_uav_hovering_after_its_onboard_computer_di
     """A whole-UAV kill whose flight controller holds position: the survivor takes the arena over
     t_s later, leaves the hovering UAV's no-fly column alone and never comes within the safety distance."""
     faults = '\n[[faults]]\ntime = 20.0\nkind = "kill"\nuav = "uav2"\nfailsafe = "hold"\n'
-    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=90)
+    # uav1 lands at 75 s as with the default margin at 90 s, and is down by about 81 s
+    summary, output = run_mission(tmp_path, port, faults, uavs=2, duration=82, landing_margin=7.0)
     took = took_over(summary, "uav1", (0.0, 100.0), "uav2")
     assert took is not None and 20.0 + PARTNER_TIMEOUT - 1.0 <= took <= 20.0 + PARTNER_TIMEOUT + 1.0, \
         summary["team_changes"]
