@@ -64,8 +64,11 @@ def leaves_nothing_behind(zenoh_runtime_warmed):
         os.kill(pid, signal.SIGKILL)
     assert not leftovers, f"test left child processes behind: {leftovers}"
     # Segments of ended processes are removed by whoever supervised them (launcher, Processes).
-    orphans = shm.orphans(shm.segments() - before_shm)
-    assert not orphans, f"test left /dev/shm files: {orphans}"
+    # A worker of `pytest -n` cannot tell its leaks from the other worker's fleet (a killed UAV's
+    # segments stay orphaned until that run ends): the controller checks the whole session instead.
+    if not os.environ.get("PYTEST_XDIST_WORKER"):
+        orphans = shm.orphans(shm.segments() - before_shm)
+        assert not orphans, f"test left /dev/shm files: {orphans}"
 
 
 @pytest.fixture
@@ -123,9 +126,47 @@ def processes():
     procs.stop_all()
 
 
+SEGMENTS_AT_START = pytest.StashKey[set]()
+
+
+def pytest_sessionstart(session):
+    session.config.stash[SEGMENTS_AT_START] = shm.segments()
+
+
+def pytest_sessionfinish(session):
+    """The controller of `pytest -n`, once its workers are gone: no test may have left a Zenoh
+    segment behind (each worker skips the per-test check). A worker hands its fuzz counts to the
+    controller, which prints the table."""
+    workeroutput = getattr(session.config, "workeroutput", None)
+    if workeroutput is None and getattr(session.config.option, "numprocesses", None):
+        orphans = shm.orphans(shm.segments() - session.config.stash[SEGMENTS_AT_START])
+        if orphans:
+            session.config.get_terminal_writer().line(f"the tests left /dev/shm files: {sorted(map(str, orphans))}",
+                                                      red=True)
+            session.exitstatus = pytest.ExitCode.TESTS_FAILED
+    fuzz = sys.modules.get("tests.tools.fuzz")
+    if workeroutput is not None and fuzz:
+        workeroutput["fuzz_cases_run"] = {name: {"services": run.services, "cases": dict(run.cases)}
+                                          for name, run in session.config.stash.get(fuzz.CASES_RUN, {}).items()}
+
+
+@pytest.hookimpl(optionalhook=True)  # a pytest-xdist hook: unknown to a run without it
+def pytest_testnodedown(node, error):
+    """The controller's side of pytest_sessionfinish: a worker's fuzz counts added to its own."""
+    counted = getattr(node, "workeroutput", {}).get("fuzz_cases_run")
+    if not counted:
+        return
+    from tests.tools.fuzz import CASES_RUN, FuzzRun
+
+    runs = node.config.stash.setdefault(CASES_RUN, {})
+    for name, run in counted.items():
+        merged = runs.setdefault(name, FuzzRun(services=run["services"]))
+        merged.cases.update(run["cases"])
+
+
 def pytest_terminal_summary(terminalreporter, exitstatus, config):
     """The fuzz cases run per message type (tests/test_fuzz_messages.py), once per session."""
-    fuzz = sys.modules.get("tests.tools.fuzz")  # imported only by a session that fuzzes
+    fuzz = sys.modules.get("tests.tools.fuzz")  # imported only by a session that fuzzes (or merged its workers')
     runs = config.stash.get(fuzz.CASES_RUN, {}) if fuzz else {}
     if not runs:
         return

@@ -8,6 +8,7 @@ import time
 
 import msgspec
 import numpy as np
+import pytest
 
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
@@ -28,6 +29,8 @@ from schemas.messages import (
 from tests.conftest import REPO
 from tests.tools.health import health
 from tests.tools.nodes import collect, start_healthy
+
+pytestmark = pytest.mark.alone  # real-time nodes whose subscriptions meet within fixed sleeps
 
 TICK_NS = 50_000_000
 BALLOON = (9.0, 1.0, 5.0)

@@ -365,6 +365,7 @@ PARTNER = textwrap.dedent("""
 """)
 
 
+@pytest.mark.alone
 def test_onboard_routers_notice_a_frozen_partner_within_the_lease():
     """uav1's router and a partner UAV (its router + job manager) in another process: when the
     partner freezes, as with a cut radio link, uav1 sees its liveliness token go after about one

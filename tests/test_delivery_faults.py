@@ -11,11 +11,14 @@ import time
 
 import msgspec
 import numpy as np
+import pytest
 
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, FaultCommand, Header, Tracks
 from tests.tools.health import health, wait_healthy
+
+pytestmark = pytest.mark.alone  # fault windows timed on the wall clock
 
 DETECTIONS = keys.uav("uav1", "detections")
 SENDER = "uav1/test_detector"

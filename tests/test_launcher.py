@@ -9,6 +9,7 @@ import subprocess
 import time
 
 import msgspec
+import pytest
 import zenoh
 
 from schemas import keys
@@ -23,6 +24,7 @@ from tests.tools.run import join_run, processes_mentioning, read_summary
 IN_FLIGHT_NS = 8_000_000_000  # mission time by which the launch is over and the team flies
 
 
+@pytest.mark.alone
 def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(processes, port, tmp_path):
     summary, log = tmp_path / "summary.json", tmp_path / "run.log"
     # a light LiDAR: the restart time measured is the service's, not that of a saturated machine

@@ -34,6 +34,8 @@ from tests.conftest import REPO
 from tests.tools.health import wait_healthy
 from tests.tools.nodes import collect, start_healthy
 
+pytestmark = pytest.mark.alone  # real-time nodes whose subscriptions meet within fixed sleeps
+
 TICK_NS = 50_000_000
 # The oracle started the way `falconry run oracle --uav uav1` does once the launcher treats it
 # as a per-UAV service.

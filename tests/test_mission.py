@@ -179,6 +179,7 @@ def speeds(truth_log: Path, uav: str, start: float, end: float) -> list[float]:
             if start <= record.header.stamp / 1e9 <= end for v in record.uavs if v.name == uav]
 
 
+@pytest.mark.alone  # 8 s of freeze must stay well inside Zenoh's 10 s lease in wall time
 @pytest.mark.timeout(300)
 def test_a_frozen_job_manager_brakes_its_vehicle_to_a_hover_and_its_partner_keeps_clear(tmp_path, port):
     """The planner's watchdog: uav2's job manager frozen for 8 s; its planner hears no status for 1 s
@@ -198,6 +199,7 @@ def test_a_frozen_job_manager_brakes_its_vehicle_to_a_hover_and_its_partner_keep
     check_separation(summary)
 
 
+@pytest.mark.alone  # real time: the router's downtime is wall-clock time
 @pytest.mark.timeout(300)
 def test_the_team_rides_out_a_router_restart_and_every_service_comes_back(tmp_path, port):
     """The router profile's one router killed for 2 s (real time: that is what the profile deploys):

@@ -11,11 +11,14 @@ import time
 
 import msgspec
 import numpy as np
+import pytest
 
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Header, PointCloud, Pose, SimClock, VoxelMap
 from tests.tools.health import health, wait_healthy
+
+pytestmark = pytest.mark.alone  # real-time nodes whose subscriptions meet within fixed sleeps
 
 CONFIG = '[mapper]\napriori = ""\n'  # no world model in this test: learn everything
 

@@ -8,6 +8,7 @@ import time
 
 import msgspec
 import numpy as np
+import pytest
 
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
@@ -16,6 +17,8 @@ from schemas.messages import (ConstraintProfile, Header, MissionCommand, Obstacl
 from services.planner.freespace import FreeSpace
 from services.voxels.grid import GridGeometry
 from tests.tools.health import health, wait_healthy
+
+pytestmark = pytest.mark.alone  # a real-time node whose subscriptions meet within fixed sleeps
 
 GRID = GridGeometry((-10.0, -10.0, -1.0), (120, 80, 30), 0.5)
 WALL = (slice(58, 60), slice(30, 70), slice(2, 24))  # x 19-20, y 5-25, up to 11 m

@@ -16,6 +16,8 @@ from services.runtime.counted import CountedWarnings
 from services.runtime.zenoh_config import ZenohConfigError, ZenohSettings, build
 from tests.tools.health import wait_healthy
 
+pytestmark = pytest.mark.alone  # services stopped within 2 s of the wall clock
+
 
 def test_profiles_and_overrides(tmp_path, monkeypatch):
     embedded = build(ZenohSettings(connect=["tcp/127.0.0.1:7000"]))

@@ -5,12 +5,15 @@ import os
 import time
 
 import msgspec
+import pytest
 
 from schemas import keys
 from schemas.catalogue import CATALOGUE
 from schemas.messages import Header, SimClock
 from tests.tools.health import health, wait_healthy
 from tests.tools.samples import concrete
+
+pytestmark = pytest.mark.alone  # real-time services given one tick and fixed sleeps to handle it
 
 GARBAGE = (b"\x00\xffnot msgpack at all", b"", msgspec.msgpack.encode({"header": "wrong shape"}),
            os.urandom(256))

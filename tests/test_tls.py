@@ -559,6 +559,7 @@ def test_a_party_without_a_valid_certificate_cannot_connect(certs, rogue):
             uav1.close()
 
 
+@pytest.mark.alone  # a wall-clock planner asked for its health within 2 s
 def test_uav2_cannot_command_uav1s_planner_but_publishes_its_own_keys(certs, processes):
     """The issue's acceptance: through `falconry router --tls`, a party with uav2's certificate
     publishes falconry/uav1/command and uav1's real planner never counts one, nor does any uav1

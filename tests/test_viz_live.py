@@ -6,11 +6,14 @@ import time
 
 import msgspec
 import numpy as np
+import pytest
 
 from schemas.arrays import from_numpy
 from schemas.messages import Header, Odometry, PointCloud, Pose
 from services.runtime.zenoh_config import ZenohSettings, open_session
 from services.viz.live import LiveFeed
+
+pytestmark = pytest.mark.alone  # a feed timed on the wall clock
 
 
 def test_a_viewer_that_does_not_keep_up_drops_scans_first_then_anything_past_its_bound(hub):

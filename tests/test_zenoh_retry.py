@@ -25,6 +25,8 @@ from services.runtime.zenoh_config import ZenohConfigError, ZenohSettings, build
 from tests.conftest import REPO, falconry_argv
 from tests.tools.health import health, wait_healthy
 
+pytestmark = pytest.mark.alone  # waits and reconnections timed on the wall clock
+
 RETRY_LINE = "waiting for zenoh"
 
 
