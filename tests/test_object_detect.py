@@ -218,3 +218,39 @@ def test_picking_a_colour_from_a_frame_finds_the_balloon_the_wrong_colour_does_n
     assert len(detect(frame.rgb, frame.depth_mm, view, red, ObjectDetectParams()).positions) == 0
     found = detect(frame.rgb, frame.depth_mm, view, load_color_file(out), ObjectDetectParams())
     assert len(found.positions) == 1 and np.linalg.norm(found.positions[0] - centre) < 0.2
+
+
+@pytest.mark.parametrize("space", ["hsv", "lab"])
+def test_an_images_mask_by_opencv_is_the_same_bits_as_the_per_channel_rule(space):
+    """ColorFile.segment masks whole images with cv2.inRange; Thresholds.mask is the rule (eq.
+    4.9-4.10) written out per channel. Fractional, wrapping and out-of-range bounds included."""
+    rng = np.random.default_rng(11)
+    image = rng.integers(0, 256, (48, 64, 3), dtype=np.uint8)
+    values = to_space(image, space)
+    for _ in range(200):
+        lower = rng.uniform(-20, 260, 3)
+        upper = lower + rng.uniform(-30, 120, 3)
+        if space == "hsv" and rng.random() < 0.4:
+            lower[0], upper[0] = rng.uniform(150, 179.9), rng.uniform(0, 20)  # across 0
+        t = Thresholds(space, tuple(lower), tuple(upper))
+        assert np.array_equal(t.mask_image(values), t.mask(values)), (lower, upper)
+    t = Thresholds(space, (0, 0, 0), (255, 255, 255))
+    assert t.mask_image(values).all() and t.mask_image(values).dtype == bool
+
+
+def test_blobs_are_found_where_they_are_whatever_box_they_share_with_the_rest():
+    """find_blobs labels only the box around what is left after the opening: positions, sizes and
+    the cut at the edge are the whole image's."""
+    mask = np.zeros((90, 160), dtype=bool)
+    yy, xx = np.mgrid[:90, :160]
+    for cx, cy, r in ((30.0, 40.0, 6.0), (120.5, 70.0, 9.0), (3.0, 10.0, 5.0), (156.0, 84.0, 4.0)):
+        mask |= (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
+    blobs = find_blobs(mask, ObjectDetectParams(min_pixels=5))
+    opened = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    count, _, stats, centroids = cv2.connectedComponentsWithStats(opened, connectivity=8)
+    assert len(blobs) == count - 1 == 4
+    for blob, stat, centroid in zip(blobs, stats[1:], centroids[1:]):
+        assert blob.pixels == stat[cv2.CC_STAT_AREA] and blob.u == pytest.approx(centroid[0], abs=1e-9)
+        assert blob.v == pytest.approx(centroid[1], abs=1e-9)
+    assert [b.clipped for b in blobs] == [True, False, False, True]
+    assert find_blobs(np.zeros((90, 160), dtype=bool), ObjectDetectParams()) == []

@@ -36,11 +36,13 @@ SPACES = ("hsv", "lab")
 
 def to_space(rgb: np.ndarray, space: str) -> np.ndarray:
     """(…, 3) uint8 sRGB → uint8 HSV or L*a*b* in OpenCV's 8-bit scales."""
-    pixels = np.ascontiguousarray(np.asarray(rgb, dtype=np.uint8).reshape(-1, 1, 3))
-    if pixels.size == 0:  # OpenCV refuses an empty image
+    rgb = np.asarray(rgb, dtype=np.uint8)
+    if rgb.size == 0:  # OpenCV refuses an empty image
         return np.zeros(np.shape(rgb), dtype=np.uint8)
     code = cv2.COLOR_RGB2HSV if space == "hsv" else cv2.COLOR_RGB2LAB
-    return cv2.cvtColor(pixels, code).reshape(np.shape(rgb))
+    if rgb.ndim == 3:  # an image as it is: OpenCV pays a set-up per row, a (N, 1, 3) column costs 8×
+        return cv2.cvtColor(np.ascontiguousarray(rgb), code)
+    return cv2.cvtColor(np.ascontiguousarray(rgb.reshape(-1, 1, 3)), code).reshape(np.shape(rgb))
 
 
 @dataclass
@@ -147,6 +149,24 @@ class Thresholds:
                 inside &= (v[..., c] >= lo) & (v[..., c] <= hi)
         return inside
 
+    def mask_image(self, values: np.ndarray) -> np.ndarray:
+        """`mask` of an (H, W, 3) uint8 image, the same bits, by OpenCV's inRange (one pass per
+        interval instead of six numpy passes): for integer v, v >= lo is v >= ceil(lo) and v <= hi
+        is v <= floor(hi); bounds beyond 0-255 are clamped first (inRange would saturate them)."""
+        values = np.ascontiguousarray(values, dtype=np.uint8)
+        lower = [min(max(math.ceil(v), 0), 256) for v in self.lower]
+        upper = [min(max(math.floor(v), -1), 255) for v in self.upper]
+        if self.space == "hsv" and self.lower[0] > self.upper[0]:  # the hue wraps: two intervals
+            hues = [(lower[0], 255), (0, upper[0])]
+        else:
+            hues = [(lower[0], upper[0])]
+        inside = np.zeros(values.shape[:2], dtype=np.uint8)
+        for low, high in hues:
+            box = [(low, high), (lower[1], upper[1]), (lower[2], upper[2])]
+            if all(a <= b for a, b in box):
+                inside |= cv2.inRange(values, tuple(a for a, _ in box), tuple(b for _, b in box))
+        return inside.astype(bool)
+
 
 @dataclass(frozen=True)
 class Lut:
@@ -208,6 +228,8 @@ class ColorFile:
         values = to_space(rgb, self.thresholds.space)
         if self.method == "lut" and self.lut is not None:
             return self.lut.lookup(values)
+        if values.ndim == 3 and values.size:
+            return self.thresholds.mask_image(values)
         return self.thresholds.mask(values)
 
     def to_toml(self) -> str:
