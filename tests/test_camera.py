@@ -106,3 +106,43 @@ def test_exposure_and_white_balance_drift_within_their_bounds():
 def test_bad_camera_parameters_are_refused(bad):
     with pytest.raises(ValueError):
         CameraParams(**bad)
+
+
+def test_a_tiled_frame_sees_what_the_caster_sees_through_every_pixel():
+    """The renderer tests each pixel only against its tile's list of primitives (render.py): a list
+    too short would lose what the pixel sees. The LiDAR's caster, which tests every primitive,
+    must see the same primitive at the same range through every pixel, from poses inside bounding
+    spheres, beside them and far away, with primitives filling several tiles and grazing others."""
+    from services.sensor_driver.raycast import cast_kernel
+
+    rng = np.random.default_rng(5)
+    obstacles = [Obstacle(kind="plane", center=(0.0, 0.0, 0.0), color=(90, 90, 90))]
+    for k in range(25):
+        kind = ["box", "cylinder", "sphere", "cone"][k % 4]
+        centre = (*rng.uniform(-25, 25, 2), 0.0 if kind != "sphere" else rng.uniform(1, 8))
+        obstacles.append(Obstacle(kind=kind, center=tuple(centre), size=tuple(rng.uniform(0.3, 4.0, 3)),
+                                  radius=float(rng.uniform(0.2, 2.0)), height=float(rng.uniform(1, 10))))
+    world = pack(primitives_from_obstacles(obstacles))
+    cam = Camera(CameraParams(width=200, height=120, **QUIET), rng)
+    for k in range(30):
+        position = world.bounds[1 + k % (len(world) - 1), :3] if k % 5 == 0 else np.array(
+            [*rng.uniform(-30, 30, 2), rng.uniform(0.5, 15)])
+        rotation = camera_rotation(rng.uniform(-math.pi, math.pi), rng.uniform(-60, 30))
+        frame = cam.render(world, SKY, position, rotation, np.ones(3), rng)
+        ranges, hits = np.empty(len(cam.rays)), np.empty(len(cam.rays), dtype=np.int64)
+        cast_kernel(position, np.ascontiguousarray(cam.rays @ rotation.T), world.kinds, world.params, world.bounds,
+                    ranges, hits)
+        assert np.array_equal(frame.hits.ravel(), hits), k
+
+
+def test_tiles_cover_every_pixel_once_and_their_cones_hold_their_rays():
+    from services.camera.render import Tiles
+
+    k = Intrinsics.from_fov(100, 37, 69.4, 42.5)  # tiles cut at both edges
+    rays = k.pixel_rays()
+    tiles = Tiles.of(rays, 100, 37, size=16)
+    assert np.array_equal(np.sort(tiles.order), np.arange(100 * 37)) and tiles.start[-1] == 100 * 37
+    assert len(tiles.axes) == 7 * 3
+    for t in range(len(tiles.axes)):
+        members = rays[tiles.order[tiles.start[t]:tiles.start[t + 1]]]
+        assert (members @ tiles.axes[t] >= tiles.cos_half[t] - 1e-12).all()

@@ -30,7 +30,7 @@ import msgspec
 import numpy as np
 
 from schemas.messages import Appearance
-from services.camera.render import encode_table, noise_table, render_kernel, srgb_to_linear
+from services.camera.render import Tiles, encode_table, noise_table, render_kernel, srgb_to_linear, tile_candidates
 from services.sensor_driver.core import Packed, yaw_rotation
 
 D435_HORIZONTAL_FOV = 69.4  # degrees, colour camera
@@ -180,6 +180,8 @@ class Camera:
         self.params = params
         self.intrinsics = Intrinsics.from_fov(params.width, params.height, params.horizontal_fov, params.vertical_fov)
         self.rays = self.intrinsics.pixel_rays()
+        self.tiles = Tiles.of(self.rays, params.width, params.height)
+        self.tile_rays = np.ascontiguousarray(self.rays[self.tiles.order])
         self.encode = encode_table()
         self.color_noise = noise_table(rng, NOISE_TABLE_SIZE, params.color_noise, np.int16)
         self.depth_noise = noise_table(rng, NOISE_TABLE_SIZE // 2, 1.0, np.float32)
@@ -205,7 +207,14 @@ class Camera:
         sun = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
                         math.sin(elevation)])
         offsets = rng.integers(0, NOISE_TABLE_SIZE, 2)
-        render_kernel(np.asarray(position, dtype=np.float64), np.ascontiguousarray(rotation, dtype=np.float64), self.rays,
+        position = np.asarray(position, dtype=np.float64)
+        rotation = np.ascontiguousarray(rotation, dtype=np.float64)
+        tiles = self.tiles
+        candidates = np.empty((len(tiles.axes), len(world)), dtype=np.int64)
+        counts = np.empty(len(tiles.axes), dtype=np.int64)
+        tile_candidates(position, rotation, tiles.axes, tiles.cos_half, tiles.sin_half, world.kinds, world.bounds,
+                        candidates, counts)
+        render_kernel(position, rotation, self.tile_rays, tiles.order, tiles.start, candidates, counts,
                       world.kinds, world.params, world.bounds, srgb_to_linear(colors), srgb_to_linear(look.sky),
                       sun, float(look.ambient), np.asarray(gains, dtype=np.float64), self.encode,
                       self.color_noise, int(offsets[0]), self.depth_noise, int(offsets[1]), float(p.depth_noise),

@@ -7,7 +7,11 @@ its exact test (planes have no bound). `error_model="numpy"` keeps IEEE division
 Single-threaded on purpose: the machine has 2 cores for 3 UAVs' worth of services. The per-ray
 helpers are inlined (numba `inline="always"`): called, each passed the primitive table as an
 array and paid its set-up per primitive per ray, which was most of a scan (OS0-128 × 1024 on
-mbzirc: 8.8 → 3.0 ms for the kernel, the same bits).
+mbzirc: 8.8 → 3.0 ms for the kernel, the same bits). The loop over the primitives, though, is
+written out in each kernel (cast_kernel, scan_kernel, the camera's render_kernel) with the plane
+tested before the bounding-sphere test: as an inlined helper returning (range, index) it made a
+camera frame's cast 2-3.7× slower (3.3 against 7.1-12.2 ms on mbzirc, benchmarks/README.md), for
+the same bits.
 
 Packed table (`Packed`), one row per primitive, in the order planes, spheres, cylinders,
 boxes, cones (the reference's order, so ties resolve alike):
@@ -47,7 +51,8 @@ class Packed:
 
 # ------------------------------------------------------------------ exact hits (scalars)
 @njit(cache=True, error_model="numpy", inline="always")
-def _pos(t):
+def ahead(t):
+    """A range along the ray, INF if it is behind the origin (or at it)."""
     return t if t > EPS else INF
 
 
@@ -71,7 +76,7 @@ def _fmax(a, b):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _disk(ox, oy, oz, dx, dy, dz, cx, cy, z, r):
-    t = _pos((z - oz) / dz)
+    t = ahead((z - oz) / dz)
     x = ox + t * dx - cx
     y = oy + t * dy - cy
     return t if x * x + y * y <= r * r else INF
@@ -84,10 +89,11 @@ def _in_height(t, oz, dz, z0, h):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _hit(kind, table, q, ox, oy, oz, dx, dy, dz):
-    p = table[q]
+def hit_range(kind, table, q, ox, oy, oz, dx, dy, dz):
+    """The exact range from o along unit d to primitive q of the packed table (kind its kind), INF if none."""
     if kind == PLANE:
-        return _pos((p[0] - oz) / dz)
+        return ahead((table[q, 0] - oz) / dz)
+    p = table[q]
     if kind == SPHERE:
         ocx, ocy, ocz = ox - p[0], oy - p[1], oz - p[2]
         b = dx * ocx + dy * ocy + dz * ocz
@@ -96,7 +102,7 @@ def _hit(kind, table, q, ox, oy, oz, dx, dy, dz):
         if not disc >= 0.0:
             return INF
         root = math.sqrt(disc)
-        return min(_pos(-b - root), _pos(-b + root))
+        return min(ahead(-b - root), ahead(-b + root))
     if kind == CYLINDER:
         cx, cy, z0, r, h = p[0], p[1], p[2], p[3], p[4]
         px, py = ox - cx, oy - cy
@@ -104,7 +110,7 @@ def _hit(kind, table, q, ox, oy, oz, dx, dy, dz):
         b = px * dx + py * dy
         c = px * px + py * py - r * r
         root = math.sqrt(b * b - a * c) if b * b - a * c >= 0.0 else np.nan
-        best = min(_in_height(_pos((-b - root) / a), oz, dz, z0, h), _in_height(_pos((-b + root) / a), oz, dz, z0, h))
+        best = min(_in_height(ahead((-b - root) / a), oz, dz, z0, h), _in_height(ahead((-b + root) / a), oz, dz, z0, h))
         best = min(best, _disk(ox, oy, oz, dx, dy, dz, cx, cy, z0 + h, r))
         return min(best, _disk(ox, oy, oz, dx, dy, dz, cx, cy, z0, r))
     if kind == BOX:
@@ -127,24 +133,10 @@ def _hit(kind, table, q, ox, oy, oz, dx, dy, dz):
     b = px * dx + py * dy + k2 * pz * dz
     c = px * px + py * py - k2 * pz * pz
     root = math.sqrt(b * b - a * c) if b * b - a * c >= 0.0 else np.nan
-    best = min(_in_height(_pos((-b - root) / a), oz, dz, z0, h), _in_height(_pos((-b + root) / a), oz, dz, z0, h))
+    best = min(_in_height(ahead((-b - root) / a), oz, dz, z0, h), _in_height(ahead((-b + root) / a), oz, dz, z0, h))
     if abs(a) < 1e-12:  # parallel to the side: the quadratic degenerates to 2bt + c = 0
-        best = min(best, _in_height(_pos(-c / (2 * b)), oz, dz, z0, h))
+        best = min(best, _in_height(ahead(-c / (2 * b)), oz, dz, z0, h))
     return min(best, _disk(ox, oy, oz, dx, dy, dz, cx, cy, z0, r))
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def nearest_hit(ox, oy, oz, dx, dy, dz, kinds, params, cull):
-    """(range, primitive index) of the first surface along one ray; (inf, -1) if none."""
-    best, best_p = INF, -1
-    for q in range(len(kinds)):
-        # The ray reaches the bounding sphere only if d·(centre - o) >= sqrt(|centre - o|² - R²).
-        if dx * cull[q, 0] + dy * cull[q, 1] + dz * cull[q, 2] < cull[q, 3]:
-            continue
-        t = _hit(kinds[q], params, q, ox, oy, oz, dx, dy, dz)
-        if t < best:
-            best, best_p = t, q
-    return best, best_p
 
 
 @njit(cache=True, error_model="numpy")
@@ -170,16 +162,28 @@ def cast_kernel(origin, dirs, kinds, params, bounds, ranges, hit_index):
     ox, oy, oz = origin[0], origin[1], origin[2]
     cull = cull_setup(ox, oy, oz, kinds, bounds)
     for i in range(len(dirs)):
-        ranges[i], hit_index[i] = nearest_hit(ox, oy, oz, dirs[i, 0], dirs[i, 1], dirs[i, 2], kinds, params, cull)
+        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        best, best_p = INF, -1  # the nearest hit over every primitive: written out, see the module's note
+        for q in range(len(kinds)):
+            if kinds[q] == PLANE:
+                t = ahead((params[q, 0] - oz) / dz)
+            elif dx * cull[q, 0] + dy * cull[q, 1] + dz * cull[q, 2] < cull[q, 3]:
+                continue  # the ray cannot reach its bounding sphere
+            else:
+                t = hit_range(kinds[q], params, q, ox, oy, oz, dx, dy, dz)
+            if t < best:
+                best, best_p = t, q
+        ranges[i], hit_index[i] = best, best_p
 
 
 # ------------------------------------------------------------------ a whole scan
 @njit(cache=True, error_model="numpy", inline="always")
-def outward_normal(kind, p, hx, hy, hz):
-    """Unit outward normal at hit point h on primitive p (a row of the packed table); the plane's
-    points up. Caps and box faces are told apart by the nearest face."""
+def outward_normal(kind, table, q, hx, hy, hz):
+    """Unit outward normal at hit point h on primitive q of the packed table; the plane's points
+    up. Caps and box faces are told apart by the nearest face."""
     if kind == PLANE:
         return 0.0, 0.0, 1.0
+    p = table[q]
     if kind == SPHERE:
         nx, ny, nz = hx - p[0], hy - p[1], hz - p[2]
     elif kind == BOX:
@@ -211,9 +215,9 @@ def outward_normal(kind, p, hx, hy, hz):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _normal_cos(kind, p, hx, hy, hz, dx, dy, dz):
-    """|cos| of the incidence angle at hit point h on primitive p."""
-    nx, ny, nz = outward_normal(kind, p, hx, hy, hz)
+def _normal_cos(kind, table, q, hx, hy, hz, dx, dy, dz):
+    """|cos| of the incidence angle at hit point h on primitive q."""
+    nx, ny, nz = outward_normal(kind, table, q, hx, hy, hz)
     return abs(nx * dx + ny * dy + nz * dz)
 
 
@@ -232,7 +236,16 @@ def scan_kernel(true_origin, true_rotation, believed_origin, believed_rotation, 
         dx = R[0, 0] * sx + R[0, 1] * sy + R[0, 2] * sz
         dy = R[1, 0] * sx + R[1, 1] * sy + R[1, 2] * sz
         dz = R[2, 0] * sx + R[2, 1] * sy + R[2, 2] * sz
-        t, q = nearest_hit(ox, oy, oz, dx, dy, dz, kinds, params, cull)
+        t, q = INF, -1  # the nearest hit over every primitive: written out, see the module's note
+        for p in range(len(kinds)):
+            if kinds[p] == PLANE:
+                t_p = ahead((params[p, 0] - oz) / dz)
+            elif dx * cull[p, 0] + dy * cull[p, 1] + dz * cull[p, 2] < cull[p, 3]:
+                continue  # the ray cannot reach its bounding sphere
+            else:
+                t_p = hit_range(kinds[p], params, p, ox, oy, oz, dx, dy, dz)
+            if t_p < t:
+                t, q = t_p, p
         valid = (t >= min_range) and (t <= max_range)
         if valid and has_body and _hits_body(sx, sy, sz, t, body):
             valid = False
@@ -250,7 +263,7 @@ def scan_kernel(true_origin, true_rotation, believed_origin, believed_rotation, 
         points[i, 2] = believed_origin[2] + bz * measured
         hits[i] = ids[q]
         if intensity_range > 0.0:
-            cos = _normal_cos(kinds[q], params[q], ox + t * dx, oy + t * dy, oz + t * dz, dx, dy, dz)
+            cos = _normal_cos(kinds[q], params, q, ox + t * dx, oy + t * dy, oz + t * dz, dx, dy, dz)
             falloff = min(1.0, (intensity_range / t) ** 2)
             intensity[i] = reflectivity[q] * cos * falloff
         else:
