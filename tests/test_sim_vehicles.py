@@ -158,3 +158,21 @@ def test_a_uav_whose_planner_falls_silent_holds_its_position_until_the_next_refe
     for _ in range(int(4.0 / DT)):
         sim.step(DT)
     assert np.linalg.norm(sim.vehicles()[0].position - (held + (0.0, 5.0, 0.0))) < 0.5  # obeys the next one
+
+
+def test_a_reference_whose_sample_period_would_overflow_the_differences_is_refused():
+    """Found by the message fuzzer: dt = 1.6e277 s is a finite float whose square overflows (an
+    OverflowError in the simulator's handler, not a refusal); one whose square underflows to 0
+    would give infinite accelerations."""
+    import math
+
+    import pytest
+
+    from services.simulator.vehicles import make_reference
+
+    line = np.array([[0.0, 0.0, 5.0], [1.0, 0.0, 5.0], [2.0, 0.0, 5.0]])
+    assert make_reference("uav1", 0, 0.1, line, np.zeros(3)).dt == 0.1
+    for dt in (1.6e277, 1e-200, 0.0, -0.1, math.nan, math.inf):
+        with pytest.raises(ValueError, match="dt must lie in"):
+            make_reference("uav1", 0, dt, line, np.zeros(3))
+    assert make_reference("uav1", 0, math.nan, line[:1], np.zeros(1)).positions.shape == (1, 3)  # one sample: no dt

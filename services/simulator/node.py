@@ -179,7 +179,7 @@ class SimulatorNode(Node):
                                    p.max_heading_rate, p.max_vertical_speed)
         except ValueError as exc:  # the vehicle keeps its last good reference, as a flight controller would
             self._refused_references += 1
-            self._bad_input.update({"trajectory references refused (empty, dt <= 0 or not finite)":
+            self._bad_input.update({"trajectory references refused (empty, dt out of range or not finite)":
                                     self._refused_references})
             if self._refused_references == 1:
                 self.log.warning("the first refused trajectory reference: %s", exc)

@@ -310,14 +310,18 @@ def _limits(profile) -> list[float]:
     return [profile.max_speed, profile.max_acceleration, profile.max_heading_rate, profile.max_vertical_speed]
 
 
+MIN_REFERENCE_DT, MAX_REFERENCE_DT = 1e-6, 1e6  # s between a reference's samples: far beyond any planner's
+
+
 def make_reference(uav: str, start_ns: int, dt: float, positions: np.ndarray, headings: np.ndarray) -> _Reference:
     positions = np.array(positions, dtype=float).reshape(-1, 3)
     headings = np.array(headings, dtype=float).reshape(-1)
     if len(positions) == 0 or len(headings) != len(positions):
         raise ValueError(f"{uav}: reference needs N >= 1 positions and N headings, "
                          f"got {len(positions)} and {len(headings)}")
-    if len(positions) > 1 and not dt > 0:
-        raise ValueError(f"{uav}: reference dt must be > 0, got {dt}")
+    if len(positions) > 1 and not MIN_REFERENCE_DT <= dt <= MAX_REFERENCE_DT:  # NaN too
+        # beyond these the finite differences below overflow or divide by an underflowed dt²
+        raise ValueError(f"{uav}: reference dt must lie in [{MIN_REFERENCE_DT:g}, {MAX_REFERENCE_DT:g}] s, got {dt}")
     if not np.all(np.isfinite(positions)) or not np.all(np.isfinite(headings)):
         raise ValueError(f"{uav}: reference contains non-finite values")
     velocities, accelerations = np.zeros_like(positions), np.zeros_like(positions)
