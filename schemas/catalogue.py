@@ -42,7 +42,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("falconry/<uav>/map", m.VoxelMap, "mapper", "classifier (or the oracle detector: the grid), tracker (occupied voxels), planner (what to keep clear of)", "delta per scan (state changes), snapshot every 5 s"),
     Entry("falconry/<uav>/tracks", m.Tracks, "tracker", "job_manager, partners' trackers (fleet picture), launcher (summary), `falconry evaluate tracking` (from recordings)", "1/tick with tracks, else 1 Hz"),
     Entry("falconry/<uav>/command", m.MissionCommand, "job_manager", "planner", "on change, repeated every 2 s"),
-    Entry("falconry/<uav>/trajectory", m.TrajectoryReference, "planner", "simulator (onboard: flight controller), job_manager (its own plan, shared in its status)", "on command, re-sent every 2 s"),
+    Entry("falconry/<uav>/trajectory", m.TrajectoryReference, "planner", "simulator (onboard: flight controller), job_manager (its own plan, shared in its status), launcher (data ages)", "on command, re-sent every 2 s"),
     Entry("falconry/<uav>/plan", m.PlanReport, "planner", "job_manager (a balloon every approach to which is blocked becomes a forbidden zone), launcher (summary)", "per plan and per guard action"),
     Entry("falconry/<uav>/status", m.UavStatus, "job_manager", "job_manager (partners: revenge mode, target claims, separation predicted from their planned references), planner (its own: the job manager watchdog), launcher", "5 Hz"),
     Entry("falconry/<scope>/ack/<service>", m.StepAck, "every service (lockstep only)", "simulator, same-UAV downstream services", "1/tick"),

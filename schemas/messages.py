@@ -27,6 +27,10 @@ class Header(msgspec.Struct, kw_only=True):
     seq: int = 0  # per publisher and key expression, starts at 1
     stamp: int = 0  # mission time of the data, ns
     frame: str = "world"
+    # mission time, ns, of the newest sensor data (a scan or a camera frame) this message derives
+    # from, carried along the pipeline (scan -> detections -> tracks -> command -> reference) so its
+    # age can be measured at every stage; 0: none (not derived from sensor data, or not known)
+    source: int = 0
 
 
 class Pose(msgspec.Struct):

@@ -179,3 +179,37 @@ def in_sight(hits: np.ndarray, target_count: int) -> np.ndarray:
     h = np.asarray(hits).reshape(-1)
     counts = np.bincount(h[h > 0], minlength=target_count + 1)[1:target_count + 1]
     return counts >= MIN_HITS
+
+
+# Stages of the pipeline whose data age a run measures (issue 39): what a message of each carries
+# in header.source is the stamp of the newest scan or frame it derives from.
+LATENCY_STAGES = ("scan → detections", "frame → camera detections", "sensor → tracks", "sighting → command",
+                  "sighting → reference")
+
+
+@dataclass
+class PipelineAges:
+    """The age of sensor data as it leaves each stage: arrival time (mission time, s) minus the
+    stamp of the newest scan or frame the message derives from (header.source). Counted only when
+    a stream's source moves on (per UAV and stage): a tracker's alive messages and a job manager's
+    re-sends carry old data on purpose, which says nothing of how fast new data travels."""
+
+    ages: dict[str, list[float]] = field(default_factory=dict)  # stage -> ages, s
+    _last: dict[tuple[str, str], int] = field(default_factory=dict)
+
+    def add(self, uav: str, stage: str, source_ns: int, arrival_s: float) -> None:
+        if source_ns <= 0 or source_ns <= self._last.get((uav, stage), 0):
+            return
+        self._last[(uav, stage)] = source_ns
+        self.ages.setdefault(stage, []).append(arrival_s - source_ns / 1e9)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """Per stage with data: count and p50 / p95 / max age in ms."""
+        table = {}
+        for stage in LATENCY_STAGES:
+            values = np.asarray(self.ages.get(stage, []), dtype=float) * 1e3
+            if len(values):
+                table[stage] = {"count": int(len(values)), "p50_ms": round(float(np.percentile(values, 50)), 1),
+                                "p95_ms": round(float(np.percentile(values, 95)), 1),
+                                "max_ms": round(float(values.max()), 1)}
+        return table

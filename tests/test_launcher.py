@@ -201,6 +201,12 @@ def test_two_uav_mission_flies_and_reports(tmp_path):
     assert set(summary["cpu"]) == expected
     assert all(seconds > 0 for seconds in summary["cpu"].values()), summary["cpu"]
     assert summary["killed_at_shutdown"] == []  # every process stopped within the launcher's grace
+    # the scan's and the frame's stamps travel the whole pipeline to the planner's references
+    ages = summary["data_age"]
+    assert not ages["real_time"] and set(ages["stages"]) == {
+        "scan → detections", "frame → camera detections", "sensor → tracks", "sighting → command",
+        "sighting → reference"}, ages
+    assert all(row["count"] > 0 and 0 <= row["p50_ms"] < 1000 for row in ages["stages"].values()), ages
     # a normal end: the simulator stops first, after its last tick said so, and nobody takes it for a fault
     log = (tmp_path / "mission.services.log").read_text()
     assert "simulator stopped after the mission's last tick" in log

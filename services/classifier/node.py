@@ -60,7 +60,7 @@ class ClassifierNode(Node):
     def on_points(self, msg: PointCloud, key: str) -> None:
         if msg.sanity:  # the driver found the scan broken: nothing in it is a detection, nor a map update
             self.detections_pub.put(Detections(
-                header=Header(stamp=msg.header.stamp), detector="classifier",
+                header=Header(stamp=msg.header.stamp, source=msg.header.stamp), detector="classifier",
                 positions=from_numpy(np.zeros((0, 3))), covariances=from_numpy(np.zeros((0, 3, 3))),
                 point_counts=from_numpy(np.zeros(0, dtype=np.int32)), extents=from_numpy(np.zeros(0, dtype=np.float32)),
                 sensor_position=tuple(msg.sensor_pose.position), sensor_health=msg.sanity))
@@ -73,7 +73,7 @@ class ClassifierNode(Node):
         stamp = msg.header.stamp
         sensor = tuple(msg.sensor_pose.position)
         self.detections_pub.put(Detections(
-            header=Header(stamp=stamp),
+            header=Header(stamp=stamp, source=stamp),
             detector="classifier",
             positions=from_numpy(scan.positions),
             covariances=from_numpy(scan.covariances),

@@ -36,7 +36,7 @@ always passed in (int ns of mission time).
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -97,6 +97,9 @@ class MissionDecision:
     target_path: tuple[tuple[float, float, float], ...] = ()  # a mover's predicted positions every target_path_dt
     target_path_dt: float = 0.0
     target_seen: int = 0  # ns: when the target was last measured (0: not said)
+    # ns: when the sighting the target was taken from was made (0: no target); the command's
+    # header.source. Not part of the decision: a fresher sighting of the same aim is no new command.
+    sighted: int = field(default=0, compare=False)
 
 
 @dataclass(frozen=True)
@@ -931,8 +934,9 @@ class JobManager:
         if (self._sent_target is None or self._decision is None or self._decision.action != action
                 or np.linalg.norm(self._sent_target - target) > p.replan_distance):
             self._sent_target = target.copy()
+            self._sent_seen = min(e.last_observed(), now)
         return MissionDecision(action, height=float(self._sent_target[2]), spacing=p.scan_spacing, profile=profile,
-                               target=_tuple(np.round(self._sent_target, 3)))
+                               target=_tuple(np.round(self._sent_target, 3)), sighted=self._sent_seen)
 
     def _intercept(self, now: int) -> MissionDecision:
         """Intercept the locked mover along its tracker's prediction (the confirmed track it was
@@ -959,7 +963,7 @@ class JobManager:
         return MissionDecision("intercept", height=float(s.position[2]), spacing=p.scan_spacing, profile="attack",
                                target=_tuple(s.position), target_velocity=_tuple(s.velocity),
                                target_path=tuple(_tuple(q) for q in s.path), target_path_dt=s.dt,
-                               target_seen=self._sent_seen)
+                               target_seen=self._sent_seen, sighted=self._sent_seen)
 
     def _hold_for_sighting(self, now: int) -> MissionDecision:
         """An interception not taken up on an old sighting: a manoeuvring drone is anywhere within

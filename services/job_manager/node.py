@@ -217,7 +217,7 @@ class JobManagerNode(Node):
     def send_command(self, now_ns: int, decision: MissionDecision) -> None:
         self.command_id += 1
         self.command = MissionCommand(
-            header=Header(stamp=now_ns),
+            header=Header(stamp=now_ns, source=decision.sighted),
             command_id=self.command_id,
             action=decision.action,
             target=decision.target,
@@ -240,7 +240,7 @@ class JobManagerNode(Node):
         # an intercept's target and predicted path hold at the stamp it was decided at: a planner that
         # (re)starts on the repeat re-bases them from there, so that stamp stays
         stamp = self.command.header.stamp if self.command.action == "intercept" else now_ns
-        self.command.header = Header(stamp=stamp)
+        self.command.header = Header(stamp=stamp, source=self.command.header.source)
         self.command_sent_at = now_ns
         self.command_pub.put(self.command)
 

@@ -4,8 +4,10 @@
 its raw detections (services/evaluation_tracking.py, which defines every figure).
 `falconry evaluate localization RUN.mcap`: each UAV's pose estimate against its true pose, beside
 KISS-ICP over its scans (services/evaluation_localization.py, which defines every figure;
-services/recorder/localization_input.py reads the recording). An evaluation is a subcommand of the
-group: `add_parser` lists them.
+services/recorder/localization_input.py reads the recording).
+`falconry evaluate ages RUN.mcap`: how old the sensor data was as it left each stage, as a run's
+summary says it (services/evaluation.py PipelineAges), from the recording's receive times. An
+evaluation is a subcommand of the group: `add_parser` lists them.
 """
 from __future__ import annotations
 
@@ -19,14 +21,16 @@ from pathlib import Path
 import msgspec
 
 from schemas import keys
-from schemas.messages import TargetTruth
+from schemas.messages import SimClock, TargetTruth
 from services.evaluation_localization import MAX_DIFF_S, LocalizationScore
 from services.evaluation_tracking import (CUTOFF, NS, ORDER, TRACKED_KINDS, TRACKER_SILENCE_NS, Alike, DetectionScore,
                                           MatchErrors, TrackingScore, alike, fleet, fleet_alike, fleet_detections,
                                           score_detections, score_tracks)
 from services.launcher.common import CliError
+from services.launcher.monitor import RunMonitor
+from services.launcher.sim_cmd import data_age_lines
 from services.recorder.localization_input import PROGRESS_EVERY, LocalizationEvaluation, evaluate_localization
-from services.recorder.mcap_io import check_recording
+from services.recorder.mcap_io import check_recording, read_recording
 from services.recorder.tracking_input import TRACKS, TrackingInput, read_tracking_input
 
 TARGET_KINDS = next(typing.get_args(f.type) for f in msgspec.structs.fields(TargetTruth) if f.name == "kind")
@@ -81,13 +85,14 @@ track near a target that was never confirmed."""
 
 def add_parser(commands) -> None:
     p = commands.add_parser("evaluate", help="score a recorded simulated run against its ground truth: tracking, "
-                                             "localization",
+                                             "localization; the age of its data at each stage",
                             description="Evaluations of a recording against the ground truth it holds. "
                                         "`falconry evaluate tracking --help`, `falconry evaluate localization "
-                                        "--help`.")
+                                        "--help`, `falconry evaluate ages --help`.")
     evaluations = p.add_subparsers(dest="evaluation", metavar="EVALUATION", required=True)
     add_tracking_parser(evaluations)
     add_localization_parser(evaluations)
+    add_ages_parser(evaluations)
 
 
 def add_tracking_parser(evaluations) -> None:
@@ -430,3 +435,43 @@ def localization_row(score: LocalizationScore) -> list[str]:
 
 def _localization_row(cells: list) -> str:
     return " ".join(fmt.format(str(cell)) for cell, (_, fmt) in zip(cells, LOCALIZATION_COLUMNS)).rstrip()
+
+
+AGE_KEYS = ("detections", "camera_detections", "tracks", "command", "trajectory")
+
+
+def add_ages_parser(evaluations) -> None:
+    a = evaluations.add_parser(
+        "ages", help="how old the sensor data was as it left each stage (p50 / p95 / max), from a recording",
+        description="The age of the sensor data at each stage of a recorded run: scan -> detections, frame -> "
+                    "camera detections, sensor -> tracks, sighting -> command, sighting -> reference (docs/"
+                    "architecture.md, RunMonitor). Arrivals are the recorder's receive times, put on the mission "
+                    "clock by the recorded clock ticks; a lockstep recording gives ages in whole ticks.")
+    a.add_argument("recording", metavar="RECORDING.mcap", help="an MCAP recording of a run (`falconry sim ... "
+                                                               "--record RUN.mcap`, or `falconry record`)")
+    a.add_argument("--json", action="store_true", help="print the figures as JSON instead of lines")
+    a.set_defaults(handler=run_ages)
+
+
+def run_ages(args: argparse.Namespace) -> int:
+    check_recording(args.recording)
+
+    def wanted(key: str) -> bool:
+        return key == keys.CLOCK or key.rsplit("/", 1)[-1] in AGE_KEYS
+
+    clock = msgspec.msgpack.Decoder(SimClock)
+    ticks = [(m.log_time, clock.decode(m.payload)) for m in read_recording(args.recording, lambda k: k == keys.CLOCK)]
+    if len(ticks) < 2:
+        raise CliError(f"{args.recording} holds {len(ticks)} clock ticks: no mission clock to date arrivals by")
+    (first_wall, first), (last_wall, last) = ticks[0], ticks[-1]
+    monitor = RunMonitor()
+    if not last.lockstep and last_wall > first_wall:  # the run's own speed, mission seconds per wall second
+        monitor.speed = (last.header.stamp - first.header.stamp) / (last_wall - first_wall)
+    for message in read_recording(args.recording, wanted):
+        monitor.handle(message.key, message.payload, message.log_time)
+    ages = monitor.summary()["data_age"]
+    if args.json:
+        print(json.dumps(ages, indent=2))
+    else:
+        print("\n".join(data_age_lines(ages) or ["no message in the recording carries the stamp of its sensor data"]))
+    return 0

@@ -35,7 +35,7 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import (DEFAULT_UAV_RADIUS, Detections, GroundTruth, MissionCommand, Obstacle, PointTruth,
-                              SimClock, SimEvent, Tracks, UavStatus, WorldModel)
+                              SimClock, SimEvent, Tracks, TrajectoryReference, UavStatus, WorldModel)
 from services import evaluation
 from services.geometry import distance_to_edges, pairwise_gaps, point_in_polygon
 from services.runtime.clock import StampOrigin, seconds
@@ -154,8 +154,18 @@ class RunMonitor:
         self._sight_pending: dict[str, dict[int, list]] = {}  # uav -> scan stamp -> [detections, in sight]
         self._detections = msgspec.msgpack.Decoder(Detections)
         self._command = msgspec.msgpack.Decoder(MissionCommand)
+        self._reference = msgspec.msgpack.Decoder(TrajectoryReference)
+        # the age of sensor data at each stage: arrival is the latest tick's mission time, carried on
+        # by the wall clock at `speed` mission seconds a second in a real-time run (0: lockstep)
+        self.ages = evaluation.PipelineAges()
+        self.speed = 0.0
+        self._tick_anchor: tuple[int, int] | None = None  # (monotonic ns the tick arrived, its stamp)
+        self._received_ns: int | None = None  # when the message being handled arrived
 
-    def handle(self, key: str, payload: bytes) -> None:
+    def handle(self, key: str, payload: bytes, received_ns: int | None = None) -> None:
+        """One message; `received_ns` (time.monotonic_ns when it arrived, taken on Zenoh's thread)
+        dates its arrival for the data ages of a real-time run."""
+        self._received_ns = received_ns
         # the clock and acknowledgements are plumbing whose repetitions depend on timing: a tick
         # re-sent after 0.5 s without every acknowledgement is acknowledged again
         if self.digests is not None and key != keys.CLOCK and not keys.is_ack(key):
@@ -184,6 +194,8 @@ class RunMonitor:
                 self._on_camera_detections(uav, self._detections.decode(payload))
             elif topic == "command":
                 self._on_command(uav, self._command.decode(payload))
+            elif topic == "trajectory":
+                self._age(uav, "sighting → reference", self._reference.decode(payload).header.source)
         except (msgspec.DecodeError, msgspec.ValidationError, ValueError):
             pass  # not ours to police: the services count their own decode errors
 
@@ -192,7 +204,20 @@ class RunMonitor:
         """The standing targets' true positions at a stamp (the latest known if that tick's truth is gone)."""
         return self._truth_history.get(stamp, self._target_positions)
 
+    def _arrival_ns(self) -> int:
+        """Mission time, ns, at which the message being handled arrived (see `speed` in __init__)."""
+        if self._tick_anchor is None:
+            return int(round(self.mission_time * 1e9))
+        received, stamp = self._tick_anchor
+        if self.speed <= 0 or self._received_ns is None:
+            return stamp
+        return stamp + int((self._received_ns - received) * self.speed)
+
+    def _age(self, uav: str, stage: str, source_ns: int) -> None:
+        self.ages.add(uav, stage, source_ns, self._arrival_ns() / 1e9)
+
     def _on_detections(self, uav: str, det: Detections) -> None:
+        self._age(uav, "scan → detections", det.header.source)
         positions = to_numpy(det.positions).reshape(-1, 3)
         u, t = self._uav(uav), self._seconds(det.header.stamp)
         u.detections += len(positions)
@@ -203,6 +228,7 @@ class RunMonitor:
         self._pair_sight(uav, det.header.stamp, detections=positions)
 
     def _on_camera_detections(self, uav: str, det: Detections) -> None:
+        self._age(uav, "frame → camera detections", det.header.source)
         positions = to_numpy(det.positions).reshape(-1, 3)
         t = self._seconds(det.header.stamp)
         self._note_first_detections(uav, det)
@@ -216,6 +242,7 @@ class RunMonitor:
         targets and those down less than UNSEEN_BEFORE_GONE before, where they went down: a UAV
         learns that its target is down only when it has not seen it for that long, and a chase
         taken up again meanwhile (after giving way) aims where the drone was captured."""
+        self._age(uav, "sighting → command", command.header.source)
         u = self._uav(uav)
         previous, action = u.last_action, command.action
         u.last_action = action
@@ -254,6 +281,7 @@ class RunMonitor:
             pending.pop(min(pending))
 
     def _on_tracks(self, uav: str, tracks: Tracks) -> None:
+        self._age(uav, "sensor → tracks", tracks.header.source)
         u = self._uav(uav)
         confirmed = [track for track in tracks.tracks if track.confirmed]
         u.confirmed_tracks.update(track.id for track in confirmed)
@@ -343,6 +371,8 @@ class RunMonitor:
     def _on_clock(self, tick: SimClock) -> None:
         self.step = max(self.step, tick.step)
         self.mission_time = seconds(tick.header.stamp)
+        if self._received_ns is not None:
+            self._tick_anchor = (self._received_ns, tick.header.stamp)
         self.rtf = tick.real_time_factor
         self.finished = self.finished or tick.finished
 
@@ -503,6 +533,7 @@ class RunMonitor:
             },
             "events": [f"{seconds(self._origin.mission_ns(e.header.stamp)):.2f} {e.kind} {e.subject} {e.detail}".rstrip()
                        for e in self.events],
+            "data_age": {"real_time": self.speed > 0, "stages": self.ages.summary()},
         }
 
 

@@ -46,7 +46,7 @@ SIMULATOR_GONE_S = 1.0  # s to wait, at the end, for the stopped simulator's tok
 RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, keys.WORLD) + tuple(
     keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth", "camera_detections",
-                                       "command"))
+                                       "command", "trajectory"))
 
 
 def add_parser(commands) -> None:
@@ -163,6 +163,7 @@ class SimRun:
         self.plan = plan_run(args, self.uavs, self.seed, self.duration, port, self.network, self.positioning)
         self.monitor = RunMonitor(self.outputs.truth, digests=args.digest_json is not None,
                                   safety_distance=self.safety_distance)
+        self.monitor.speed = 0.0 if args.lockstep else args.rtf  # mission seconds per wall second
         self.inbox: queue.SimpleQueue = queue.SimpleQueue()
         self.encoder = msgspec.msgpack.Encoder()
         self.fault_decoder = msgspec.msgpack.Decoder(FaultCommand)
@@ -185,11 +186,12 @@ class SimRun:
             self.supervisor.start(ROUTER, plan.router)
         self.session = open_session(plan.hub_settings)
         self.subscribers = [
-            self.session.declare_subscriber(k, lambda s: self.inbox.put((str(s.key_expr), s.payload.to_bytes())))
+            self.session.declare_subscriber(
+                k, lambda s: self.inbox.put((str(s.key_expr), s.payload.to_bytes(), time.monotonic_ns())))
             # digests need everything; one subscription keeps each payload from arriving twice
             for k in ((f"{keys.ROOT}/**",) if args.digest_json else WATCHED + (keys.FAULTS,))]
         self.events_pub = self.session.declare_publisher(keys.EVENTS)
-        self.resume = self.session.declare_queryable(keys.RESUME, lambda query: self.inbox.put(("query", query)))
+        self.resume = self.session.declare_queryable(keys.RESUME, lambda query: self.inbox.put(("query", query, 0)))
         self.recorder = Recorder(self.session, args.record) if args.record else None
         mode = "lockstep" if args.lockstep else f"real time x{args.rtf:g}"
         self.supervisor.say(f"{self.scenario.name}: {len(self.uavs)} UAVs, seed {self.seed}, {self.duration:g} s of "
@@ -250,7 +252,7 @@ class SimRun:
                     break
         return outcome
 
-    def _dispatch(self, key: str, payload) -> None:
+    def _dispatch(self, key: str, payload, received_ns: int) -> None:
         if key == "query":
             answer_resume(payload, self.monitor.last_truth)
         elif key == keys.FAULTS:
@@ -259,7 +261,7 @@ class SimRun:
             except (msgspec.DecodeError, msgspec.ValidationError):
                 pass
         else:
-            self.monitor.handle(key, payload)
+            self.monitor.handle(key, payload, received_ns)
 
     # --------------------------------------------------------------- teardown
     def teardown(self, outcome: str) -> None:
@@ -600,6 +602,7 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
     lines.append(f"faults injected: {len(injected)}" + "".join(f"\n  {f}" for f in s["faults"]))
     if s["cpu"]:
         lines.append("CPU per service, s (all UAVs): " + cpu_line(s["cpu"]))
+    lines += data_age_lines(s.get("data_age"))
     if s.get("health"):
         h = s["health"]
         lines.append(f"service counters ({h['services_answering']} answered): {h['decode_errors']} undecodable, "
@@ -613,3 +616,14 @@ def print_summary(s: dict, uav_count: int, duration: float) -> None:
     if s["killed_at_shutdown"]:
         lines.append("needed SIGKILL at shutdown: " + ", ".join(s["killed_at_shutdown"]))
     print("\n".join(lines), flush=True)
+
+
+def data_age_lines(ages: dict | None) -> list[str]:
+    """How old the sensor data was as it left each stage (p50 / p95 / max): in a lockstep run the
+    ages count whole ticks, in mission time, and say little of the machine."""
+    if not ages or not ages.get("stages"):
+        return []
+    clock = "real time" if ages.get("real_time") else "lockstep: in ticks of mission time"
+    return [f"age of the sensor data at each stage, p50 / p95 / max ({clock}):"] + [
+        f"  {stage}: {row['p50_ms']:.0f} / {row['p95_ms']:.0f} / {row['max_ms']:.0f} ms ({row['count']})"
+        for stage, row in ages["stages"].items()]

@@ -89,7 +89,7 @@ class ObjectDetectNode(Node):
                 self.log.warning("the first refused frame: %s", " ".join(str(exc).split()))
             return
         self.detections_pub.put(Detections(
-            header=Header(stamp=msg.header.stamp),
+            header=Header(stamp=msg.header.stamp, source=msg.header.stamp),
             detector="camera",
             positions=from_numpy(found.positions),
             covariances=from_numpy(found.covariances),

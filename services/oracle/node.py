@@ -61,7 +61,7 @@ class OracleNode(Node):
             self.log.warning("scan at %d ns skipped: %s", stamp, err)
             return
         self.detections_pub.put(Detections(
-            header=Header(stamp=stamp),
+            header=Header(stamp=stamp, source=stamp),
             detector="oracle",
             positions=from_numpy(found.positions),
             covariances=from_numpy(found.covariances),

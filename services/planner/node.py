@@ -297,14 +297,17 @@ class PlannerNode(Node):
     def set_trajectory(self, now_ns: int, command_id: int, positions: np.ndarray, headings: np.ndarray,
                        profile) -> None:
         dt = self.params.dt
-        self.trajectory = TrajectoryReference(header=Header(stamp=now_ns), command_id=command_id, start=now_ns, dt=dt,
+        planned = self.command if self.command is not None and self.command.command_id == command_id else None
+        source = planned.header.source if planned is not None else 0  # the sighting the command was decided on
+        self.trajectory = TrajectoryReference(header=Header(stamp=now_ns, source=source), command_id=command_id,
+                                              start=now_ns, dt=dt,
                                               positions=from_numpy(positions), headings=from_numpy(headings),
                                               profile=profile)
         self.trajectory_end = now_ns + int(round((len(positions) - 1) * dt * NS))
         self.publish(now_ns)
 
     def publish(self, now_ns: int) -> None:
-        self.trajectory.header = Header(stamp=now_ns)
+        self.trajectory.header = Header(stamp=now_ns, source=self.trajectory.header.source)
         self.published_at = now_ns
         self.trajectory_pub.put(self.trajectory)
 

@@ -149,8 +149,9 @@ class TrackerNode(Node):
             return
         self._last_published_ns = now_ns
         health = "" if self.core.sensor.trusted(now_ns) else "LiDAR failed its sanity check or is settling"
-        self.tracks_pub.put(Tracks(header=Header(stamp=now_ns), tracks=[self._track(f, estimates.get(f.id)) for f in fleet],
-                                   sensor_health=health))
+        newest = max((f.last_correction for f in fleet), default=0)  # the freshest sensor data in them
+        self.tracks_pub.put(Tracks(header=Header(stamp=now_ns, source=newest),
+                                   tracks=[self._track(f, estimates.get(f.id)) for f in fleet], sensor_health=health))
 
     def _own_tracks(self, now_ns: int) -> tuple[dict[int, TrackEstimate], list[FleetTrack]]:
         estimates = {e.id: e for e in self.core.estimates(now_ns)}
