@@ -6,7 +6,8 @@ UAV takes (search height 5 m, headings all round, positions over the arena), dri
 white balance included, and runs Object Detect on each with the built-in colour file of the
 balloons' colour. Prints:
 - the median and 95th percentile time per rendered frame and per Object Detect frame, each on one
-  core (goal: both at most 15 ms median at the default 640 × 360);
+  core, and of both together per frame (goal, issue 39: at most 5 ms median together at the
+  default 640 × 360);
 - per 5 m of distance: balloons in view (at least `--min-pixels` of the balloon's pixels in the
   frame, from the renderer's per-pixel truth), the share found (recall: a detection within 1 m
   of the balloon's centre, or within 10 % of its distance when farther than 10 m: beyond the
@@ -46,7 +47,7 @@ from services.sensor_driver.core import pack, primitives_from_obstacles  # noqa:
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 
-GOAL_MS = 15.0
+GOAL_MS = 5.0  # render + detect, median per frame
 BIN_M = 5.0
 MATCH_M = evaluation.MATCH_DISTANCE
 MATCH_SHARE = evaluation.CAMERA_RANGE_SHARE  # of the distance, when that is larger (the run summary's match)
@@ -112,10 +113,11 @@ def main() -> int:
 
 def report(render_ms, detect_ms, rows, args) -> None:
     print(f"{len(render_ms)} frames of mbzirc, 640 × 360, colours {args.colors!r}, one core")
-    for name, values in (("render", render_ms), ("detect", detect_ms)):
+    both = np.asarray(render_ms) + np.asarray(detect_ms)
+    for name, values in (("render", render_ms), ("detect", detect_ms), ("both", both)):
         median = float(np.median(values))
-        print(f"  {name:<7} median {median:5.1f} ms   p95 {np.percentile(values, 95):5.1f} ms   "
-              f"(goal <= {GOAL_MS:g} ms median: {'met' if median <= GOAL_MS else 'NOT met'})")
+        goal = f"   (goal <= {GOAL_MS:g} ms median: {'met' if median <= GOAL_MS else 'NOT met'})" if name == "both" else ""
+        print(f"  {name:<7} median {median:5.1f} ms   p95 {np.percentile(values, 95):5.1f} ms{goal}")
     data = np.array(rows, dtype=float).reshape(-1, 4)
     print(f"\nballoons in view (>= {args.min_pixels} pixels) by distance; found = a detection within "
           f"{MATCH_M:g} m or {100 * MATCH_SHARE:g} % of the distance")
