@@ -122,6 +122,7 @@ def test_a_tiled_frame_sees_what_the_caster_sees_through_every_pixel():
         centre = (*rng.uniform(-25, 25, 2), 0.0 if kind != "sphere" else rng.uniform(1, 8))
         obstacles.append(Obstacle(kind=kind, center=tuple(centre), size=tuple(rng.uniform(0.3, 4.0, 3)),
                                   radius=float(rng.uniform(0.2, 2.0)), height=float(rng.uniform(1, 10))))
+    obstacles.append(Obstacle(kind="sphere", center=(3.0, 4.0, 6.0), radius=-1.5))  # the caster squares radii
     world = pack(primitives_from_obstacles(obstacles))
     cam = Camera(CameraParams(width=200, height=120, **QUIET), rng)
     for k in range(30):

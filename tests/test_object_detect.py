@@ -221,6 +221,13 @@ def test_picking_a_colour_from_a_frame_finds_the_balloon_the_wrong_colour_does_n
 
 
 @pytest.mark.parametrize("space", ["hsv", "lab"])
+def test_an_image_converts_as_its_pixels_do_one_by_one(space):
+    """to_space converts an image as it is (OpenCV's row-wise path), pixels in a column otherwise."""
+    image = np.random.default_rng(4).integers(0, 256, (37, 53, 3), dtype=np.uint8)
+    assert np.array_equal(to_space(image, space), to_space(image.reshape(-1, 3), space).reshape(image.shape))
+
+
+@pytest.mark.parametrize("space", ["hsv", "lab"])
 def test_an_images_mask_by_opencv_is_the_same_bits_as_the_per_channel_rule(space):
     """ColorFile.segment masks whole images with cv2.inRange; Thresholds.mask is the rule (eq.
     4.9-4.10) written out per channel. Fractional, wrapping and out-of-range bounds included."""
@@ -254,3 +261,16 @@ def test_blobs_are_found_where_they_are_whatever_box_they_share_with_the_rest():
         assert blob.v == pytest.approx(centroid[1], abs=1e-9)
     assert [b.clipped for b in blobs] == [True, False, False, True]
     assert find_blobs(np.zeros((90, 160), dtype=bool), ObjectDetectParams()) == []
+    rng = np.random.default_rng(3)  # boxes starting on odd rows and columns, blobs sharing rows: the same order
+    for _ in range(60):
+        mask = np.zeros((90, 160), dtype=bool)
+        for _ in range(rng.integers(1, 6)):
+            cx, cy, r = rng.uniform(0, 160), rng.uniform(0, 90), rng.uniform(2, 9)
+            mask |= (xx - cx) ** 2 + (yy - cy) ** 2 <= r * r
+        opened = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+        _, _, stats, centroids = cv2.connectedComponentsWithStats(opened, connectivity=8)
+        whole = [(int(a), round(u, 9), round(v, 9)) for a, (u, v) in zip(stats[1:, cv2.CC_STAT_AREA], centroids[1:])]
+        found = [(b.pixels, round(b.u, 9), round(b.v, 9)) for b in find_blobs(mask, ObjectDetectParams(min_pixels=1,
+                                                                                                        min_fill=0,
+                                                                                                        max_aspect=1e9))]
+        assert found == whole

@@ -175,4 +175,6 @@ def test_a_reference_whose_sample_period_would_overflow_the_differences_is_refus
     for dt in (1.6e277, 1e-200, 0.0, -0.1, math.nan, math.inf):
         with pytest.raises(ValueError, match="dt must lie in"):
             make_reference("uav1", 0, dt, line, np.zeros(3))
-    assert make_reference("uav1", 0, math.nan, line[:1], np.zeros(1)).positions.shape == (1, 3)  # one sample: no dt
+    for dt in (math.nan, math.inf):  # one sample has no period: taken, and its end is its start
+        one = make_reference("uav1", 7, dt, line[:1], np.zeros(1))
+        assert one.dt == 0.0 and one.end_ns() == 7 and np.array_equal(one.at(10)[0], line[0])

@@ -86,9 +86,10 @@ def tile_candidates(origin, rotation, axes, cos_half, sin_half, kinds, bounds, c
     for q in range(len(kinds)):
         cx, cy, cz = bounds[q, 0] - origin[0], bounds[q, 1] - origin[1], bounds[q, 2] - origin[2]
         dist = math.sqrt(cx * cx + cy * cy + cz * cz)
-        everywhere = kinds[q] == PLANE or dist <= bounds[q, 3]
+        radius = abs(bounds[q, 3])  # the caster squares it: a negative radius is a sphere of |r|
+        everywhere = kinds[q] == PLANE or dist <= radius
         if not everywhere:
-            sin_rho = bounds[q, 3] / dist
+            sin_rho = radius / dist
             cos_rho = math.sqrt(1.0 - sin_rho * sin_rho)
             cx, cy, cz = cx / dist, cy / dist, cz / dist
         for k in range(len(counts)):

@@ -204,17 +204,22 @@ class RunMonitor:
         """The standing targets' true positions at a stamp (the latest known if that tick's truth is gone)."""
         return self._truth_history.get(stamp, self._target_positions)
 
-    def _arrival_ns(self) -> int:
-        """Mission time, ns, at which the message being handled arrived (see `speed` in __init__)."""
+    def _arrival_ns(self, source_ns: int) -> int | None:
+        """Mission time, ns, at which the message being handled arrived (see `speed` in __init__);
+        None before the first tick (a recording begun mid-run: nothing to date it by)."""
         if self._tick_anchor is None:
-            return int(round(self.mission_time * 1e9))
+            return None
         received, stamp = self._tick_anchor
         if self.speed <= 0 or self._received_ns is None:
-            return stamp
+            # lockstep: the tick's time; a message may overtake its tick's clock message on the way
+            # here, and it cannot have arrived before the data it derives from
+            return max(stamp, source_ns)
         return stamp + int((self._received_ns - received) * self.speed)
 
     def _age(self, uav: str, stage: str, source_ns: int) -> None:
-        self.ages.add(uav, stage, source_ns, self._arrival_ns() / 1e9)
+        arrival = self._arrival_ns(source_ns)
+        if arrival is not None:
+            self.ages.add(uav, stage, source_ns, arrival / 1e9)
 
     def _on_detections(self, uav: str, det: Detections) -> None:
         self._age(uav, "scan → detections", det.header.source)
@@ -371,8 +376,8 @@ class RunMonitor:
     def _on_clock(self, tick: SimClock) -> None:
         self.step = max(self.step, tick.step)
         self.mission_time = seconds(tick.header.stamp)
-        if self._received_ns is not None:
-            self._tick_anchor = (self._received_ns, tick.header.stamp)
+        if self._tick_anchor is None or tick.header.stamp > self._tick_anchor[1]:  # not a repeat of an older tick
+            self._tick_anchor = (self._received_ns if self._received_ns is not None else 0, tick.header.stamp)
         self.rtf = tick.real_time_factor
         self.finished = self.finished or tick.finished
 

@@ -100,12 +100,13 @@ def find_blobs(mask: np.ndarray, params: ObjectDetectParams) -> list[Blob]:
     binary = np.ascontiguousarray(mask.view(np.uint8) if mask.dtype == bool else (mask != 0).view(np.uint8))
     opened = cv2.morphologyEx(binary, cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     # Components only within the box of what is left: most frames hold no pixel of the colour at all,
-    # and labelling the whole image was most of Object Detect's time.
+    # and labelling the whole image was most of Object Detect's time. The box starts on even rows and
+    # columns: OpenCV labels 2 × 2 blocks, so the components come in the whole image's order.
     x0, y0, w, h = cv2.boundingRect(opened)
     if w == 0 or h == 0:
         return []
-    count, _, stats, centroids = cv2.connectedComponentsWithStatsWithAlgorithm(
-        opened[y0:y0 + h, x0:x0 + w], 8, cv2.CV_32S, cv2.CCL_BBDT)
+    w, h, x0, y0 = w + x0 % 2, h + y0 % 2, x0 - x0 % 2, y0 - y0 % 2
+    count, _, stats, centroids = cv2.connectedComponentsWithStats(opened[y0:y0 + h, x0:x0 + w], connectivity=8)
     blobs = []
     for k in range(1, count):
         width, height, area = stats[k, cv2.CC_STAT_WIDTH], stats[k, cv2.CC_STAT_HEIGHT], stats[k, cv2.CC_STAT_AREA]

@@ -320,8 +320,10 @@ def make_reference(uav: str, start_ns: int, dt: float, positions: np.ndarray, he
         raise ValueError(f"{uav}: reference needs N >= 1 positions and N headings, "
                          f"got {len(positions)} and {len(headings)}")
     if len(positions) > 1 and not MIN_REFERENCE_DT <= dt <= MAX_REFERENCE_DT:  # NaN too
-        # beyond these the finite differences below overflow or divide by an underflowed dt²
+        # beyond these dt² overflows (an exception) or underflows to 0 (infinite accelerations)
         raise ValueError(f"{uav}: reference dt must lie in [{MIN_REFERENCE_DT:g}, {MAX_REFERENCE_DT:g}] s, got {dt}")
+    if len(positions) == 1:
+        dt = 0.0  # one sample has no period: whatever came (NaN, inf) must not reach end_ns
     if not np.all(np.isfinite(positions)) or not np.all(np.isfinite(headings)):
         raise ValueError(f"{uav}: reference contains non-finite values")
     velocities, accelerations = np.zeros_like(positions), np.zeros_like(positions)
