@@ -1,10 +1,13 @@
 """LiDAR models: Ouster layouts, and the Livox Mid-360 non-repetitive pattern's coverage."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
-from services.lidar.models import MODEL_NAMES, lidar_model, mid360_directions
+from services.lidar.models import MODEL_NAMES, beam_spacing, lidar_model, mid360_directions
+from services.lidar.uncertainty import sampling_covariance
 
 
 def elevation_azimuth_deg(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -80,3 +83,31 @@ def test_mid360_consecutive_frames_differ():
     # Not a rotated copy either: the elevations fired at the same column differ.
     assert np.mean(np.abs(a[..., 2] - b[..., 2]) > 0.05) > 0.5
     assert np.array_equal(mid360_directions(40), a)  # and deterministic
+
+
+def test_beam_spacing_is_the_angle_between_neighbouring_rows_and_columns_of_the_models_beams():
+    for name, rows, cols in (("os0-32-512", 32, 512), ("os1-128", 128, 1024)):
+        beams = lidar_model(name).directions(0)
+        spacing = beam_spacing(name, rows, cols)
+        between_rows = math.acos(float(np.clip(beams[0, 0] @ beams[1, 0], -1, 1)))
+        between_cols = math.acos(float(np.clip(beams[rows // 2, 0] @ beams[rows // 2, 1], -1, 1)))
+        assert spacing.vertical == pytest.approx(between_rows, rel=1e-9)
+        assert spacing.horizontal == pytest.approx(between_cols, rel=1e-3)  # the middle row lies near the horizon
+    # the Mid-360's 20,000 firings a frame each stand for an equal patch of 360° x 59°: about 1°
+    mid = beam_spacing("mid360", 4, 5000)
+    assert mid.vertical == mid.horizontal == pytest.approx(math.radians(math.sqrt(360 * 59 / 20000)), rel=1e-9)
+    assert beam_spacing("velodyne-hdl32", 32, 2000) is None and beam_spacing("os0-32", 0, 512) is None
+
+
+def test_a_far_target_between_beams_is_uncertain_across_the_line_of_sight_by_a_beam_gap():
+    spacing = beam_spacing("os0-32-512", 32, 512)
+    sensor, target = np.array([0.0, 0.0, 12.0]), np.array([20.0, 15.0, 12.0])  # 25 m off, level
+    cov = sampling_covariance(target, sensor, spacing.vertical, spacing.horizontal)
+    sight = (target - sensor) / 25.0
+    across = np.array([-sight[1], sight[0], 0.0])
+    assert sight @ cov @ sight == pytest.approx(0.0, abs=1e-12)  # the range measures the surface
+    assert cov[2, 2] == pytest.approx((25.0 * spacing.vertical) ** 2 / 12)  # rows 1.27 m apart: sigma 0.37 m
+    assert across @ cov @ across == pytest.approx((25.0 * spacing.horizontal) ** 2 / 12)
+    assert np.allclose(sampling_covariance(sensor + [0, 0, 5.0], sensor, 0.1, 0.1), np.diag([0.25 / 12, 0.25 / 12, 0]))
+    assert not sampling_covariance(sensor, sensor, 0.1, 0.1).any()
+

@@ -5,6 +5,7 @@ parameters' or else the one the world model names for the UAV; the sensor driver
 see the obstacles only the ground truth carries."""
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import time
@@ -29,6 +30,7 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
+from services.lidar.uncertainty import sampling_covariance
 from services.sensor_driver.core import DEFAULT_MOUNT
 from tests.conftest import REPO
 from tests.tools.health import wait_healthy
@@ -128,8 +130,10 @@ def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes,
         assert len(positions) == 2, stamp  # the balloon and the drone, not the hidden balloon
         assert np.linalg.norm(positions[0] - [10.0, 0.0, 5.0]) < 0.5
         assert np.linalg.norm(positions[1] - [0.0, -12.0, 6.0]) < 0.6
-        assert np.allclose(to_numpy(msg.covariances)[0], 0.05 ** 2 * np.eye(3))
         mounted = (0.0, 0.0, 5.0 + DEFAULT_MOUNT[2])  # the sensor sits on top of the carrier
+        # the added noise's, and where between os1-64-1024's beams (0.71° × 0.35°) the balloon's centre lies
+        between = sampling_covariance(positions[0], mounted, math.radians(45.0 / 63), 2 * math.pi / 1024)
+        assert np.allclose(to_numpy(msg.covariances)[0], 0.05 ** 2 * np.eye(3) + between, atol=2e-4)
         assert (to_numpy(msg.point_counts) >= 2).all() and msg.sensor_position == pytest.approx(mounted)
 
     uav2 = got["uav2"]

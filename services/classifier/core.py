@@ -18,7 +18,8 @@
    along the line of sight by `surface_bias` × the cluster's half-width across that line (see
    `surface_offset`, `half_width_across`); a covariance made of the
    returns' spread (which stands for the one-sided sampling bias, up to the target's radius,
-   sec. V-A), the pose and range uncertainty of sec. IV-A at the centroid (J·Σ_w·Jᵀ, eq. 41–42)
+   sec. V-A), where between the beams the target's centre lies (`sampling_covariance`: sec. V-A
+   leaves out that a far target is seen only where a few beams cross it), the pose and range uncertainty of sec. IV-A at the centroid (J·Σ_w·Jᵀ, eq. 41–42)
    and a floor; the number of returns, the largest dimension, and a confidence: p_hit of the
    centroid's voxel (eq. 45–46).
 
@@ -46,7 +47,8 @@ import numpy as np
 
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.classifier.kernels import cluster_stats, downsample, group_by
-from services.lidar.uncertainty import hit_probability, point_covariance
+from services.lidar.models import BeamSpacing
+from services.lidar.uncertainty import hit_probability, point_covariance, sampling_covariance
 from services.voxels.grid import GridGeometry
 from services.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
 from services.voxels.replica import MapReplica, geometry_of
@@ -106,6 +108,7 @@ class SensorPose:
     position: np.ndarray  # (3,)
     rotation: np.ndarray  # (3, 3) sensor frame to world
     covariance: np.ndarray | None = None  # 6×6 over (x, y, z, roll, pitch, yaw); None: perfectly known
+    spacing: BeamSpacing | None = None  # between the scan's beams; None: unknown, left out of the covariance
 
 
 class ClassifierCore:
@@ -217,6 +220,9 @@ class ClassifierCore:
                                            p.range_noise / np.sqrt(len(members)))
             positions[k] = centroid
             covariances[k] = spread + measurement + p.covariance_floor * np.eye(3)
+            if pose.spacing is not None:
+                covariances[k] += sampling_covariance(centroid, pose.position, pose.spacing.vertical,
+                                                      pose.spacing.horizontal)
             point_counts[k] = len(members)
             extents[k] = float((members.max(axis=0) - members.min(axis=0)).max())
             voxel = geometry.voxel_of(centroid[None])[0]

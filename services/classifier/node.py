@@ -15,6 +15,7 @@ from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, VoxelMap
 from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose, warm_up
 from services.geometry import rotation_matrix
+from services.lidar.models import beam_spacing
 from services.runtime.counted import CountedWarnings
 from services.runtime.node import Node
 
@@ -67,7 +68,8 @@ class ClassifierNode(Node):
             return
         covariance = None if msg.pose_covariance is None else to_numpy(msg.pose_covariance).reshape(6, 6)
         pose = SensorPose(np.asarray(msg.sensor_pose.position, dtype=np.float64),
-                          rotation_matrix(msg.sensor_pose.orientation), covariance)
+                          rotation_matrix(msg.sensor_pose.orientation), covariance,
+                          beam_spacing(msg.sensor_model, msg.height, msg.width))
         scan = self.core.classify(to_numpy(msg.points), pose)
         self._report_bad_input()
         stamp = msg.header.stamp

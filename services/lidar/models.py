@@ -69,6 +69,33 @@ class LidarModel:
         return mid360_directions(frame, self.cols)
 
 
+@dataclass(frozen=True)
+class BeamSpacing:
+    """The angle between neighbouring beams of one frame, rad: across the elevation (between
+    rows) and across the azimuth (between columns)."""
+    vertical: float
+    horizontal: float
+
+
+def beam_spacing(name: str, rows: int, cols: int) -> BeamSpacing | None:
+    """How far apart the beams of a `rows` × `cols` frame of model `name` lie (None for a model
+    this module does not know). A spinning sensor's rows are its field of view over rows − 1 and
+    its columns a turn over cols; the Mid-360's frame scatters its firings over the whole field
+    of view, so each stands for an equal patch of it: the square root of the field's solid angle
+    (in rad², azimuth × elevation) over the firings, both ways."""
+    try:
+        model = lidar_model(name)
+    except ValueError:
+        return None
+    if rows < 1 or cols < 1:
+        return None
+    field = math.radians(model.elevation_max_deg - model.elevation_min_deg)
+    if model.pattern == "spinning":
+        return BeamSpacing(field / max(rows - 1, 1), 2.0 * math.pi / cols)
+    patch = math.sqrt(2.0 * math.pi * field / (rows * cols))
+    return BeamSpacing(patch, patch)
+
+
 def lidar_model(name: str, rate_hz: float = 10.0) -> LidarModel:
     """The model called `name` (see the module docstring); ValueError names the choices."""
     key = name.strip().lower()

@@ -4,8 +4,11 @@ comes from an RNG the caller seeds (`scan_rng`: from the scan stamp and the UAV,
 reproducible and a replayed scan gives the same detections).
 
 A detection is the centroid of the target's returns (float64) plus N(0, sigma²·I) noise, with
-covariance sigma²·I, the number of points and the extent (largest side of their axis-aligned
-bounding box, as the classifier reports it). Detections come in ascending target order.
+covariance sigma²·I plus, given the sensor's beam spacing, where between the beams the target's
+centre lies (services/lidar/uncertainty.sampling_covariance: the centroid of a few returns is
+not the target's centre, and the classifier says so too), the number of points and the extent
+(largest side of their axis-aligned bounding box, as the classifier reports it). Detections come
+in ascending target order.
 """
 from __future__ import annotations
 
@@ -17,6 +20,8 @@ import msgspec
 import numpy as np
 
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
+from services.lidar.models import BeamSpacing
+from services.lidar.uncertainty import sampling_covariance
 from services.voxels.grid import GridGeometry
 from services.voxels.labels import label_sets
 
@@ -42,9 +47,11 @@ def scan_rng(stamp: int, uav: str) -> np.random.Generator:
     return np.random.default_rng([int(stamp), zlib.crc32(uav.encode()), RNG_SALT])
 
 
-def detect(points: np.ndarray, hits: np.ndarray, params: OracleParams, rng: np.random.Generator) -> OracleDetections:
+def detect(points: np.ndarray, hits: np.ndarray, params: OracleParams, rng: np.random.Generator,
+           sensor_position: np.ndarray | None = None, spacing: BeamSpacing | None = None) -> OracleDetections:
     """Detections from one organised scan: `points` (..., 3) and `hits` (...) of the same shape
-    (-1 no return, 0 static world, k >= 1 target k)."""
+    (-1 no return, 0 static world, k >= 1 target k), taken from `sensor_position` by beams
+    `spacing` apart (either None: the covariance is the added noise's only)."""
     points = np.asarray(points)
     hits = np.asarray(hits)
     if points.shape[:-1] != hits.shape or points.shape[-1:] != (3,):
@@ -64,9 +71,13 @@ def detect(points: np.ndarray, hits: np.ndarray, params: OracleParams, rng: np.r
     centroids = sums[keep] / counts[keep, None]
     noise = rng.normal(0.0, params.sigma, (n, 3)) if params.sigma > 0 else np.zeros((n, 3))
     variance = params.sigma * params.sigma
+    covariances = np.tile(variance * np.eye(3), (n, 1, 1))
+    if sensor_position is not None and spacing is not None:
+        for k, centroid in enumerate(centroids):
+            covariances[k] += sampling_covariance(centroid, sensor_position, spacing.vertical, spacing.horizontal)
     return OracleDetections(
         positions=centroids + noise,
-        covariances=np.tile(variance * np.eye(3), (n, 1, 1)),
+        covariances=covariances,
         point_counts=counts[keep].astype(np.int32),
         extents=(highest[keep] - lowest[keep]).max(axis=1, initial=0.0).astype(np.float32),
         targets=ids[keep].astype(np.int32),

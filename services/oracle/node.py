@@ -13,6 +13,7 @@ import numpy as np
 
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, PointTruth, VoxelMap
+from services.lidar.models import beam_spacing
 from services.oracle.core import OracleParams, ScanPairs, detect, label, scan_rng, warm_up
 from services.runtime.node import Node
 from services.voxels.grid import GridGeometry
@@ -56,7 +57,9 @@ class OracleNode(Node):
         cloud, truth = pair
         stamp = cloud.header.stamp
         try:
-            found = detect(to_numpy(cloud.points), to_numpy(truth.hits), self.params, scan_rng(stamp, self.uav))
+            found = detect(to_numpy(cloud.points), to_numpy(truth.hits), self.params, scan_rng(stamp, self.uav),
+                           np.asarray(cloud.sensor_pose.position, dtype=np.float64),
+                           beam_spacing(cloud.sensor_model, cloud.height, cloud.width))
         except ValueError as err:
             self.log.warning("scan at %d ns skipped: %s", stamp, err)
             return
