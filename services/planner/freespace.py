@@ -40,7 +40,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
 
 from schemas.voxels import STATE_TENTATIVE, STATE_UNKNOWN
 from services.geometry import distance_to_edges, point_in_polygon
@@ -142,6 +141,8 @@ class FreeSpace:
         allowed = point_in_polygon(centres, self.arena) & (distance_to_edges(centres, self.arena) >= self.keep_inside)
         if not allowed.any():
             return
+        from scipy.ndimage import distance_transform_edt  # imported here: see services/runtime/warmup.py
+
         apart = distance_transform_edt(~allowed.reshape(nx, ny), sampling=g.voxel_size).ravel()
         self.fence = (apart >= self.clearance_kept) & (apart <= self.clearance_kept + FENCE_BAND)
 

@@ -62,6 +62,7 @@ class PlannerNode(Node):
 
     def setup(self) -> None:
         warm_up(self.params)  # compiled now, before the liveliness token: the first plan must not stall a tick
+        self.import_when_up("scipy.ndimage")  # the geofence's distance transform, once the arena is known
         self.position: np.ndarray | None = None
         self.velocity = np.zeros(3)
         self.heading = 0.0

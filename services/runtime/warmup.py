@@ -1,6 +1,6 @@
 """Slow-to-import libraries loaded right after a service is up, on its main thread.
 
-filterpy (with the scipy it pulls in) takes over a second to import. A service that imports it
+filterpy (with the scipy it pulls in) takes over a second to import, scipy.ndimage half a second. A service that imports it
 at module level is that much later to declare its liveliness token — too late for the
 launcher's 2 s restart promise on a loaded machine. Such services import it where they use it
 and name it in setup with `Node.import_when_up`: the node imports it on its main thread right
