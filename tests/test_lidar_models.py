@@ -110,4 +110,3 @@ def test_a_far_target_between_beams_is_uncertain_across_the_line_of_sight_by_a_b
     assert across @ cov @ across == pytest.approx((25.0 * spacing.horizontal) ** 2 / 12)
     assert np.allclose(sampling_covariance(sensor + [0, 0, 5.0], sensor, 0.1, 0.1), np.diag([0.25 / 12, 0.25 / 12, 0]))
     assert not sampling_covariance(sensor, sensor, 0.1, 0.1).any()
-

@@ -19,7 +19,8 @@
    `surface_offset`, `half_width_across`); a covariance made of the
    returns' spread (which stands for the one-sided sampling bias, up to the target's radius,
    sec. V-A), where between the beams the target's centre lies (`sampling_covariance`: sec. V-A
-   leaves out that a far target is seen only where a few beams cross it), the pose and range uncertainty of sec. IV-A at the centroid (J·Σ_w·Jᵀ, eq. 41–42)
+   leaves out that a far target is seen only where a few beams cross it), the pose and range
+   uncertainty of sec. IV-A at the centroid (J·Σ_w·Jᵀ, eq. 41–42)
    and a floor; the number of returns, the largest dimension, and a confidence: p_hit of the
    centroid's voxel (eq. 45–46).
 

@@ -71,8 +71,10 @@ class LidarModel:
 
 @dataclass(frozen=True)
 class BeamSpacing:
-    """The angle between neighbouring beams of one frame, rad: across the elevation (between
-    rows) and across the azimuth (between columns)."""
+    """How far apart the beams of one frame lie, rad: between rows (elevation) and between
+    columns (azimuth step). Across the line of sight, two columns at elevation e lie cos(e) times
+    the azimuth step apart; taking the step itself errs on the cautious side, by at most 1/cos(45°)
+    in an OS0's top and bottom rows."""
     vertical: float
     horizontal: float
 
@@ -81,8 +83,8 @@ def beam_spacing(name: str, rows: int, cols: int) -> BeamSpacing | None:
     """How far apart the beams of a `rows` × `cols` frame of model `name` lie (None for a model
     this module does not know). A spinning sensor's rows are its field of view over rows − 1 and
     its columns a turn over cols; the Mid-360's frame scatters its firings over the whole field
-    of view, so each stands for an equal patch of it: the square root of the field's solid angle
-    (in rad², azimuth × elevation) over the firings, both ways."""
+    of view, so each stands for an equal patch of it: the square root of the azimuth × elevation
+    rectangle (rad², 6 % more than its solid angle) over the firings, both ways."""
     try:
         model = lidar_model(name)
     except ValueError:

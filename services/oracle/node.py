@@ -57,8 +57,9 @@ class OracleNode(Node):
         cloud, truth = pair
         stamp = cloud.header.stamp
         try:
+            sensor = np.asarray(cloud.sensor_pose.position, dtype=np.float64)
             found = detect(to_numpy(cloud.points), to_numpy(truth.hits), self.params, scan_rng(stamp, self.uav),
-                           np.asarray(cloud.sensor_pose.position, dtype=np.float64),
+                           sensor if np.isfinite(sensor).all() else None,
                            beam_spacing(cloud.sensor_model, cloud.height, cloud.width))
         except ValueError as err:
             self.log.warning("scan at %d ns skipped: %s", stamp, err)
