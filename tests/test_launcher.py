@@ -21,17 +21,22 @@ from tests.tools.health import health, wait_healthy
 from tests.tools.run import join_run, processes_mentioning, read_summary
 
 
-IN_FLIGHT_NS = 8_000_000_000  # mission time by which the launch is over and the team flies
+IN_FLIGHT_NS = 3_000_000_000  # mission time by which the team has taken off (at 0.6 s) and flies
+RESTART_RTF = 0.25  # the restart test's team: see there
+SPARE_AGAIN_S = 4.0  # between two kills of the restart test: see there
 
 
 @pytest.mark.alone
 def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(processes, port, tmp_path):
     summary, log = tmp_path / "summary.json", tmp_path / "run.log"
-    # a light LiDAR: the restart time measured is the service's, not that of a saturated machine
+    # The restart time measured is the service's, not that of a saturated machine: a light LiDAR, and
+    # the team at a quarter of real time. Two whole UAVs and the simulator share these two cores, where
+    # each UAV has its own computer: on a 2-core KVM guest the team at full speed needs 2.5 times the
+    # machine (a 2-UAV lockstep run goes at 0.4x), and a restart then queues behind 16 busy processes.
     light = tmp_path / "light.toml"
     light.write_text('[sensor_driver]\nmodel = "os0-32-512"\n')
     launcher = processes.start("sim", "mbzirc", "--uavs", "2", "--duration", "120", "--port", str(port),
-                               "--config", str(light),
+                               "--config", str(light), "--rtf", str(RESTART_RTF),
                                "--quiet", "--summary-json", str(summary), "--log-file", str(log), "--progress", "0")
     session = join_run(port)
     tokens: queue.SimpleQueue = queue.SimpleQueue()
@@ -46,7 +51,7 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
         wait_healthy(session, [("uav2", "job_manager")] + victims, timeout=60)
         # A crash in flight: in the launch's first seconds every service of the team still loads
         # its libraries at once, and a restart then shares two cores with all of them.
-        deadline = time.monotonic() + 60
+        deadline = time.monotonic() + 30 + IN_FLIGHT_NS / 1e9 / RESTART_RTF
         while mission_time[0] < IN_FLIGHT_NS and time.monotonic() < deadline:
             time.sleep(0.1)
         assert mission_time[0] >= IN_FLIGHT_NS, "the mission never got under way"
@@ -76,12 +81,14 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
             assert back < 2.0, f"{scope}/{service} took {back:.2f} s to come back"
             if service == "simulator":  # a restarted simulator resumes the run where it was
                 at_kill = mission_time[0]
-                deadline = time.monotonic() + 10
+                deadline = time.monotonic() + 10 / RESTART_RTF
                 while mission_time[0] <= at_kill + 1_000_000_000 and time.monotonic() < deadline:
                     time.sleep(0.1)
                 print(f"mission time {at_kill / 1e9:.2f} s at the kill, {mission_time[0] / 1e9:.2f} s after")
                 assert mission_time[0] > at_kill + 1_000_000_000, "the run did not go on after the restart"
-            time.sleep(0.5)
+            # The restart took a spare (services/launcher/supervisor.py), which is replaced in the next
+            # seconds: a crash closer behind another starts from a fresh interpreter (1.3-1.7 s alone here).
+            time.sleep(SPARE_AGAIN_S)
         launcher.send_signal(signal.SIGINT)  # what Ctrl-C in a terminal does
         output, _ = launcher.communicate(timeout=30)
     finally:

@@ -20,10 +20,12 @@ import pytest
 from schemas import keys
 from services.launcher import supervisor as supervision
 from services.launcher.supervisor import Supervisor, restart_delay
+from services.runtime import shm
 from services.runtime.errors import RUNTIME_FAILURE, USAGE_ERROR
 from services.runtime.zenoh_config import ZenohConfigError, ZenohSettings, build, init_logging, open_session
 from tests.conftest import REPO, falconry_argv
 from tests.tools.health import health, wait_healthy
+from tests.tools.run import processes_mentioning
 
 pytestmark = pytest.mark.alone  # waits and reconnections timed on the wall clock
 
@@ -260,3 +262,40 @@ def test_supervisor_brings_back_a_service_that_failed_to_reach_zenoh(tmp_path):
         assert "restarting it in 0.5 s" in out.getvalue()  # the second restart waited
     finally:
         sup.stop_all(grace=1.0)
+
+
+def test_a_restarted_service_takes_a_spare_that_loaded_its_libraries_and_the_run_leaves_none(monkeypatch, port):
+    """Two spares loaded beside a real service; killed, it comes back in the older spare's process
+    (an interpreter that already has numba started) and a new spare replaces that one; stopping
+    the supervisor ends the service and both spares."""
+    monkeypatch.setattr(supervision, "SPARE_AFTER_S", 0.0)
+    endpoint = f"tcp/127.0.0.1:{port}"
+    segments = shm.segments()
+    out, lines = io.StringIO(), io.StringIO()
+    sup = Supervisor(out=out, echo=False, log_file=lines)
+    sup.start("uav1/job_manager", [sys.executable, "-m", supervision.SERVICE_MODULE, "run", "job_manager",
+                                   "--uav", "uav1", "--listen", endpoint])
+    try:
+        run_supervisor(sup, lambda: len(sup.spare_pids) == supervision.SPARES, timeout=5)
+        spares = sup.spare_pids
+        assert len(spares) == supervision.SPARES and all(f":{port}".encode() in open(f"/proc/{pid}/cmdline", "rb").read()
+                                                         for pid in spares)
+        time.sleep(4.0)  # the spares load their libraries
+        os.kill(sup.pid("uav1/job_manager"), signal.SIGKILL)
+        run_supervisor(sup, lambda: sup.children["uav1/job_manager"].restarts, timeout=5)
+        assert sup.pid("uav1/job_manager") == spares[0], out.getvalue()
+        run_supervisor(sup, lambda: lines.getvalue().count("up (pid") == 2, timeout=20)
+        assert f"up (pid {spares[0]})" in lines.getvalue(), lines.getvalue()
+        session = open_session(ZenohSettings(connect=[endpoint], shared_memory=False))
+        try:
+            answer = health(session, "uav1", "job_manager")
+        finally:
+            session.close()
+        assert answer is not None and answer.pid == spares[0] and answer.state == "running", answer
+        run_supervisor(sup, lambda: len(sup.spare_pids) == supervision.SPARES, timeout=5)
+        assert sup.spare_pids[0] == spares[1] and len(set(sup.spare_pids) | {spares[0]}) == 3, sup.spare_pids
+    finally:
+        sup.stop_all(grace=2.0)
+        shm.remove_orphans(shm.segments() - segments)  # the killed service's, as the launcher does
+    time.sleep(0.2)
+    assert processes_mentioning(f":{port}") == [], "a spare or the service outlived the supervisor"

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 from schemas.keys import SIM, uav_services
 from services.launcher.netns import UavNetwork
+from services.launcher.supervisor import SERVICE_MODULE
 from services.runtime import tls
 from services.runtime.zenoh_config import ZenohSettings
 
@@ -63,7 +64,7 @@ def plan_run(args: argparse.Namespace, uavs: list[str], seed: int, duration: flo
                              listen=listen if embedded else [], config_file=args.zenoh_config,
                              lease_ms=args.lease_ms, gossip_connect=gossip_connect, tls_dir=tls_dir).as_args()
 
-    base = [sys.executable, "-m", "services.launcher.run_service", "--log-level", args.log_level, "run"]
+    base = [sys.executable, "-m", SERVICE_MODULE, "--log-level", args.log_level, "run"]
     extra = ["--exit-with-parent"] + (["--config", args.config] if args.config else [])
     plan = RunPlan(hub_settings, hub_label)
     if own_router:

@@ -10,9 +10,15 @@ restarts within RESTART_WINDOW_S the child is given up on.
 Children are separate interpreters started with subprocess (exec, never a bare fork of
 this process: Zenoh is not fork-safe), each in its own session so a terminal Ctrl-C
 reaches only the launcher, which then shuts them down in order.
+
+Spares: a service that is restarted becomes one of SPARES interpreters that have loaded the
+libraries every service loads (services/launcher/spare.py), so that the restart costs the
+service's own start-up only. They are started SPARE_AFTER_S after the last first start (out
+of the launch's way) and replaced at once when used: crashes may come in a row.
 """
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -30,6 +36,9 @@ RESTART_WINDOW_S = 60.0
 # the n-th waits RESTART_BACKOFF_S * 2**(n-2), at most RESTART_BACKOFF_MAX_S: 0, 0.5, 1, 2, 4 s.
 RESTART_BACKOFF_S = 0.5
 RESTART_BACKOFF_MAX_S = 5.0
+SERVICE_MODULE = "services.launcher.run_service"  # a child run as `python -m` this can be restarted in a spare
+SPARES = 2  # the second covers a crash that follows another while the first one's replacement loads
+SPARE_AFTER_S = 5.0  # after the last first start
 
 
 @dataclass
@@ -59,6 +68,8 @@ class Supervisor:
         self._on_restart = on_restart
         self._log = log_file
         self.width = 10
+        self._spares: list[subprocess.Popen] = []
+        self._spares_due = time.monotonic() + SPARE_AFTER_S
 
     def start(self, name: str, argv: list[str], restart: bool = True) -> None:
         child = self.children.setdefault(name, Child(name, argv, restart=restart))
@@ -66,11 +77,14 @@ class Supervisor:
         self._spawn(child)
 
     def _spawn(self, child: Child) -> None:
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        child.process = subprocess.Popen(
-            child.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            start_new_session=True, env=env, text=True, bufsize=1, errors="replace",
-        )
+        args = _service_args(child.argv)
+        spare = self._take_spare() if child.restarts and args is not None else None
+        if spare is not None and _hand_over(spare, args):
+            child.process = spare
+        else:
+            child.process = _popen(child.argv, subprocess.DEVNULL)
+            if not child.restarts:  # a first start: the launch goes on
+                self._spares_due = max(self._spares_due, time.monotonic() + SPARE_AFTER_S)
         child.started = time.monotonic()
         child.restart_at = child.exit_code = None
         child.reader = threading.Thread(target=self._pump_output, args=(child, child.process), daemon=True)
@@ -91,9 +105,10 @@ class Supervisor:
 
     def poll(self) -> None:
         """Restart children that exited while the run is still going (call it often: a restart
-        that waits out its back-off happens in a later call)."""
+        that waits out its back-off happens in a later call), and keep the spares ready."""
         if self._stopping:
             return
+        self._keep_spares()
         for child in self.children.values():
             if child.failed or child.held or child.process is None or child.process.poll() is None:
                 continue
@@ -107,6 +122,25 @@ class Supervisor:
                 self.say(f"restarted {child.name} after it exited ({describe_exit(code)})")
                 if self._on_restart:
                     self._on_restart(child.name, code, now)
+
+    @property
+    def spare_pids(self) -> list[int]:
+        """The spares waiting to become a restarted service, oldest first."""
+        return [s.pid for s in self._spares if s.poll() is None]
+
+    def _take_spare(self) -> subprocess.Popen | None:
+        """The oldest live spare (the likeliest to have loaded everything), or None."""
+        self._spares = [s for s in self._spares if s.poll() is None]
+        return self._spares.pop(0) if self._spares else None
+
+    def _keep_spares(self) -> None:
+        self._spares = [s for s in self._spares if s.poll() is None]  # one killed from outside is replaced
+        if len(self._spares) >= SPARES or time.monotonic() < self._spares_due:
+            return
+        template = next((args for c in self.children.values() if (args := _service_args(c.argv))), None)
+        if template is not None:
+            self._spares.append(_popen([sys.executable, "-m", "services.launcher.spare", "--", *template],
+                                       subprocess.PIPE))
 
     def _exited(self, child: Child, code: int, now: float) -> None:
         """Decide what a child's exit means: given up on, or to be restarted (at once or later)."""
@@ -171,6 +205,12 @@ class Supervisor:
         killed += self._stop([c for c in self.children.values() if c.name not in last and c.name not in first], grace)
         for name, late_grace in last.items():
             killed += self._stop([self.children[name]], late_grace)
+        for spare in self._spares:
+            _signal_group(spare, signal.SIGKILL)
+            spare.wait()
+            spare.stdin.close()
+            spare.stdout.close()
+        self._spares = []
         for child in self.children.values():
             if child.reader:
                 child.reader.join(timeout=1.0)
@@ -196,6 +236,32 @@ class Supervisor:
             elif child.process:
                 _signal_group(child.process, signal.SIGKILL)  # grandchildren of a child, if any
         return killed
+
+
+def _popen(argv: list[str], stdin) -> subprocess.Popen:
+    return subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=stdin, start_new_session=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"), text=True, bufsize=1, errors="replace",
+    )
+
+
+def _hand_over(spare: subprocess.Popen, args: list[str]) -> bool:
+    """Tell a spare which service to become; False if it died meanwhile."""
+    try:
+        spare.stdin.write(json.dumps(args) + "\n")
+        spare.stdin.close()
+    except (BrokenPipeError, OSError):
+        _signal_group(spare, signal.SIGKILL)
+        spare.wait()
+        return False
+    return True
+
+
+def _service_args(argv: list[str]) -> list[str] | None:
+    """The arguments of a child started as `python -m services.launcher.run_service ...`, else None."""
+    if len(argv) >= 3 and argv[1:3] == ["-m", SERVICE_MODULE]:
+        return argv[3:]
+    return None
 
 
 def _signal_group(process: subprocess.Popen, sig: int) -> None:
