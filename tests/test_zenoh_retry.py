@@ -265,9 +265,9 @@ def test_supervisor_brings_back_a_service_that_failed_to_reach_zenoh(tmp_path):
 
 
 def test_a_restarted_service_takes_a_spare_that_loaded_its_libraries_and_the_run_leaves_none(monkeypatch, port):
-    """Two spares loaded beside a real service; killed, it comes back in the older spare's process
-    (an interpreter that already has numba started) and a new spare replaces that one; stopping
-    the supervisor ends the service and both spares."""
+    """Two spares loaded beside a real service; killed, it comes back in the older ready spare's
+    process (an interpreter that already has numba started) and a new spare replaces that one;
+    stopping the supervisor ends the service and both spares."""
     monkeypatch.setattr(supervision, "SPARE_AFTER_S", 0.0)
     endpoint = f"tcp/127.0.0.1:{port}"
     segments = shm.segments()
@@ -276,14 +276,15 @@ def test_a_restarted_service_takes_a_spare_that_loaded_its_libraries_and_the_run
     sup.start("uav1/job_manager", [sys.executable, "-m", supervision.SERVICE_MODULE, "run", "job_manager",
                                    "--uav", "uav1", "--listen", endpoint])
     try:
-        run_supervisor(sup, lambda: len(sup.spare_pids) == supervision.SPARES, timeout=5)
-        spares = sup.spare_pids
-        assert len(spares) == supervision.SPARES and all(f":{port}".encode() in open(f"/proc/{pid}/cmdline", "rb").read()
-                                                         for pid in spares)
-        time.sleep(4.0)  # the spares load their libraries
+        run_supervisor(sup, lambda: len(sup.ready_spares) == supervision.SPARES and "up (pid" in lines.getvalue(),
+                       timeout=30)
+        spares = sup.ready_spares
+        assert len(spares) == supervision.SPARES, lines.getvalue()
+        assert all(f":{port}".encode() in open(f"/proc/{pid}/cmdline", "rb").read() for pid in spares)
         os.kill(sup.pid("uav1/job_manager"), signal.SIGKILL)
         run_supervisor(sup, lambda: sup.children["uav1/job_manager"].restarts, timeout=5)
         assert sup.pid("uav1/job_manager") == spares[0], out.getvalue()
+        assert f"restarting uav1/job_manager in a spare, pid {spares[0]}" in out.getvalue(), out.getvalue()
         run_supervisor(sup, lambda: lines.getvalue().count("up (pid") == 2, timeout=20)
         assert f"up (pid {spares[0]})" in lines.getvalue(), lines.getvalue()
         session = open_session(ZenohSettings(connect=[endpoint], shared_memory=False))
@@ -292,8 +293,8 @@ def test_a_restarted_service_takes_a_spare_that_loaded_its_libraries_and_the_run
         finally:
             session.close()
         assert answer is not None and answer.pid == spares[0] and answer.state == "running", answer
-        run_supervisor(sup, lambda: len(sup.spare_pids) == supervision.SPARES, timeout=5)
-        assert sup.spare_pids[0] == spares[1] and len(set(sup.spare_pids) | {spares[0]}) == 3, sup.spare_pids
+        run_supervisor(sup, lambda: len(sup.ready_spares) == supervision.SPARES, timeout=30)
+        assert sup.ready_spares[0] == spares[1] and len(set(sup.ready_spares) | {spares[0]}) == 3, sup.ready_spares
     finally:
         sup.stop_all(grace=2.0)
         shm.remove_orphans(shm.segments() - segments)  # the killed service's, as the launcher does

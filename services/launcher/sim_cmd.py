@@ -491,7 +491,8 @@ def engagement_line(engagements: list[dict]) -> str:
 
 def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[str, float]:
     """CPU seconds per process at the end of the run ("uav1/mapper", "sim/simulator", "launcher"); a
-    restarted service counts from its restart."""
+    restarted service counts from its restart (from its spare's start, when it took one: the
+    libraries the spare loaded included). Spares never used are in no figure."""
     cpu = {f"{h.uav}/{h.service}": round(h.cpu_time, 2) for h in usage}
     cpu["launcher"] = round(launcher_cpu_s, 2)
     return cpu

@@ -1,19 +1,22 @@
-"""`python -m services.launcher.spare -- SERVICE ARGS`: a service process started ahead of need.
+"""`python -m services.launcher.spare -- ENDPOINTS`: a service process started ahead of need.
 
 The supervisor keeps spare interpreters beside a run (supervisor.py). A spare loads what the
 services load before they can serve — numpy, msgspec, Zenoh, the runtime, numba with its compiler
 started, and the slow libraries some import right after their token (filterpy with scipy.stats,
-scipy.ndimage; services/runtime/warmup.py) — then waits. On a 2-core KVM guest that is about 1.1 s
-of the 1.3-1.7 s a service takes from exec to its liveliness token, numba's start-up alone about
-1 s (`import numba` 0.4 s, its first compiled call 0.7 s: the CPU target's registries, and the
-scipy.linalg that its BLAS check imports), and up to 0.7 s more before it answers. When a service exits and is to be restarted, the supervisor writes that
-service's arguments to a spare's stdin (one JSON list), and the spare becomes the service: it
-imports the service's own modules and starts it as `falconry run` would, warm-up, token and
-first message in the usual order. A restart then costs the service's own start-up only.
+scipy.ndimage; services/runtime/warmup.py) — then says so on stdout (READY_LINE) and waits. On a
+2-core KVM guest a service takes 1.3-1.7 s from exec to its liveliness token, numba's start-up
+alone about 1 s (`import numba` 0.4 s, its first compiled call 0.7 s: the CPU target's registries,
+and the scipy.linalg that its BLAS check imports), and up to 0.7 s more before it answers.
 
-The arguments after `--` are those of one of the run's services, unused: the spare's command line
-names the run's Zenoh endpoint like every other process of the run, so that whatever looks for
-the run's processes by their command line finds it too.
+When a service exits and is to be restarted, the supervisor writes that service's arguments to a
+ready spare's stdin (one JSON list), and the spare becomes the service: it imports the service's
+own modules and starts it as `falconry run` would, warm-up, token and first message in the usual
+order. A restart then costs the service's own start-up only (0.2-0.7 s there).
+
+The arguments after `--` are the Zenoh endpoints of the run's services, unused: the spare's
+command line names the run's endpoint like every other process of the run, so that whatever looks
+for the run's processes by their command line finds it too. A service restarted in a spare keeps
+the spare's command line; the launcher's log names its pid ("restarted X in a spare, pid N").
 
 Started like every child (exec, never a fork: Zenoh is not fork-safe); it opens no Zenoh session
 before it is a service. An empty stdin (the run ended) ends it with 0.
@@ -22,6 +25,8 @@ from __future__ import annotations
 
 import json
 import sys
+
+READY_LINE = "falconry spare: libraries loaded"  # on stdout, once: the supervisor hands over only then
 
 
 def load_libraries() -> None:
@@ -38,6 +43,7 @@ def load_libraries() -> None:
 
 def main() -> int:
     load_libraries()
+    print(READY_LINE, flush=True)
     line = sys.stdin.readline()
     if not line.strip():
         return 0

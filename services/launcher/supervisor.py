@@ -11,13 +11,17 @@ Children are separate interpreters started with subprocess (exec, never a bare f
 this process: Zenoh is not fork-safe), each in its own session so a terminal Ctrl-C
 reaches only the launcher, which then shuts them down in order.
 
-Spares: a service that is restarted becomes one of SPARES interpreters that have loaded the
-libraries every service loads (services/launcher/spare.py), so that the restart costs the
-service's own start-up only. They are started SPARE_AFTER_S after the last first start (out
-of the launch's way) and replaced at once when used: crashes may come in a row.
+Spares: a service started as `python -m services.launcher.run_service` (not one wrapped into a
+network namespace) is restarted in one of SPARES interpreters that have loaded the libraries the
+services load (services/launcher/spare.py), when one is ready, so that the restart costs the
+service's own start-up only; otherwise in a fresh interpreter. Spares are started SPARE_AFTER_S
+after the last first start (out of the launch's way), replaced SPARE_AGAIN_S after one is used
+(once the restarted service has had the CPU for its start), and given up on after
+MAX_SPARE_FAILURES of them exited unused (each failure doubles the wait for the next).
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -28,6 +32,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
+from services.launcher.spare import READY_LINE
 from services.runtime.errors import RUNTIME_FAILURE, USAGE_ERROR
 
 MAX_RESTARTS = 5  # within RESTART_WINDOW_S; beyond that the service is given up on
@@ -39,6 +44,14 @@ RESTART_BACKOFF_MAX_S = 5.0
 SERVICE_MODULE = "services.launcher.run_service"  # a child run as `python -m` this can be restarted in a spare
 SPARES = 2  # the second covers a crash that follows another while the first one's replacement loads
 SPARE_AFTER_S = 5.0  # after the last first start
+SPARE_AGAIN_S = 1.0  # after a spare became a service
+MAX_SPARE_FAILURES = 3
+
+
+@dataclass
+class Spare:
+    process: subprocess.Popen
+    ready: threading.Event = field(default_factory=threading.Event)  # it printed READY_LINE
 
 
 @dataclass
@@ -68,8 +81,9 @@ class Supervisor:
         self._on_restart = on_restart
         self._log = log_file
         self.width = 10
-        self._spares: list[subprocess.Popen] = []
+        self._spares: list[Spare] = []
         self._spares_due = time.monotonic() + SPARE_AFTER_S
+        self._spare_failures = 0
 
     def start(self, name: str, argv: list[str], restart: bool = True) -> None:
         child = self.children.setdefault(name, Child(name, argv, restart=restart))
@@ -81,6 +95,8 @@ class Supervisor:
         spare = self._take_spare() if child.restarts and args is not None else None
         if spare is not None and _hand_over(spare, args):
             child.process = spare
+            self._spares_due = time.monotonic() + SPARE_AGAIN_S
+            self.say(f"restarting {child.name} in a spare, pid {spare.pid}")
         else:
             child.process = _popen(child.argv, subprocess.DEVNULL)
             if not child.restarts:  # a first start: the launch goes on
@@ -124,23 +140,44 @@ class Supervisor:
                     self._on_restart(child.name, code, now)
 
     @property
-    def spare_pids(self) -> list[int]:
-        """The spares waiting to become a restarted service, oldest first."""
-        return [s.pid for s in self._spares if s.poll() is None]
+    def ready_spares(self) -> list[int]:
+        """The pids of the spares ready to become a restarted service, oldest first."""
+        return [s.process.pid for s in self._spares if s.ready.is_set() and s.process.poll() is None]
 
     def _take_spare(self) -> subprocess.Popen | None:
-        """The oldest live spare (the likeliest to have loaded everything), or None."""
-        self._spares = [s for s in self._spares if s.poll() is None]
-        return self._spares.pop(0) if self._spares else None
+        """The oldest ready spare, or None (one still loading would start the service later than a
+        fresh interpreter: it loads more than a service needs before its token)."""
+        for spare in self._spares:
+            if spare.ready.is_set() and spare.process.poll() is None:
+                self._spares.remove(spare)
+                return spare.process
+        return None
 
     def _keep_spares(self) -> None:
-        self._spares = [s for s in self._spares if s.poll() is None]  # one killed from outside is replaced
-        if len(self._spares) >= SPARES or time.monotonic() < self._spares_due:
+        now = time.monotonic()
+        for spare in [s for s in self._spares if s.process.poll() is not None]:
+            self._spares.remove(spare)
+            self._spare_failures += 1
+            self._spares_due = now + SPARE_AFTER_S * 2 ** self._spare_failures
+            self.say(f"a spare interpreter exited unused ({describe_exit(spare.process.returncode)})"
+                     + ("; no more spares: restarts start fresh interpreters"
+                        if self._spare_failures == MAX_SPARE_FAILURES else ""))
+        if len(self._spares) >= SPARES or now < self._spares_due or self._spare_failures >= MAX_SPARE_FAILURES:
             return
-        template = next((args for c in self.children.values() if (args := _service_args(c.argv))), None)
-        if template is not None:
-            self._spares.append(_popen([sys.executable, "-m", "services.launcher.spare", "--", *template],
-                                       subprocess.PIPE))
+        endpoints = sorted({a for c in self.children.values() for a in _endpoints(_service_args(c.argv) or [])})
+        if any(_service_args(c.argv) is not None for c in self.children.values()):
+            spare = Spare(_popen([sys.executable, "-m", "services.launcher.spare", "--", *endpoints], subprocess.PIPE))
+            threading.Thread(target=self._await_ready, args=(spare,), daemon=True).start()
+            self._spares.append(spare)
+
+    def _await_ready(self, spare: Spare) -> None:
+        """Read a spare's output until it is ready (anything else it says goes to the log); after
+        that its output is the service's, read by _pump_output."""
+        for line in iter(spare.process.stdout.readline, ""):
+            if line.rstrip("\n") == READY_LINE:
+                spare.ready.set()
+                return
+            self.say(line.rstrip("\n"), f"spare {spare.process.pid}")
 
     def _exited(self, child: Child, code: int, now: float) -> None:
         """Decide what a child's exit means: given up on, or to be restarted (at once or later)."""
@@ -195,6 +232,11 @@ class Supervisor:
         `after_first` runs once they are gone (the simulator, whose end the services should see);
         those named in `last` after all others (a viewer that still has to write what it received)."""
         self._stopping = True
+        for spare in self._spares:  # first: one still loading would take CPU from the children's stop
+            _signal_group(spare.process, signal.SIGKILL)
+            spare.process.wait()
+            spare.process.stdin.close()
+        self._spares = []
         first = {name: g for name, g in (first or {}).items() if name in self.children}
         last = {name: g for name, g in (last or {}).items() if name in self.children and name not in first}
         killed = []
@@ -205,12 +247,6 @@ class Supervisor:
         killed += self._stop([c for c in self.children.values() if c.name not in last and c.name not in first], grace)
         for name, late_grace in last.items():
             killed += self._stop([self.children[name]], late_grace)
-        for spare in self._spares:
-            _signal_group(spare, signal.SIGKILL)
-            spare.wait()
-            spare.stdin.close()
-            spare.stdout.close()
-        self._spares = []
         for child in self.children.values():
             if child.reader:
                 child.reader.join(timeout=1.0)
@@ -250,18 +286,27 @@ def _hand_over(spare: subprocess.Popen, args: list[str]) -> bool:
     try:
         spare.stdin.write(json.dumps(args) + "\n")
         spare.stdin.close()
-    except (BrokenPipeError, OSError):
+    except OSError:  # BrokenPipeError: it died since it was ready
         _signal_group(spare, signal.SIGKILL)
         spare.wait()
+        for pipe in (spare.stdin, spare.stdout):
+            with contextlib.suppress(OSError):
+                pipe.close()
         return False
     return True
 
 
 def _service_args(argv: list[str]) -> list[str] | None:
-    """The arguments of a child started as `python -m services.launcher.run_service ...`, else None."""
-    if len(argv) >= 3 and argv[1:3] == ["-m", SERVICE_MODULE]:
+    """The arguments of a child started as `python -m services.launcher.run_service ...` by this
+    interpreter (not wrapped into a network namespace), else None."""
+    if len(argv) >= 3 and argv[0] == sys.executable and argv[1:3] == ["-m", SERVICE_MODULE]:
         return argv[3:]
     return None
+
+
+def _endpoints(args: list[str]) -> list[str]:
+    """The Zenoh endpoints a service's arguments name (after --connect or --listen)."""
+    return [value for option, value in zip(args, args[1:]) if option in ("--connect", "--listen")]
 
 
 def _signal_group(process: subprocess.Popen, sig: int) -> None:
