@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from services.lidar.models import MODEL_NAMES, beam_spacing, lidar_model, mid360_directions
+from services.lidar.models import MODEL_NAMES, BeamSpacing, beam_spacing, lidar_model, mid360_directions
 from services.lidar.uncertainty import sampling_covariance
 
 
@@ -102,11 +102,12 @@ def test_beam_spacing_is_the_angle_between_neighbouring_rows_and_columns_of_the_
 def test_a_far_target_between_beams_is_uncertain_across_the_line_of_sight_by_a_beam_gap():
     spacing = beam_spacing("os0-32-512", 32, 512)
     sensor, target = np.array([0.0, 0.0, 12.0]), np.array([20.0, 15.0, 12.0])  # 25 m off, level
-    cov = sampling_covariance(target, sensor, spacing.vertical, spacing.horizontal)
+    cov = sampling_covariance(target, sensor, spacing)
     sight = (target - sensor) / 25.0
     across = np.array([-sight[1], sight[0], 0.0])
     assert sight @ cov @ sight == pytest.approx(0.0, abs=1e-12)  # the range measures the surface
     assert cov[2, 2] == pytest.approx((25.0 * spacing.vertical) ** 2 / 12)  # rows 1.27 m apart: sigma 0.37 m
     assert across @ cov @ across == pytest.approx((25.0 * spacing.horizontal) ** 2 / 12)
-    assert np.allclose(sampling_covariance(sensor + [0, 0, 5.0], sensor, 0.1, 0.1), np.diag([0.25 / 12, 0.25 / 12, 0]))
-    assert not sampling_covariance(sensor, sensor, 0.1, 0.1).any()
+    assert np.allclose(sampling_covariance(sensor + [0, 0, 5.0], sensor, BeamSpacing(0.1, 0.1)),
+                       np.diag([0.25 / 12, 0.25 / 12, 0]))
+    assert not sampling_covariance(sensor, sensor, BeamSpacing(0.1, 0.1)).any()

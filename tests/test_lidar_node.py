@@ -30,6 +30,7 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
+from services.lidar.models import BeamSpacing
 from services.lidar.uncertainty import sampling_covariance
 from services.sensor_driver.core import DEFAULT_MOUNT
 from tests.conftest import REPO
@@ -132,7 +133,7 @@ def test_scans_carry_truth_the_oracle_detects_and_faults_silence(hub, processes,
         assert np.linalg.norm(positions[1] - [0.0, -12.0, 6.0]) < 0.6
         mounted = (0.0, 0.0, 5.0 + DEFAULT_MOUNT[2])  # the sensor sits on top of the carrier
         # the added noise's, and where between os1-64-1024's beams (0.71° × 0.35°) the balloon's centre lies
-        between = sampling_covariance(positions[0], mounted, math.radians(45.0 / 63), 2 * math.pi / 1024)
+        between = sampling_covariance(positions[0], mounted, BeamSpacing(math.radians(45.0 / 63), 2 * math.pi / 1024))
         assert np.allclose(to_numpy(msg.covariances)[0], 0.05 ** 2 * np.eye(3) + between, atol=2e-4)
         assert (to_numpy(msg.point_counts) >= 2).all() and msg.sensor_position == pytest.approx(mounted)
 

@@ -222,8 +222,7 @@ class ClassifierCore:
             positions[k] = centroid
             covariances[k] = spread + measurement + p.covariance_floor * np.eye(3)
             if pose.spacing is not None:
-                covariances[k] += sampling_covariance(centroid, pose.position, pose.spacing.vertical,
-                                                      pose.spacing.horizontal)
+                covariances[k] += sampling_covariance(centroid, pose.position, pose.spacing)
             point_counts[k] = len(members)
             extents[k] = float((members.max(axis=0) - members.min(axis=0)).max())
             voxel = geometry.voxel_of(centroid[None])[0]

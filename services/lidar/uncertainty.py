@@ -12,6 +12,8 @@ import math
 
 import numpy as np
 
+from services.lidar.models import BeamSpacing
+
 
 def _rx(a: float) -> np.ndarray:
     c, s = math.cos(a), math.sin(a)
@@ -84,10 +86,9 @@ def point_covariance(point: np.ndarray, sensor_position: np.ndarray, rotation: n
     return jacobian @ noise @ jacobian.T
 
 
-def sampling_covariance(centroid: np.ndarray, sensor_position: np.ndarray, vertical: float,
-                        horizontal: float) -> np.ndarray:
-    """Σ (3, 3) of where a target's centre lies about the centroid of its returns, given beams
-    `vertical` and `horizontal` rad apart (services/lidar/models.BeamSpacing).
+def sampling_covariance(centroid: np.ndarray, sensor_position: np.ndarray, spacing: BeamSpacing) -> np.ndarray:
+    """Σ (3, 3) of where a target's centre lies about the centroid of its returns, given how far
+    apart the beams lie (services/lidar/models.beam_spacing).
 
     Seed 000 gives a detection the uncertainty of its points only (sec. IV-A). A target a few
     beams wide is sampled only where the beams cross it, and where they cross it shifts with every
@@ -97,9 +98,8 @@ def sampling_covariance(centroid: np.ndarray, sensor_position: np.ndarray, verti
     sight, the sampled slice lies anywhere over one beam gap s = range × spacing: a uniform error
     of variance s²/12 each way. That bounds a target narrower than the gap (whose size the
     detector does not know) and holds for a wider one too (its outermost returns lie within a
-    gap of its edges). Along the
-    line of sight the range measures the surface; that is point_covariance's and the classifier's
-    surface offset's business. Across = horizontal and vertical of a level sensor: a UAV's tilt
+    gap of its edges). Along the line of sight the range measures the surface; that is
+    point_covariance's and the classifier's surface offset's business. Across = horizontal and vertical of a level sensor: a UAV's tilt
     of a few degrees turns the ellipse by as much, which is far below what it describes."""
     offset = np.asarray(centroid, dtype=np.float64) - np.asarray(sensor_position, dtype=np.float64)
     distance = float(np.linalg.norm(offset))
@@ -111,8 +111,8 @@ def sampling_covariance(centroid: np.ndarray, sensor_position: np.ndarray, verti
         across = np.array([1.0, 0.0, 0.0])
     across /= np.linalg.norm(across)
     up = np.cross(sight, across)
-    return ((distance * vertical) ** 2 / 12.0 * np.outer(up, up)
-            + (distance * horizontal) ** 2 / 12.0 * np.outer(across, across))
+    return ((distance * spacing.vertical) ** 2 / 12.0 * np.outer(up, up)
+            + (distance * spacing.horizontal) ** 2 / 12.0 * np.outer(across, across))
 
 
 def hit_probability(point: np.ndarray, covariance: np.ndarray, voxel_low: np.ndarray, voxel_size: float) -> float:

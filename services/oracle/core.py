@@ -74,7 +74,7 @@ def detect(points: np.ndarray, hits: np.ndarray, params: OracleParams, rng: np.r
     covariances = np.tile(variance * np.eye(3), (n, 1, 1))
     if sensor_position is not None and spacing is not None:
         for k, centroid in enumerate(centroids):
-            covariances[k] += sampling_covariance(centroid, sensor_position, spacing.vertical, spacing.horizontal)
+            covariances[k] += sampling_covariance(centroid, sensor_position, spacing)
     return OracleDetections(
         positions=centroids + noise,
         covariances=covariances,
