@@ -1,4 +1,4 @@
-"""Is this scan what a working LiDAR gives? (pure numpy; the sensor driver asks it of every scan)
+"""Is this scan what a working LiDAR gives? (numpy, one compiled pass; the sensor driver asks it of every scan)
 
 A scan fails when
 - it has no return at all: over the ground of an arena a working sensor always sees the ground;
@@ -27,9 +27,11 @@ fleet nor acted on by the job manager): the scans just after a fault may still b
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from services.runtime.clock import NS
 
@@ -69,17 +71,46 @@ class ScanFigures:
 def scan_figures(points: np.ndarray, origin, min_range: float, max_range: float,
                  blocked: np.ndarray | None = None) -> ScanFigures:
     """Figures of a (rows, cols, 3) or (N, 3) scan taken from `origin`; `blocked` (same leading
-    shape, bool) marks the beams the carrier's body blocks."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    open_beams = np.ones(len(points), dtype=bool) if blocked is None else ~np.asarray(blocked, dtype=bool).reshape(-1)
-    finite = np.isfinite(points)
-    whole = finite.all(axis=1) & open_beams
-    partial = finite.any(axis=1) & ~finite.all(axis=1) & open_beams
-    ranges = np.linalg.norm(points[whole] - np.asarray(origin, dtype=np.float64), axis=1)
+    shape, bool) marks the beams the carrier's body blocks. A return is out of range when it lies
+    nearer than `min_range` or farther than `max_range` (by more than the float32 points' and the
+    range noise's slack); a `max_range` <= 0 means no limits. One compiled pass: numpy's reductions
+    over each point's three coordinates cost 20 ms for an OS0-128 scan."""
+    points = np.asarray(points)
+    if points.dtype != np.float32:
+        points = points.astype(np.float64)
+    points = np.ascontiguousarray(points.reshape(-1, 3))
+    blocked = np.zeros(len(points), dtype=np.bool_) if blocked is None else \
+        np.ascontiguousarray(np.asarray(blocked, dtype=np.bool_).reshape(-1))
+    if len(blocked) != len(points):
+        raise ValueError(f"{len(blocked)} blocked flags for {len(points)} beams")
     slack = 1e-3 + 1e-4 * max_range  # float32 points and range noise at the limits
-    outside = (ranges < min_range - slack) | (ranges > max_range + slack) if max_range > 0 else ranges < 0
-    return ScanFigures(beams=int(open_beams.sum()), returns=int(whole.sum() - outside.sum()),
-                       bad=int(outside.sum() + partial.sum()))
+    near, far = (min_range - slack, max_range + slack) if max_range > 0 else (-math.inf, math.inf)
+    beams, returns, bad = _count_figures(points, np.asarray(origin, dtype=np.float64).reshape(3), blocked,
+                                         float(near), float(far))
+    return ScanFigures(beams=int(beams), returns=int(returns), bad=int(bad))
+
+
+@njit(cache=True)
+def _count_figures(points, origin, blocked, near, far):
+    """(open beams, returns within [near, far] of origin, returns outside it or finite in some
+    coordinates only) of an (N, 3) scan."""
+    beams = returns = bad = 0
+    for i in range(points.shape[0]):
+        if blocked[i]:
+            continue
+        beams += 1
+        x, y, z = np.float64(points[i, 0]), np.float64(points[i, 1]), np.float64(points[i, 2])
+        fx, fy, fz = math.isfinite(x), math.isfinite(y), math.isfinite(z)
+        if fx and fy and fz:
+            dx, dy, dz = x - origin[0], y - origin[1], z - origin[2]
+            distance = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if distance < near or distance > far:
+                bad += 1
+            else:
+                returns += 1
+        elif fx or fy or fz:
+            bad += 1
+    return beams, returns, bad
 
 
 class ScanSanity:

@@ -1,4 +1,4 @@
-"""Is this frame what a working camera gives? (pure numpy; Object Detect asks it of every frame)
+"""Is this frame what a working camera gives? (numpy and OpenCV; Object Detect asks it of every frame)
 
 A frame fails when it is **frozen** — the same pixels as the frame before, to the bit: a camera's
 own noise makes two real frames differ somewhere, so an identical one is a driver or link
@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import zlib
 
+import cv2
 import numpy as np
 
 MAX_CLIPPED = 0.5  # share of pixels at full scale or black in every channel
@@ -31,7 +32,7 @@ class FrameSanity:
         self._last = signature
         if frozen:
             return self._failed("frozen", "frozen: the same image as the frame before")
-        clipped = float(np.mean(np.all(rgb >= 255, axis=-1) | np.all(rgb == 0, axis=-1))) if rgb.size else 0.0
+        clipped = clipped_share(rgb)
         if clipped > self.max_clipped:
             return self._failed("saturated", f"saturated: {100 * clipped:.0f} % of pixels at full scale or black")
         return ""
@@ -39,3 +40,15 @@ class FrameSanity:
     def _failed(self, check: str, reason: str) -> str:
         self.failures[check] = self.failures.get(check, 0) + 1
         return reason
+
+
+def clipped_share(rgb: np.ndarray) -> float:
+    """Share of the (H, W, 3) uint8 frame's pixels at full scale, or black, in every channel. OpenCV's
+    range test: numpy's reductions over each pixel's three channels took 10 ms for a 640 × 360 frame,
+    as long as rendering and detecting it."""
+    pixels = rgb.shape[0] * rgb.shape[1]
+    if pixels == 0:
+        return 0.0
+    full = cv2.countNonZero(cv2.inRange(rgb, (255, 255, 255), (255, 255, 255)))
+    black = cv2.countNonZero(cv2.inRange(rgb, (0, 0, 0), (0, 0, 0)))
+    return (full + black) / pixels

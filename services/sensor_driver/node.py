@@ -76,6 +76,7 @@ class SensorDriverNode(Node):
         self._bad_input = CountedWarnings(self.log)
         self._scan(np.zeros(3), 0.0, Primitives(planes=[-1.0]), np.random.default_rng(0))  # compile now,
         # before the liveliness token: the first scan of a run must not stall a lockstep tick
+        scan_figures(np.zeros((1, 3), np.float32), np.zeros(3), self.min_range, self.max_range)  # float32 as scans
         self.points_pub = self.publisher(self.topic("points"), PointCloud)
         self.truth_pub = self.publisher(self.topic("points_truth"), PointTruth)
         self.subscribe(keys.WORLD, WorldModel, self.on_world)
