@@ -6,7 +6,9 @@ balloons, one message per frame) and tracks, its planner's reports (a target eve
 which is blocked by obstacles becomes a forbidden zone), every partner's status and the
 liveliness tokens (pre-flight check of this UAV's services; partners' job managers for revenge
 mode). Out: mission commands for the planner and this UAV's status for its partners. Every
-decision is the core's; the node only converts messages and logs what the core noted.
+decision is the core's; the node only converts messages and logs what the core noted. The core
+decides every tick and, in real time (not lockstep), also as soon as a message holding a sighting
+arrives.
 """
 from __future__ import annotations
 
@@ -114,10 +116,14 @@ class JobManagerNode(Node):
         self.positioning = msg.health
 
     def on_detections(self, msg: Detections, key: str) -> None:
-        self.core.observe_detections(msg.header.stamp, *_positions_and_covariances(msg), sensor_health=msg.sensor_health)
+        positions, covariances = _positions_and_covariances(msg)
+        self.core.observe_detections(msg.header.stamp, positions, covariances, sensor_health=msg.sensor_health)
+        self.act_on_sighting(len(positions))
 
     def on_camera_detections(self, msg: Detections, key: str) -> None:
-        self.core.observe_camera(msg.header.stamp, *_positions_and_covariances(msg), sensor_health=msg.sensor_health)
+        positions, covariances = _positions_and_covariances(msg)
+        self.core.observe_camera(msg.header.stamp, positions, covariances, sensor_health=msg.sensor_health)
+        self.act_on_sighting(len(positions))
 
     def on_tracks(self, msg: Tracks, key: str) -> None:
         confirmed = [t for t in msg.tracks if t.confirmed and np.isfinite(track_position(t)).all()
@@ -128,6 +134,14 @@ class JobManagerNode(Node):
                                  fleet=np.array([t.source not in ("", self.uav) for t in confirmed], dtype=bool),
                                  covariances=np.array([track_position_covariance(t) for t in confirmed]).reshape(-1, 3, 3),
                                  corrected=np.array([t.last_correction for t in confirmed], dtype=np.int64))
+        self.act_on_sighting(len(confirmed))
+
+    def act_on_sighting(self, sightings: int) -> None:
+        """In real time a message holding a sighting is decided on as it arrives: a command that
+        waited for the next tick would be up to a tick older. One without (most scans and frames
+        of a search) changes nothing that cannot wait for the tick."""
+        if self.real_time and sightings:
+            self.decide(self.clock.now_ns(), repeat=False)
 
     def on_plan(self, msg: PlanReport, key: str) -> None:
         if self.command is not None and msg.command_id == self.command.command_id:  # older commands are history
@@ -189,20 +203,26 @@ class JobManagerNode(Node):
         return self.positioning
 
     def on_tick(self, now_ns: int) -> None:
-        if self.position is not None:
-            decision = self.core.update(now_ns, self.position, self.core.is_airborne(self.position[2]),
-                                        self.services_ready, position_stamp_ns=self.position_stamp,
-                                        velocity=self.velocity, positioning=self.positioning_health())
-            self.report()
-            if decision is not None:
-                self.send_command(now_ns, decision)
-            elif self.command is not None and self.params.command_repeat > 0 and \
-                    now_ns - self.command_sent_at >= int(self.params.command_repeat * NS):
-                self.resend_command(now_ns)  # a restarted planner gets it (same id: no re-plan)
+        self.decide(now_ns, repeat=True)
         if now_ns >= self.next_status_ns:
             self.publish_status(now_ns)
             period = int(NS / self.params.status_rate_hz)
             self.next_status_ns = (now_ns // period + 1) * period
+
+    def decide(self, now_ns: int, repeat: bool) -> None:
+        """The core's decision at now_ns, sent when it changed; with `repeat`, the last command is
+        sent again when `command_repeat` is due."""
+        if self.position is None:
+            return
+        decision = self.core.update(now_ns, self.position, self.core.is_airborne(self.position[2]),
+                                    self.services_ready, position_stamp_ns=self.position_stamp,
+                                    velocity=self.velocity, positioning=self.positioning_health())
+        self.report()
+        if decision is not None:
+            self.send_command(now_ns, decision)
+        elif repeat and self.command is not None and self.params.command_repeat > 0 and \
+                now_ns - self.command_sent_at >= int(self.params.command_repeat * NS):
+            self.resend_command(now_ns)  # a restarted planner gets it (same id: no re-plan)
 
     def report(self) -> None:
         """Log what the core did since the last tick."""

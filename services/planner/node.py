@@ -2,7 +2,8 @@
 kept clear of what its UAV knows is occupied (avoid.py), publishes it as a TrajectoryReference and
 says what it made of it (PlanReport), and guards the reference in flight (guard.py).
 
-A command with a new id is planned from where the vehicle is meant to be: on the current
+A command with a new id is planned at the next tick, or in real time (not lockstep) as soon as it
+arrives, from where the vehicle is meant to be: on the current
 trajectory while it follows it (`rejoin_distance`), else from the latest odometry (position,
 heading and velocity), so a re-plan in flight neither stops the vehicle nor hides its braking
 from the controller: take-off/land/hover, stop (the brake before
@@ -158,7 +159,9 @@ class PlannerNode(Node):
             self.planned_id = None  # a restarted job manager numbers its commands from 1 again
         self.command_seq = msg.header.seq
         if msg.command_id != self.planned_id:
-            self.command = msg  # planned in on_tick, from that tick's position and time
+            self.command = msg  # planned in on_tick, from that tick's position and time, or now:
+            if self.real_time:  # a reference that waited for the next tick would be up to a tick older
+                self.plan_new_command(self.clock.now_ns())
 
     def on_odometry(self, msg: Odometry, key: str) -> None:
         self.position = np.asarray(msg.pose.position, dtype=np.float64)
@@ -184,6 +187,14 @@ class PlannerNode(Node):
         elif self.trajectory is not None and now_ns - self.published_at >= int(self.params.republish_period * NS):
             self.publish(now_ns)
         self.guard(now_ns)
+
+    def plan_new_command(self, now_ns: int) -> None:
+        """Plan the newest command now, as the next tick would: once the vehicle's state is known,
+        unless the job manager's silence holds the vehicle (a landing goes ahead)."""
+        if self.position is None or (self.watchdog is not None and self.watchdog_tripped(now_ns)):
+            return
+        if self.command is not None and self.command.command_id != self.planned_id:
+            self.plan(now_ns, self.command)
 
     def vehicle(self, now_ns: int) -> VehicleState:
         position, velocity = start_state(self.trajectory, now_ns, self.position, self.velocity,

@@ -198,6 +198,14 @@ class Node:
     def lockstep(self) -> bool:
         return bool(self._lockstep)
 
+    @property
+    def real_time(self) -> bool:
+        """The clock runs on its own (onboard, or a simulation without lockstep): a stage that acts
+        on an input as it arrives, instead of at the next tick, spares the data up to a tick's age.
+        In lockstep every input belongs to a tick, and acting on it there changes nothing. False
+        until the first tick says which."""
+        return self._lockstep is False
+
     # ------------------------------------------------------------ plumbing
     def _add_subscription(self, key_expr, msg_type, handler, internal: bool, keep: int | None = None) -> None:
         for other in self._subs:

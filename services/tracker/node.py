@@ -7,7 +7,8 @@ it). Lockstep releases a tick's scan before its detections (subscription order; 
 driver is upstream of the detector anyway). Publishes falconry/<uav>/tracks (Tracks) on every
 tick while there are tracks, each predicted to the tick's time with a short predicted
 trajectory, and an empty Tracks at least once per alive_period of mission time otherwise so
-subscribers know the tracker is alive.
+subscribers know the tracker is alive. In real time (not lockstep) it also publishes right
+after each detection set, so a sighting does not wait up to a tick to reach the job manager.
 
 The fleet picture (fleet.py): it also subscribes every partner's falconry/<partner>/tracks and
 publishes its own tracks fused (covariance intersection) with the partners' tracks of the same
@@ -98,6 +99,8 @@ class TrackerNode(Node):
         covariances = covariances.reshape(-1, 3, 3) if covariances.size == 9 * len(positions) else None
         self.core.new_detections(msg.header.stamp, positions, covariances, msg.sensor_health)
         self._report()
+        if self.real_time:  # the corrected tracks go out now, not up to a tick later, at the newest time known
+            self.publish_tracks(max(self.clock.now_ns(), msg.header.stamp), keep_alive=False)
 
     def _from_the_future(self, stamp: int) -> bool:
         """A stamp beyond the clock by more than FUTURE_TOLERANCE_NS: a track predicted to it would
@@ -139,13 +142,18 @@ class TrackerNode(Node):
     def on_tick(self, now_ns: int) -> None:
         for track_id in self.core.prune(now_ns):
             self.log.debug("track %d lost", track_id)
+        self.publish_tracks(now_ns, keep_alive=True)
+
+    def publish_tracks(self, now_ns: int, keep_alive: bool) -> None:
+        """The fleet picture at now_ns; with no track, only as the keep-alive that is due
+        (`keep_alive`: every alive period)."""
         estimates, own = self._own_tracks(now_ns)
         if self.params.fleet and self.params.partner_confirms:
             if self.core.corroborate(self.fleet.corroborating(own, now_ns)):
                 estimates, own = self._own_tracks(now_ns)
         fleet = self.fleet.fuse(own, now_ns) if self.params.fleet else own
         quiet = self._last_published_ns is None or now_ns - self._last_published_ns >= self._alive_period_ns
-        if not fleet and not quiet:
+        if not fleet and not (keep_alive and quiet):
             return
         self._last_published_ns = now_ns
         health = "" if self.core.sensor.trusted(now_ns) else "LiDAR failed its sanity check or is settling"
