@@ -3,9 +3,12 @@ faults that make them fail (services/camera/core.py)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from services.camera.core import frozen_or_saturated
-from services.object_detect.sanity import FrameSanity
+from services.object_detect.sanity import FrameSanity, clipped_share
 from tests.test_object_detect import render_balloon
 
 
@@ -32,3 +35,17 @@ def test_a_black_frame_is_saturated_and_a_dark_scene_is_not():
     assert sanity.check(np.zeros((36, 64, 3), dtype=np.uint8)).startswith("saturated")
     dusk = np.random.default_rng(0).integers(1, 40, (36, 64, 3)).astype(np.uint8)
     assert sanity.check(dusk) == ""
+
+
+@settings(max_examples=100, deadline=None, derandomize=True, database=None)
+@given(seed=st.integers(0, 2**32 - 1), height=st.integers(0, 40), width=st.integers(0, 40))
+def test_the_clipped_share_is_the_plain_numpy_share(seed, height, width):
+    rng = np.random.default_rng(seed)
+    rgb = rng.choice(np.array([0, 1, 128, 254, 255], dtype=np.uint8), (height, width, 3))
+    plain = float(np.mean(np.all(rgb == 255, axis=-1) | np.all(rgb == 0, axis=-1))) if rgb.size else 0.0
+    assert clipped_share(rgb) == pytest.approx(plain, abs=1e-12)
+
+
+def test_a_frame_that_is_not_8_bit_colour_is_refused():
+    with pytest.raises(ValueError, match="uint8"):
+        clipped_share(np.zeros((4, 4, 3), dtype=np.uint16))

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from schemas.messages import Obstacle
 from services.job_manager.core import JobManager, State
@@ -116,3 +118,31 @@ def test_the_job_manager_acts_on_no_detection_while_the_lidar_fails_or_settles_b
     assert len(jm.candidates(NS // 2, here)) == 0  # settling
     jm.observe_detections(NS + NS // 5, balloon)
     assert len(jm.candidates(NS + NS // 5, here)) == 1
+
+
+def numpy_figures(points, origin, min_range, max_range, blocked):
+    """The checks' counts written plainly in numpy, what the compiled pass must give."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    open_beams = ~np.asarray(blocked, dtype=bool).reshape(-1)
+    finite = np.isfinite(points)
+    whole = finite.all(axis=1) & open_beams
+    partial = finite.any(axis=1) & ~finite.all(axis=1) & open_beams
+    ranges = np.linalg.norm(points[whole] - np.asarray(origin, dtype=np.float64), axis=1)
+    slack = 1e-3 + 1e-4 * max_range
+    outside = (ranges < min_range - slack) | (ranges > max_range + slack) if max_range > 0 else ranges < 0
+    return int(open_beams.sum()), int(whole.sum() - outside.sum()), int(outside.sum() + partial.sum())
+
+
+@settings(max_examples=200, deadline=None, derandomize=True, database=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(0, 400), spread=st.floats(0.1, 200.0),
+       dtype=st.sampled_from([np.float32, np.float64]), max_range=st.sampled_from([0.0, -1.0, 40.0, 90.0]))
+def test_the_compiled_figures_are_the_plain_numpy_counts(seed, n, spread, dtype, max_range):
+    rng = np.random.default_rng(seed)
+    points = rng.normal(0.0, spread, (n, 3)).astype(dtype)
+    odd = rng.random((n, 3))
+    points[odd < 0.05], points[odd > 0.97] = np.nan, np.inf  # whole and partial corruption
+    points[rng.random(n) < 0.02] *= -np.inf
+    blocked = rng.random(n) < 0.1
+    origin = rng.normal(0.0, 3.0, 3)
+    got = scan_figures(points, origin, 0.3, max_range, blocked)
+    assert (got.beams, got.returns, got.bad) == numpy_figures(points, origin, 0.3, max_range, blocked)

@@ -51,6 +51,18 @@ def test_the_planner_plans_a_new_command_as_it_arrives():
         planner.tick(100_000_000)
 
 
+def test_a_command_held_before_the_first_tick_is_planned_at_that_tick_s_time():
+    """A planner that starts (or restarts) during a real-time run hears the command before the clock:
+    planned when the first tick releases it, the reference starts at that tick, not at time 0."""
+    seeds, planner = corpus(), wire("planner", first_tick=False)
+    for msg_type in (WorldModel, VoxelMap, Odometry, MissionCommand):
+        planner.deliver(planner.keys_of[msg_type], encode(seeds[msg_type]))
+    assert keys.uav(UAV, "trajectory") not in planner.session.published, "planned before the clock was known"
+    planner.tick(5_000_000_000)
+    reference = planner.published(TrajectoryReference, keys.uav(UAV, "trajectory"))
+    assert reference.command_id == seeds[MissionCommand].command_id and reference.start == 5_000_000_000
+
+
 def test_the_job_manager_decides_on_a_sighting_as_it_arrives():
     seeds, manager = corpus(), wire("job_manager")
     command_key = keys.uav(UAV, "command")

@@ -76,6 +76,8 @@ class ObjectDetectNode(Node):
             depth = None if msg.depth is None else to_numpy(msg.depth)
             if rgb.shape != (msg.height, msg.width, 3):
                 raise ValueError(f"colour image {rgb.shape}, header says {msg.height} × {msg.width}")
+            if rgb.dtype != np.uint8:
+                raise ValueError(f"colour image of {rgb.dtype}, not uint8")
             if not (np.all(np.isfinite(view.position)) and np.all(np.isfinite(view.orientation))
                     and min(msg.fx, msg.fy) > 0):
                 raise ValueError("camera pose or focal length not usable")
@@ -84,7 +86,7 @@ class ObjectDetectNode(Node):
             found = detect(rgb if not health else rgb[:0], None if health else depth, view, self.colors, self.params)
         except ValueError as exc:
             self._bad_frames += 1
-            self._bad_input.update({"frames refused (image shape, camera pose or focal length)": self._bad_frames})
+            self._bad_input.update({"frames refused (image shape or type, camera pose or focal length)": self._bad_frames})
             if self._bad_frames == 1:
                 self.log.warning("the first refused frame: %s", " ".join(str(exc).split()))
             return

@@ -195,6 +195,7 @@ class PlannerNode(Node):
             return
         if self.command is not None and self.command.command_id != self.planned_id:
             self.plan(now_ns, self.command)
+            self.guard(now_ns)  # as the tick does after a plan
 
     def vehicle(self, now_ns: int) -> VehicleState:
         position, velocity = start_state(self.trajectory, now_ns, self.position, self.velocity,

@@ -203,7 +203,7 @@ class Node:
         """The clock runs on its own (onboard, or a simulation without lockstep): a stage that acts
         on an input as it arrives, instead of at the next tick, spares the data up to a tick's age.
         In lockstep every input belongs to a tick, and acting on it there changes nothing. False
-        until the first tick says which."""
+        until the first tick says which (the clock is at that tick's time by then)."""
         return self._lockstep is False
 
     # ------------------------------------------------------------ plumbing
@@ -532,9 +532,9 @@ class Node:
         first = self._lockstep is None
         self._lockstep = tick.lockstep
         self._mission_over = tick.finished
+        self.clock.advance_to(tick.header.stamp)  # before the held messages: in real time they are handled now
         if first:
             self._flush_pending()
-        self.clock.advance_to(tick.header.stamp)
         if not tick.lockstep:
             self._last_step = tick.step
             self._tick(tick.header.stamp)

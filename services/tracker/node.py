@@ -8,7 +8,8 @@ driver is upstream of the detector anyway). Publishes falconry/<uav>/tracks (Tra
 tick while there are tracks, each predicted to the tick's time with a short predicted
 trajectory, and an empty Tracks at least once per alive_period of mission time otherwise so
 subscribers know the tracker is alive. In real time (not lockstep) it also publishes right
-after each detection set, so a sighting does not wait up to a tick to reach the job manager.
+after each detection set that holds a detection, so a sighting does not wait up to a tick to
+reach the job manager.
 
 The fleet picture (fleet.py): it also subscribes every partner's falconry/<partner>/tracks and
 publishes its own tracks fused (covariance intersection) with the partners' tracks of the same
@@ -99,7 +100,7 @@ class TrackerNode(Node):
         covariances = covariances.reshape(-1, 3, 3) if covariances.size == 9 * len(positions) else None
         self.core.new_detections(msg.header.stamp, positions, covariances, msg.sensor_health)
         self._report()
-        if self.real_time:  # the corrected tracks go out now, not up to a tick later, at the newest time known
+        if self.real_time and len(positions):  # the tracks go out now, not up to a tick later, at the newest time known
             self.publish_tracks(max(self.clock.now_ns(), msg.header.stamp), keep_alive=False)
 
     def _from_the_future(self, stamp: int) -> bool:

@@ -212,8 +212,10 @@ class WiredNode:
                                                    step=self.step, dt=dt_ns / 1e9, lockstep=False)))
 
 
-def wire(service: str, **options) -> WiredNode:
-    """The service's node on a fake session; `options` override the run's (e.g. positioning="lidar")."""
+def wire(service: str, *, first_tick: bool = True, **options) -> WiredNode:
+    """The service's node on a fake session; `options` override the run's (e.g. positioning="lidar").
+    Without `first_tick` a follower of the clock is left before its first tick, holding what it is
+    given until a tick says real time or lockstep."""
     cls = node_class(service)
     options = SimpleNamespace(**{**dict(scenario="mbzirc", uavs=2, seed=1, duration=60.0, lockstep=False, rtf=1.0,
                                         tick=0.05, detector="classifier"), **options})
@@ -229,7 +231,8 @@ def wire(service: str, **options) -> WiredNode:
     for sub in node._subs:
         wired.keys_of.setdefault(sub.decoder.type, concrete(sub.key_expr))
     if node._clock_kind == "sim":
-        wired.tick()  # the first tick says: real time
+        if first_tick:
+            wired.tick()  # the first tick says: real time
     else:
         node._lockstep = False  # the simulator's own serve() does this (run without --lockstep)
     return wired
