@@ -73,8 +73,8 @@ def scan_figures(points: np.ndarray, origin, min_range: float, max_range: float,
     """Figures of a (rows, cols, 3) or (N, 3) scan taken from `origin`; `blocked` (same leading
     shape, bool) marks the beams the carrier's body blocks. A return is out of range when it lies
     nearer than `min_range` or farther than `max_range` (by more than the float32 points' and the
-    range noise's slack); a `max_range` <= 0 means no limits. One compiled pass: numpy's reductions
-    over each point's three coordinates cost 20 ms for an OS0-128 scan."""
+    range noise's slack); a `max_range` <= 0 means no limits. Counted in one compiled pass: numpy's
+    reductions over each point's three coordinates take some 20 times longer."""
     points = np.asarray(points)
     if points.dtype != np.float32:
         points = points.astype(np.float64)

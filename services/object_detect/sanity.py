@@ -43,9 +43,9 @@ class FrameSanity:
 
 
 def clipped_share(rgb: np.ndarray) -> float:
-    """Share of the (H, W, 3) uint8 frame's pixels at full scale, or black, in every channel. OpenCV's
-    range test: numpy's reductions over each pixel's three channels took 10 ms for a 640 × 360 frame,
-    as long as rendering and detecting it."""
+    """Share of the (H, W, 3) uint8 frame's pixels at full scale, or black, in every channel. By
+    OpenCV's range test: numpy's reductions over each pixel's three channels take some 15 times
+    longer, as long as rendering and detecting the frame."""
     if rgb.ndim != 3 or rgb.shape[2] != 3 or rgb.dtype != np.uint8:
         raise ValueError(f"a colour image is (height, width, 3) uint8, got {rgb.shape} {rgb.dtype}")
     pixels = rgb.shape[0] * rgb.shape[1]
