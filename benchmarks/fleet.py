@@ -50,7 +50,7 @@ def shares_per_uav(summary: dict, uavs: int) -> dict[str, float]:
     totals: dict[str, float] = {}
     for process, seconds in summary["cpu"].items():
         service = process.rsplit("/", 1)[-1]
-        per_uav = process.split("/", 1)[0] not in ("sim", "launcher")
+        per_uav = process.split("/", 1)[0] not in ("sim", "launcher", "forkserver")
         totals[service] = totals.get(service, 0.0) + 100.0 * seconds / wall / (uavs if per_uav else 1)
     return totals
 

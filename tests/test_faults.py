@@ -152,7 +152,7 @@ def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
         deadline = time.monotonic() + 300  # the run takes about 30 s of wall time
         while launcher.poll() is None and time.monotonic() < deadline:
             # the frozen tracker is in state T while the freeze lasts
-            for pid in set(processes_mentioning("tracker\0--uav\0uav2\0")) & set(processes_mentioning(f":{port}")):
+            for pid in set(processes_mentioning("tracker --uav uav2 ")) & set(processes_mentioning(f":{port}")):
                 try:
                     frozen_seen |= Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] == "T"
                 except OSError:

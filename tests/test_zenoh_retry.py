@@ -19,6 +19,7 @@ import pytest
 
 from schemas import keys
 from services.launcher import supervisor as supervision
+from services.launcher.forkserver import ForkedProcess
 from services.launcher.supervisor import Supervisor, restart_delay
 from services.runtime import shm
 from services.runtime.errors import RUNTIME_FAILURE, USAGE_ERROR
@@ -264,39 +265,56 @@ def test_supervisor_brings_back_a_service_that_failed_to_reach_zenoh(tmp_path):
         sup.stop_all(grace=1.0)
 
 
-def test_a_restarted_service_takes_a_spare_that_loaded_its_libraries_and_the_run_leaves_none(monkeypatch, port):
-    """Two spares loaded beside a real service; killed, it comes back in the older ready spare's
-    process (an interpreter that already has numba started) and a new spare replaces that one;
-    stopping the supervisor ends the service and both spares."""
-    monkeypatch.setattr(supervision, "SPARE_AFTER_S", 0.0)
+def test_services_are_forks_of_the_fork_server_and_come_back_as_forks_and_the_run_leaves_none(port):
+    """A service started as run_service is forked from the run's fork server: adopted by this process
+    (the supervisor is its parent, so it reaps it and reads its exit), named by its command line, and
+    answering health with its own pid; its exit status is its own. Killed, it comes back as a new
+    fork. With the server gone, the next restart is a fresh interpreter. Stopping the supervisor ends
+    the service and the server."""
     endpoint = f"tcp/127.0.0.1:{port}"
     segments = shm.segments()
     out, lines = io.StringIO(), io.StringIO()
     sup = Supervisor(out=out, echo=False, log_file=lines)
     sup.start("uav1/job_manager", [sys.executable, "-m", supervision.SERVICE_MODULE, "run", "job_manager",
                                    "--uav", "uav1", "--listen", endpoint])
+    child = sup.children["uav1/job_manager"]
     try:
-        run_supervisor(sup, lambda: len(sup.ready_spares) == supervision.SPARES and "up (pid" in lines.getvalue(),
-                       timeout=30)
-        spares = sup.ready_spares
-        assert len(spares) == supervision.SPARES, lines.getvalue()
-        assert all(f":{port}".encode() in open(f"/proc/{pid}/cmdline", "rb").read() for pid in spares)
-        os.kill(sup.pid("uav1/job_manager"), signal.SIGKILL)
-        run_supervisor(sup, lambda: sup.children["uav1/job_manager"].restarts, timeout=5)
-        assert sup.pid("uav1/job_manager") == spares[0], out.getvalue()
-        assert f"restarting uav1/job_manager in a spare, pid {spares[0]}" in out.getvalue(), out.getvalue()
+        run_supervisor(sup, lambda: "up (pid" in lines.getvalue(), timeout=60)
+        server, first = sup.forkserver_pid, sup.pid("uav1/job_manager")
+        assert server is not None and isinstance(child.process, ForkedProcess), out.getvalue()
+        assert _parent(first) == os.getpid()
+        cmdline = open(f"/proc/{first}/cmdline", "rb").read()
+        assert b"run job_manager --uav uav1" in cmdline and f":{port}".encode() in cmdline, cmdline
+        os.kill(first, signal.SIGKILL)
         run_supervisor(sup, lambda: lines.getvalue().count("up (pid") == 2, timeout=20)
-        assert f"up (pid {spares[0]})" in lines.getvalue(), lines.getvalue()
+        second = sup.pid("uav1/job_manager")
+        assert second != first and isinstance(child.process, ForkedProcess) and _parent(second) == os.getpid()
+        assert "restarted uav1/job_manager after it exited (SIGKILL)" in out.getvalue(), out.getvalue()
         session = open_session(ZenohSettings(connect=[endpoint], shared_memory=False))
         try:
-            answer = health(session, "uav1", "job_manager")
+            answer = wait_healthy(session, [("uav1", "job_manager")])[("uav1", "job_manager")]
         finally:
             session.close()
-        assert answer is not None and answer.pid == spares[0] and answer.state == "running", answer
-        run_supervisor(sup, lambda: len(sup.ready_spares) == supervision.SPARES, timeout=30)
-        assert sup.ready_spares[0] == spares[1] and len(set(sup.ready_spares) | {spares[0]}) == 3, sup.ready_spares
+        assert answer.pid == second and answer.state == "running", answer
+        # a fork's exit status is its own: a bad option is a usage error, never restarted
+        sup.start("uav1/misconfigured", [sys.executable, "-m", supervision.SERVICE_MODULE, "run", "planner",
+                                         "--uav", "uav1", "--no-such-option"])
+        assert isinstance(sup.children["uav1/misconfigured"].process, ForkedProcess)
+        run_supervisor(sup, lambda: sup.children["uav1/misconfigured"].failed, timeout=20)
+        assert "uav1/misconfigured exited with a usage error" in out.getvalue(), out.getvalue()
+        assert "--no-such-option" in lines.getvalue(), lines.getvalue()  # argparse's line, through the pipe
+        os.kill(server, signal.SIGKILL)
+        os.kill(second, signal.SIGKILL)
+        run_supervisor(sup, lambda: lines.getvalue().count("up (pid") == 3, timeout=30)
+        assert isinstance(child.process, subprocess.Popen), out.getvalue()
+        assert "the fork server could not start a service" in out.getvalue(), out.getvalue()
     finally:
         sup.stop_all(grace=2.0)
-        shm.remove_orphans(shm.segments() - segments)  # the killed service's, as the launcher does
+        shm.remove_orphans(shm.segments() - segments)  # the killed services', as the launcher does
     time.sleep(0.2)
-    assert processes_mentioning(f":{port}") == [], "a spare or the service outlived the supervisor"
+    assert processes_mentioning(f":{port}") == [], "the service outlived the supervisor"
+    assert not os.path.exists(f"/proc/{server}"), "the fork server outlived the supervisor"
+
+
+def _parent(pid: int) -> int:
+    return int(open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[1])

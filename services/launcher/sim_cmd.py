@@ -329,7 +329,7 @@ class SimRun:
                        detector=args.detector, wall_time=round(time.time() - self.started_wall, 2),
                        killed_at_shutdown=self.killed,
                        failed_services=[c.name for c in self.supervisor.children.values() if c.failed],
-                       cpu=cpu_by_service(self.usage, time.process_time()),
+                       cpu=cpu_by_service(self.usage, time.process_time(), self.supervisor.forkserver_cpu_s),
                        health=health_totals(self.usage, stopped_services(self.scenario.faults, self.restarted)))
         for h in self.usage:  # the job managers' own logs: complete even where a cut hid their statuses
             if h.decisions and h.uav in summary["uavs"]:
@@ -489,12 +489,15 @@ def engagement_line(engagements: list[dict]) -> str:
     return f"{', '.join(counts)}, {len(wrong)} at no target: {where}"
 
 
-def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float) -> dict[str, float]:
-    """CPU seconds per process at the end of the run ("uav1/mapper", "sim/simulator", "launcher"); a
-    restarted service counts from its restart (from its spare's start, when it took one: the
-    libraries the spare loaded included). Spares never used are in no figure."""
+def cpu_by_service(usage: list[ServiceHealth], launcher_cpu_s: float, forkserver_cpu_s: float = 0.0) -> dict[str, float]:
+    """CPU seconds per process at the end of the run ("uav1/mapper", "sim/simulator", "launcher",
+    "forkserver"); a restarted service counts from its restart. A service forked from the fork
+    server counts from its fork: the libraries it shares were loaded once, in the fork server's
+    figure."""
     cpu = {f"{h.uav}/{h.service}": round(h.cpu_time, 2) for h in usage}
     cpu["launcher"] = round(launcher_cpu_s, 2)
+    if forkserver_cpu_s:
+        cpu["forkserver"] = round(forkserver_cpu_s, 2)
     return cpu
 
 

@@ -7,22 +7,17 @@ once and then with back-off (RESTART_BACKOFF_S doubling per restart within the w
 RESTART_BACKOFF_MAX_S), so a child that cannot start does not spin; after MAX_RESTARTS
 restarts within RESTART_WINDOW_S the child is given up on.
 
-Children are separate interpreters started with subprocess (exec, never a bare fork of
-this process: Zenoh is not fork-safe), each in its own session so a terminal Ctrl-C
-reaches only the launcher, which then shuts them down in order.
+Children are separate processes, never a fork of this one (it holds Zenoh, which is not
+fork-safe), each in its own session so a terminal Ctrl-C reaches only the launcher, which then
+shuts them down in order.
 
-Spares: a service started as `python -m services.launcher.run_service` (not one wrapped into a
-network namespace) is restarted in one of SPARES interpreters that have loaded the libraries the
-services load (services/launcher/spare.py), when one is ready, so that the restart costs the
-service's own start-up only; otherwise in a fresh interpreter. Spares are started SPARE_AFTER_S
-after the last first start (out of the launch's way), replaced SPARE_AGAIN_S after one is used
-(once the restarted service has had the CPU for its start), and given up on after
-MAX_SPARE_FAILURES of them exited unused (each failure doubles the wait for the next).
+Warm starts: a service started as `python -m services.launcher.run_service` (or that wrapped into a
+network namespace by `ip netns exec`) is forked from the run's fork server (services/launcher/forkserver.py), an
+interpreter that loaded the services' libraries once, so that neither the launch nor a restart pays
+them again; a fresh interpreter when the server cannot fork it (gone, or no subreaper here).
 """
 from __future__ import annotations
 
-import contextlib
-import json
 import os
 import signal
 import subprocess
@@ -32,7 +27,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
-from services.launcher.spare import READY_LINE
+from services.launcher.forkserver import ForkServer
 from services.runtime.errors import RUNTIME_FAILURE, USAGE_ERROR
 
 MAX_RESTARTS = 5  # within RESTART_WINDOW_S; beyond that the service is given up on
@@ -41,17 +36,7 @@ RESTART_WINDOW_S = 60.0
 # the n-th waits RESTART_BACKOFF_S * 2**(n-2), at most RESTART_BACKOFF_MAX_S: 0, 0.5, 1, 2, 4 s.
 RESTART_BACKOFF_S = 0.5
 RESTART_BACKOFF_MAX_S = 5.0
-SERVICE_MODULE = "services.launcher.run_service"  # a child run as `python -m` this can be restarted in a spare
-SPARES = 2  # the second covers a crash that follows another while the first one's replacement loads
-SPARE_AFTER_S = 5.0  # after the last first start
-SPARE_AGAIN_S = 1.0  # after a spare became a service
-MAX_SPARE_FAILURES = 3
-
-
-@dataclass
-class Spare:
-    process: subprocess.Popen
-    ready: threading.Event = field(default_factory=threading.Event)  # it printed READY_LINE
+SERVICE_MODULE = "services.launcher.run_service"  # a child run as `python -m` this is forked from the fork server
 
 
 @dataclass
@@ -81,9 +66,8 @@ class Supervisor:
         self._on_restart = on_restart
         self._log = log_file
         self.width = 10
-        self._spares: list[Spare] = []
-        self._spares_due = time.monotonic() + SPARE_AFTER_S
-        self._spare_failures = 0
+        self._forkserver: ForkServer | None = None  # started with the first service it can fork
+        self.forkserver_cpu_s = 0.0  # the fork server's CPU seconds (the libraries' load), read at its stop
 
     def start(self, name: str, argv: list[str], restart: bool = True) -> None:
         child = self.children.setdefault(name, Child(name, argv, restart=restart))
@@ -91,16 +75,9 @@ class Supervisor:
         self._spawn(child)
 
     def _spawn(self, child: Child) -> None:
-        args = _service_args(child.argv)
-        spare = self._take_spare() if child.restarts and args is not None else None
-        if spare is not None and _hand_over(spare, args):
-            child.process = spare
-            self._spares_due = time.monotonic() + SPARE_AGAIN_S
-            self.say(f"restarting {child.name} in a spare, pid {spare.pid}")
-        else:
-            child.process = _popen(child.argv, subprocess.DEVNULL)
-            if not child.restarts:  # a first start: the launch goes on
-                self._spares_due = max(self._spares_due, time.monotonic() + SPARE_AFTER_S)
+        start = _service_start(child.argv)
+        forked = self._fork(child.argv, start) if start is not None else None
+        child.process = forked or _popen(child.argv, subprocess.DEVNULL)
         child.started = time.monotonic()
         child.restart_at = child.exit_code = None
         child.reader = threading.Thread(target=self._pump_output, args=(child, child.process), daemon=True)
@@ -121,10 +98,9 @@ class Supervisor:
 
     def poll(self) -> None:
         """Restart children that exited while the run is still going (call it often: a restart
-        that waits out its back-off happens in a later call), and keep the spares ready."""
+        that waits out its back-off happens in a later call)."""
         if self._stopping:
             return
-        self._keep_spares()
         for child in self.children.values():
             if child.failed or child.held or child.process is None or child.process.poll() is None:
                 continue
@@ -139,45 +115,27 @@ class Supervisor:
                 if self._on_restart:
                     self._on_restart(child.name, code, now)
 
+    def _fork(self, argv: list[str], start: ServiceStart):
+        """The service forked from the run's fork server (started with the first one), or None."""
+        if self._forkserver is None:
+            self._forkserver = ForkServer(self._start_forkserver)
+        if not self._forkserver.available:
+            return None
+        process = self._forkserver.start(start.args, " ".join(argv), start.namespace)
+        if process is None:
+            self.say("the fork server could not start a service (its output is above); services start "
+                     "as fresh interpreters from now on")
+        return process
+
+    def _start_forkserver(self, argv: list[str], pass_fds: tuple[int, ...]) -> subprocess.Popen:
+        process = _popen(argv, subprocess.DEVNULL, pass_fds)
+        threading.Thread(target=self._pump_output, args=(Child("forkserver", argv), process), daemon=True).start()
+        return process
+
     @property
-    def ready_spares(self) -> list[int]:
-        """The pids of the spares ready to become a restarted service, oldest first."""
-        return [s.process.pid for s in self._spares if s.ready.is_set() and s.process.poll() is None]
-
-    def _take_spare(self) -> subprocess.Popen | None:
-        """The oldest ready spare, or None (one still loading would start the service later than a
-        fresh interpreter: it loads more than a service needs before its token)."""
-        for spare in self._spares:
-            if spare.ready.is_set() and spare.process.poll() is None:
-                self._spares.remove(spare)
-                return spare.process
-        return None
-
-    def _keep_spares(self) -> None:
-        now = time.monotonic()
-        for spare in [s for s in self._spares if s.process.poll() is not None]:
-            self._spares.remove(spare)
-            self._spare_failures += 1
-            self._spares_due = now + SPARE_AFTER_S * 2 ** self._spare_failures
-            self.say(f"a spare interpreter exited unused ({describe_exit(spare.process.returncode)})"
-                     + ("; no more spares: restarts start fresh interpreters"
-                        if self._spare_failures == MAX_SPARE_FAILURES else ""))
-        if len(self._spares) >= SPARES or now < self._spares_due or self._spare_failures >= MAX_SPARE_FAILURES:
-            return
-        endpoints = sorted({a for c in self.children.values() for a in _endpoints(_service_args(c.argv) or [])})
-        if any(_service_args(c.argv) is not None for c in self.children.values()):
-            spare = Spare(_popen([sys.executable, "-m", "services.launcher.spare", "--", *endpoints], subprocess.PIPE))
-            threading.Thread(target=self._await_ready, args=(spare,), daemon=True).start()
-            self._spares.append(spare)
-
-    def _await_ready(self, spare: Spare) -> None:
-        """Read a spare's output until it is ready (anything else it says goes to the log); after
-        that its output is the service's, read by _pump_output."""
-        for line in iter(spare.process.stdout.readline, ""):
-            if line.rstrip("\n") == READY_LINE:
-                spare.ready.set()
-                return
-            self.say(line.rstrip("\n"), f"spare {spare.process.pid}")
+    def forkserver_pid(self) -> int | None:
+        server = self._forkserver
+        return server.process.pid if server is not None and server.process is not None else None
 
     def _exited(self, child: Child, code: int, now: float) -> None:
         """Decide what a child's exit means: given up on, or to be restarted (at once or later)."""
@@ -232,11 +190,6 @@ class Supervisor:
         `after_first` runs once they are gone (the simulator, whose end the services should see);
         those named in `last` after all others (a viewer that still has to write what it received)."""
         self._stopping = True
-        for spare in self._spares:  # first: one still loading would take CPU from the children's stop
-            _signal_group(spare.process, signal.SIGKILL)
-            spare.process.wait()
-            spare.process.stdin.close()
-        self._spares = []
         first = {name: g for name, g in (first or {}).items() if name in self.children}
         last = {name: g for name, g in (last or {}).items() if name in self.children and name not in first}
         killed = []
@@ -247,11 +200,25 @@ class Supervisor:
         killed += self._stop([c for c in self.children.values() if c.name not in last and c.name not in first], grace)
         for name, late_grace in last.items():
             killed += self._stop([self.children[name]], late_grace)
+        self._stop_forkserver()
         for child in self.children.values():
             if child.reader:
                 child.reader.join(timeout=1.0)
         self._log = None  # the caller owns the file
         return killed
+
+    def _stop_forkserver(self) -> None:
+        """End the fork server (it exits when its channel closes), killed if it lingers."""
+        server = self._forkserver
+        if server is None or server.process is None:
+            return
+        self.forkserver_cpu_s = process_cpu_seconds(server.process.pid)
+        server.close()
+        try:
+            server.process.wait(timeout=2.0)
+        except subprocess.TimeoutExpired:
+            _signal_group(server.process, signal.SIGKILL)
+            server.process.wait()
 
     def _stop(self, children: list[Child], grace: float) -> list[str]:
         running = [c for c in children if c.process and c.process.poll() is None]
@@ -274,39 +241,29 @@ class Supervisor:
         return killed
 
 
-def _popen(argv: list[str], stdin) -> subprocess.Popen:
+def _popen(argv: list[str], stdin, pass_fds: tuple[int, ...] = ()) -> subprocess.Popen:
     return subprocess.Popen(
         argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=stdin, start_new_session=True,
-        env=dict(os.environ, PYTHONUNBUFFERED="1"), text=True, bufsize=1, errors="replace",
+        env=dict(os.environ, PYTHONUNBUFFERED="1"), text=True, bufsize=1, errors="replace", pass_fds=pass_fds,
     )
 
 
-def _hand_over(spare: subprocess.Popen, args: list[str]) -> bool:
-    """Tell a spare which service to become; False if it died meanwhile."""
-    try:
-        spare.stdin.write(json.dumps(args) + "\n")
-        spare.stdin.close()
-    except OSError:  # BrokenPipeError: it died since it was ready
-        _signal_group(spare, signal.SIGKILL)
-        spare.wait()
-        for pipe in (spare.stdin, spare.stdout):
-            with contextlib.suppress(OSError):
-                pipe.close()
-        return False
-    return True
+@dataclass(frozen=True)
+class ServiceStart:
+    """A child the fork server can start: run_service's arguments, in a network namespace or not."""
+    args: list[str]
+    namespace: str | None = None
 
 
-def _service_args(argv: list[str]) -> list[str] | None:
-    """The arguments of a child started as `python -m services.launcher.run_service ...` by this
-    interpreter (not wrapped into a network namespace), else None."""
+def _service_start(argv: list[str]) -> ServiceStart | None:
+    """How to fork a child started as `python -m services.launcher.run_service ...` by this
+    interpreter, directly or as `ip netns exec NAMESPACE python -m ...`; None for any other."""
+    namespace = None
+    if len(argv) >= 4 and argv[:3] == ["ip", "netns", "exec"]:
+        namespace, argv = argv[3], argv[4:]
     if len(argv) >= 3 and argv[0] == sys.executable and argv[1:3] == ["-m", SERVICE_MODULE]:
-        return argv[3:]
+        return ServiceStart(argv[3:], namespace)
     return None
-
-
-def _endpoints(args: list[str]) -> list[str]:
-    """The Zenoh endpoints a service's arguments name (after --connect or --listen)."""
-    return [value for option, value in zip(args, args[1:]) if option in ("--connect", "--listen")]
 
 
 def _signal_group(process: subprocess.Popen, sig: int) -> None:
@@ -314,6 +271,15 @@ def _signal_group(process: subprocess.Popen, sig: int) -> None:
         os.killpg(process.pid, sig)
     except (ProcessLookupError, PermissionError):
         pass
+
+
+def process_cpu_seconds(pid: int) -> float:
+    """User and system CPU seconds of a running process (/proc/PID/stat); 0 if it is gone."""
+    try:
+        fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    except OSError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def restart_delay(recent_restarts: int) -> float:

@@ -31,10 +31,13 @@ def join_run(port: int, gossip_connect: bool = True):
 
 
 def processes_mentioning(text: str) -> list[int]:
+    """The processes whose command line holds `text`, arguments read as separated by spaces: an
+    exec'd process separates them by NULs, a service forked from the fork server (its process title)
+    by spaces."""
     pids = []
     for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
         try:
-            if text.encode() in cmdline.read_bytes():
+            if text.encode() in cmdline.read_bytes().replace(b"\0", b" "):
                 pids.append(int(cmdline.parent.name))
         except OSError:
             pass

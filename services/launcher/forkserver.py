@@ -1,0 +1,337 @@
+"""The warm start of a run's services: one interpreter loads the libraries, every service is a fork of it.
+
+A run is about 17 processes. A fresh interpreter spends 1.5-3 CPU-s on a 2-core KVM guest before
+a service's first message: `import numba` 0.4 s, numba's first compiled call 0.7 s (the CPU target's
+registries, and the scipy.linalg its BLAS check imports), filterpy with scipy.stats 1.6 s,
+scipy.ndimage, OpenCV, numpy. Started that way, a 2-UAV run spends about 45 CPU-s on a 2 s mission,
+nearly all of it these imports, and every test that flies a fleet pays it again. The fork server
+pays it once per run (`preload`), then forks each service: a service is up in a fraction of a
+second, and a crashed one is back as fast.
+
+Why a fork is safe here: the server never opens a Zenoh session (the zenoh module is imported, but
+its runtime starts with the first session, in the service), starts no thread of its own, and forks
+from its main thread. The threads the libraries start at import (the BLAS thread pools of numpy and
+scipy, OpenCV's) are idle pools, none of which a fork inherits; OpenBLAS builds its pool again in
+the child (pthread_atfork), as in every numpy program forked by multiprocessing, and the camera and
+Object Detect run OpenCV in forks in every run. The launcher itself never forks: it holds Zenoh.
+
+The protocol, over a SOCK_SEQPACKET socket pair (one message each way per service):
+- launcher → server: JSON {"argv": the service's run_service arguments, "title": its command
+  line, "netns": the network namespace to run it in (`ip netns exec`'s NAME) or null} with one
+  file descriptor, the write end of the pipe that becomes the service's stdout and stderr;
+- server → launcher: JSON {"pid": N} or {"error": "..."}.
+
+The server forks twice: the intermediate child forks the service and exits at once, so the service
+is adopted by the launcher, which is a child subreaper (`become_subreaper`). The launcher is then
+the service's parent as with `subprocess`: it reaps it and reads its exit status
+(`ForkedProcess`), and the service's `--exit-with-parent` watches the launcher. A service stays a
+service if the server dies; the launcher then starts the next ones as fresh interpreters.
+
+Each service gets its own session (setsid, so the launcher's process-group signals reach it and its
+children alone), stdin from /dev/null, and its command line as its process title (setproctitle), so
+`ps` and /proc/PID/cmdline name it as if it had been exec'd (arguments separated by spaces).
+"""
+from __future__ import annotations
+
+import atexit
+import contextlib
+import ctypes
+import gc
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import traceback
+from typing import IO
+
+MESSAGE_MAX = 65536  # bytes of one request or reply
+REPLY_TIMEOUT_S = 120.0  # the first reply waits for the preload: seconds on a busy 2-core machine
+PR_SET_CHILD_SUBREAPER = 36  # linux/prctl.h
+CLONE_NEWNET = 0x40000000  # linux/sched.h: setns into a network namespace
+NETNS_DIR = "/run/netns"  # where `ip netns add` names its namespaces
+
+
+def preload() -> None:
+    """Import what the services import before they serve, and start numba's compiler, so that
+    every fork starts with it loaded."""
+    import cv2  # noqa: F401  (camera, object_detect)
+    import filterpy.kalman  # noqa: F401  (job_manager; with scipy.stats, which the classifier needs too)
+    import numba
+    import scipy.ndimage  # noqa: F401  (planner)
+    import scipy.stats  # noqa: F401  (classifier)
+
+    import services.launcher.run_service  # noqa: F401  (numpy, msgspec, the zenoh module, the schemas)
+    from schemas import keys
+    from services.launcher.registry import node_class
+
+    for service in (*keys.SIM_SERVICES, *keys.UAV_SERVICES, *keys.CAMERA_SERVICES):
+        node_class(service)  # the node's module and its core's (numba dispatchers included)
+    numba.njit(lambda x: x + 1)(1)  # numba's compiler started: its registries and LLVM loaded
+
+
+def load_service(argv: list[str]) -> None:
+    """Import the modules of the service that run_service's `argv` names, if they are not yet: the
+    optional ones (the oracle, the localizer with GTSAM) load once, at their first fork, for all the
+    UAVs. A name that is no service is left to the service's own start to report."""
+    from schemas import keys
+    from services.launcher.registry import node_class
+
+    service = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "run"), None)
+    if service in keys.SERVICES:
+        node_class(service)
+
+
+# ---------------------------------------------------------------- the server (its own process)
+
+def serve(channel: socket.socket) -> int:
+    preload()
+    gc.freeze()  # what the preload made stays out of every fork's collections: fewer pages copied
+    while True:
+        try:
+            message, fds, _, _ = socket.recv_fds(channel, MESSAGE_MAX, 1)
+        except ConnectionError:
+            return 0
+        if not message:  # the launcher closed its end: the run is over
+            return 0
+        reply = _fork_service(channel, message, fds)
+        for fd in fds:
+            os.close(fd)
+        try:
+            channel.send(json.dumps(reply).encode())
+        except (BrokenPipeError, ConnectionError):
+            return 0
+
+
+def _fork_service(channel: socket.socket, message: bytes, fds: list[int]) -> dict:
+    try:
+        request = json.loads(message)
+        argv, title, namespace = request["argv"], request["title"], request.get("netns")
+    except (ValueError, KeyError, TypeError) as error:
+        return {"error": f"a request that is not {{argv, title}} JSON: {error}"}
+    if len(fds) != 1 or not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
+        return {"error": "a request needs one file descriptor and a list of string arguments"}
+    if namespace is not None and (not isinstance(namespace, str) or not namespace or "/" in namespace):
+        return {"error": f"not a network namespace's name: {namespace!r}"}
+    try:
+        load_service(argv)
+    except Exception as error:  # noqa: BLE001  (the fork reports it again, as its own start would)
+        print(f"forkserver: loading the service of {' '.join(argv)} failed: {error}", file=sys.stderr)
+    launcher = os.getppid()  # the service's parent once the intermediate is gone
+    read_pid, write_pid = os.pipe()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    intermediate = os.fork()
+    if intermediate == 0:  # the intermediate: forks the service, tells its pid, and exits
+        try:
+            os.close(read_pid)
+            service = os.fork()
+            if service == 0:
+                os.close(write_pid)
+                _become_service(argv, title, namespace, fds[0], channel, launcher)
+            os.write(write_pid, str(service).encode())
+        finally:
+            os._exit(0)
+    os.close(write_pid)
+    with os.fdopen(read_pid, "rb") as pipe:
+        answer = pipe.read()
+    os.waitpid(intermediate, 0)
+    return {"pid": int(answer)} if answer else {"error": "the intermediate process could not fork"}
+
+
+def _become_service(argv: list[str], title: str, namespace: str | None, out_fd: int,
+                    channel: socket.socket, launcher: int) -> None:
+    """In the service's process: detach from the server, then run the service; never returns."""
+    code = 1
+    try:
+        intermediate = os.getppid()
+        channel.close()
+        os.setsid()
+        if namespace is not None:
+            _enter_network_namespace(namespace)
+        null = os.open(os.devnull, os.O_RDONLY)
+        os.dup2(null, 0)
+        os.close(null)
+        os.dup2(out_fd, 1)
+        os.dup2(out_fd, 2)
+        os.close(out_fd)
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # an interpreter's own, whatever the server's
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        import setproctitle
+        setproctitle.setproctitle(title)
+        sys.argv = title.split(" ")
+        # until the intermediate has exited and the launcher adopted this process, its parent is
+        # not the one --exit-with-parent is to watch
+        while os.getppid() == intermediate:
+            time.sleep(0.001)
+        if os.getppid() != launcher:  # the launcher died meanwhile: nobody is to supervise it
+            code = 0
+            return
+        from services.launcher.run_service import main
+
+        code = _exit_code(main, argv)
+    except BaseException:  # noqa: BLE001  (the service's own errors are handled in _exit_code)
+        traceback.print_exc()
+    finally:
+        with contextlib.suppress(BaseException):
+            atexit._run_exitfuncs()  # what a normal interpreter exit runs (logging's flush, ...)
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code)
+
+
+def _enter_network_namespace(name: str) -> None:
+    """What `ip netns exec NAME` does for the network: this process (one thread yet, so every thread
+    it starts too) joins the namespace. Its mount namespace stays the host's: the services read no
+    /sys nor /etc/netns."""
+    fd = os.open(os.path.join(NETNS_DIR, name), os.O_RDONLY)
+    try:
+        if ctypes.CDLL(None, use_errno=True).setns(fd, CLONE_NEWNET) != 0:
+            error = ctypes.get_errno()
+            raise OSError(error, f"cannot enter network namespace {name}: {os.strerror(error)}")
+    finally:
+        os.close(fd)
+
+
+def _exit_code(main, argv: list[str]) -> int:
+    """The exit status `python -m services.launcher.run_service ARGV` would have ended with."""
+    try:
+        result = main(argv)
+    except SystemExit as stop:
+        result = stop.code
+    except KeyboardInterrupt:
+        return 128 + signal.SIGINT
+    except BaseException:  # noqa: BLE001
+        traceback.print_exc()
+        return 1
+    if result is None:
+        return 0
+    if isinstance(result, int):
+        return result
+    print(result, file=sys.stderr)
+    return 1
+
+
+def main() -> int:
+    if len(sys.argv) != 2 or not sys.argv[1].isdigit():
+        print("usage: python -m services.launcher.forkserver FD (started by the launcher)", file=sys.stderr)
+        return 2
+    return serve(socket.socket(fileno=int(sys.argv[1])))
+
+
+# ---------------------------------------------------------------- the launcher's side
+
+def become_subreaper() -> bool:
+    """Make this process adopt its descendants that lose their parent (prctl
+    PR_SET_CHILD_SUBREAPER), as the fork server's services do; False where it cannot."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) == 0
+    except (OSError, AttributeError):
+        return False
+
+
+class ForkedProcess:
+    """A service forked by the server and adopted by this process: the part of subprocess.Popen
+    the supervisor uses (pid, stdout, poll, wait, returncode)."""
+
+    def __init__(self, pid: int, stdout: IO[str], args: list[str]) -> None:
+        self.pid = pid
+        self.stdout = stdout
+        self.stdin = None
+        self.args = args
+        self.returncode: int | None = None
+        self._lock = threading.Lock()
+
+    def poll(self) -> int | None:
+        with self._lock:
+            if self.returncode is None:
+                try:
+                    pid, status = os.waitpid(self.pid, os.WNOHANG)
+                except ChildProcessError:  # not ours to reap (no subreaper): gone is all we know
+                    self.returncode = 255 if not _alive(self.pid) else None
+                else:
+                    if pid == self.pid:
+                        self.returncode = os.waitstatus_to_exitcode(status)
+            return self.returncode
+
+    def wait(self, timeout: float | None = None) -> int:
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while self.poll() is None:
+            if deadline is not None and time.monotonic() >= deadline:
+                raise subprocess.TimeoutExpired(self.args, timeout)
+            time.sleep(0.005)
+        return self.returncode
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class ForkServer:
+    """The launcher's handle on a fork server: `start` forks a service from it; None when the
+    server is not there (not started, died, or the platform has no subreaper): start it fresh."""
+
+    def __init__(self, popen) -> None:
+        """popen(argv, pass_fds) starts a child the way the supervisor starts any (its output read
+        into the run's log)."""
+        self.process = None
+        self._channel: socket.socket | None = None
+        self._lock = threading.Lock()
+        if not become_subreaper():
+            return
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+        with theirs:
+            self.process = popen([sys.executable, "-m", __name__, str(theirs.fileno())], (theirs.fileno(),))
+        ours.settimeout(REPLY_TIMEOUT_S)
+        self._channel = ours
+
+    @property
+    def available(self) -> bool:
+        return self._channel is not None
+
+    def start(self, argv: list[str], title: str, namespace: str | None = None) -> ForkedProcess | None:
+        """The service `python -m services.launcher.run_service ARGV`, forked (into the network
+        namespace `namespace`, if given); None if the server cannot (it is then closed)."""
+        with self._lock:
+            if self._channel is None:
+                return None
+            read_end, write_end = os.pipe()
+            try:
+                request = {"argv": argv, "title": title, "netns": namespace}
+                socket.send_fds(self._channel, [json.dumps(request).encode()], [write_end])
+                reply = json.loads(self._channel.recv(MESSAGE_MAX) or b"{}")
+            except (OSError, ValueError):  # it died, or did not answer in time
+                reply = {}
+            finally:
+                os.close(write_end)
+            if "pid" not in reply:
+                os.close(read_end)
+                self._close_locked()
+                return None
+            stdout = open(read_end, "r", buffering=1, errors="replace")  # noqa: SIM115  (the supervisor closes it)
+            return ForkedProcess(reply["pid"], stdout, [title])
+
+    def close(self) -> None:
+        with self._lock:
+            self._close_locked()
+
+    def _close_locked(self) -> None:
+        if self._channel is not None:
+            self._channel.close()  # the server sees the end and exits
+            self._channel = None
+
+
+if __name__ == "__main__":
+    sys.exit(main())
