@@ -128,10 +128,11 @@ def _fork_service(channel: socket.socket, message: bytes, fds: list[int]) -> dic
     if intermediate == 0:  # the intermediate: forks the service, tells its pid, and exits
         try:
             os.close(read_pid)
+            forker = os.getpid()
             service = os.fork()
             if service == 0:
                 os.close(write_pid)
-                _become_service(argv, title, namespace, fds[0], channel, launcher)
+                _become_service(argv, title, namespace, fds[0], channel, forker, launcher)
             os.write(write_pid, str(service).encode())
         finally:
             os._exit(0)
@@ -143,11 +144,12 @@ def _fork_service(channel: socket.socket, message: bytes, fds: list[int]) -> dic
 
 
 def _become_service(argv: list[str], title: str, namespace: str | None, out_fd: int,
-                    channel: socket.socket, launcher: int) -> None:
-    """In the service's process: detach from the server, then run the service; never returns."""
+                    channel: socket.socket, intermediate: int, launcher: int) -> None:
+    """In the service's process: detach from the server, then run the service; never returns.
+    `intermediate` is the process that forked this one (not os.getppid() here: it may have exited
+    before this process first ran), `launcher` the server's parent, which adopts this one then."""
     code = 1
     try:
-        intermediate = os.getppid()
         channel.close()
         os.setsid()
         if namespace is not None:
