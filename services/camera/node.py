@@ -36,6 +36,12 @@ class CameraNode(Node):
     upstream = ()
     params_type = CameraParams
 
+    @classmethod
+    def preload(cls) -> None:
+        warm = Camera(CameraParams(width=16, height=16), np.random.default_rng(0))  # the kernels' types are any size's
+        warm.render(pack(Primitives(planes=[-1.0])), Appearance(), np.zeros(3), np.eye(3), np.ones(3),
+                    np.random.default_rng(0))
+
     def setup(self) -> None:
         p: CameraParams = self.params
         self.period_ns = max(1, int(round(1e9 / p.rate_hz)))
@@ -54,9 +60,7 @@ class CameraNode(Node):
         self.last_preview_ns: int | None = None
         self._unposed = 0
         self._bad_input = CountedWarnings(self.log)
-        warm = Camera(CameraParams(width=16, height=16), np.random.default_rng(0))  # compile now, before the token
-        warm.render(pack(Primitives(planes=[-1.0])), Appearance(), np.zeros(3), np.eye(3), np.ones(3),
-                    np.random.default_rng(0))
+        self.preload()  # compiled now, before the token: the first frame must not stall a lockstep tick
         self.frame_pub = self.publisher(self.topic("camera"), CameraFrame)
         self.preview_pub = self.publisher(self.topic("camera_jpeg"), CompressedFrame)
         self.subscribe(keys.WORLD, WorldModel, self.on_world)

@@ -25,6 +25,10 @@ class ClassifierNode(Node):
     upstream = ("sensor_driver",)
     params_type = ClassifierParams
 
+    @classmethod
+    def preload(cls) -> None:
+        warm_up(ClassifierParams())
+
     def setup(self) -> None:
         self.import_when_up("scipy.stats")  # p_hit's Gaussian CDF, after the token
         warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick

@@ -55,9 +55,9 @@ CLONE_NEWNET = 0x40000000  # linux/sched.h: setns into a network namespace
 NETNS_DIR = "/run/netns"  # where `ip netns add` names its namespaces
 
 
-def preload() -> None:
-    """Import what the services import before they serve, and start numba's compiler, so that
-    every fork starts with it loaded."""
+def preload(loaded: set[str]) -> None:
+    """Import what the services import before they serve, start numba's compiler, and load the
+    services every run has (`load`), so that every fork starts with it done."""
     import cv2  # noqa: F401  (camera, object_detect)
     import filterpy.kalman  # noqa: F401  (job_manager; with scipy.stats, which the classifier needs too)
     import numba
@@ -66,29 +66,39 @@ def preload() -> None:
 
     import services.launcher.run_service  # noqa: F401  (numpy, msgspec, the zenoh module, the schemas)
     from schemas import keys
-    from services.launcher.registry import node_class
 
-    for service in (*keys.SIM_SERVICES, *keys.UAV_SERVICES, *keys.CAMERA_SERVICES):
-        node_class(service)  # the node's module and its core's (numba dispatchers included)
     numba.njit(lambda x: x + 1)(1)  # numba's compiler started: its registries and LLVM loaded
+    for service in (*keys.SIM_SERVICES, *keys.UAV_SERVICES, *keys.CAMERA_SERVICES):
+        load(service, loaded)
 
 
-def load_service(argv: list[str]) -> None:
-    """Import the modules of the service that run_service's `argv` names, if they are not yet: the
-    optional ones (the oracle, the localizer with GTSAM) load once, at their first fork, for all the
-    UAVs. A name that is no service is left to the service's own start to report."""
+def load_service(argv: list[str], loaded: set[str]) -> None:
+    """Load the service that run_service's `argv` names, if it is not yet: the optional ones (the
+    oracle, the localizer with GTSAM) load once, at their first fork, for all the UAVs. A name
+    that is no service is left to the service's own start to report."""
     from schemas import keys
-    from services.launcher.registry import node_class
 
     service = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "run"), None)
     if service in keys.SERVICES:
-        node_class(service)
+        load(service, loaded)
+
+
+def load(service: str, loaded: set[str]) -> None:
+    """A service's modules imported and its kernels warmed up (Node.preload), unless it is in
+    `loaded` already: a kernel compiled here is compiled for every fork, and numba's cache on disk
+    is written once, not by each fork at the same time."""
+    from services.launcher.registry import node_class
+
+    if service not in loaded:
+        node_class(service).preload()
+        loaded.add(service)
 
 
 # ---------------------------------------------------------------- the server (its own process)
 
 def serve(channel: socket.socket) -> int:
-    preload()
+    loaded: set[str] = set()
+    preload(loaded)
     gc.freeze()  # what the preload made stays out of every fork's collections: fewer pages copied
     while True:
         try:
@@ -97,7 +107,7 @@ def serve(channel: socket.socket) -> int:
             return 0
         if not message:  # the launcher closed its end: the run is over
             return 0
-        reply = _fork_service(channel, message, fds)
+        reply = _fork_service(channel, message, fds, loaded)
         for fd in fds:
             os.close(fd)
         try:
@@ -106,7 +116,7 @@ def serve(channel: socket.socket) -> int:
             return 0
 
 
-def _fork_service(channel: socket.socket, message: bytes, fds: list[int]) -> dict:
+def _fork_service(channel: socket.socket, message: bytes, fds: list[int], loaded: set[str]) -> dict:
     try:
         request = json.loads(message)
         argv, title, namespace = request["argv"], request["title"], request.get("netns")
@@ -117,7 +127,7 @@ def _fork_service(channel: socket.socket, message: bytes, fds: list[int]) -> dic
     if namespace is not None and (not isinstance(namespace, str) or not namespace or "/" in namespace):
         return {"error": f"not a network namespace's name: {namespace!r}"}
     try:
-        load_service(argv)
+        load_service(argv, loaded)
     except Exception as error:  # noqa: BLE001  (the fork reports it again, as its own start would)
         print(f"forkserver: loading the service of {' '.join(argv)} failed: {error}", file=sys.stderr)
     launcher = os.getppid()  # the service's parent once the intermediate is gone

@@ -67,6 +67,10 @@ class LocalizerNode(Node):
     upstream = ("sensor_driver",)
     params_type = LocalizerParams
 
+    @classmethod
+    def preload(cls) -> None:
+        warm_up(LocalizerParams())
+
     def setup(self) -> None:
         warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.core = Localizer(self.params)

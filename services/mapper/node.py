@@ -28,6 +28,10 @@ class MapperNode(Node):
     upstream = ("sensor_driver", "classifier", "oracle")  # whichever labels the scans
     params_type = MapperParams
 
+    @classmethod
+    def preload(cls) -> None:
+        warm_up(MapperParams())
+
     def setup(self) -> None:
         warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.core = MapperCore(self.params)

@@ -25,6 +25,10 @@ class OracleNode(Node):
     upstream = ("sensor_driver",)
     params_type = OracleParams
 
+    @classmethod
+    def preload(cls) -> None:
+        warm_up()
+
     def setup(self) -> None:
         warm_up()  # compiled before the liveliness token: the first scan must not stall a tick
         self.pairs = ScanPairs()

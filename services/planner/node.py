@@ -61,6 +61,10 @@ class PlannerNode(Node):
     upstream = ("job_manager",)
     params_type = PlannerParams
 
+    @classmethod
+    def preload(cls) -> None:
+        warm_up(PlannerParams())
+
     def setup(self) -> None:
         warm_up(self.params)  # compiled now, before the liveliness token: the first plan must not stall a tick
         self.import_when_up("scipy.ndimage")  # the geofence's distance transform, once the arena is known

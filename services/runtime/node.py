@@ -288,6 +288,14 @@ class Node:
     def _handle_signal(self, signum, frame) -> None:
         self.stop()
 
+    @classmethod
+    def preload(cls) -> None:
+        """What every process of this service does before its first message whatever its
+        parameters: load or compile its kernels, warmed up with the default parameters (whose
+        types are any run's). The launcher's fork server calls it once for all the service's forks
+        (services/launcher/forkserver.py); `setup` still warms up with the run's own parameters,
+        and finds the kernels ready. Nothing by default."""
+
     # ---------------------------------------------------------------- run
     def run(self) -> int:
         """Serve until stopped (SIGTERM/SIGINT, stop(), or the parent process dying).

@@ -32,7 +32,7 @@ from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import FaultCommand, GroundTruth, Header, Odometry, PointCloud, PointTruth, Pose, WorldModel
 from services.geometry import heading_quaternion, yaw_of
-from services.lidar.models import lidar_model
+from services.lidar.models import LidarModel, lidar_model
 from services.lidar.rays import body_mask, pack_mask, unpack_mask
 from services.lidar.sanity import SanityLimits, ScanSanity, scan_figures
 from services.runtime.counted import CountedWarnings
@@ -52,10 +52,25 @@ from services.sensor_driver.faults import faulty_scan, lidar_faults
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
 
 
+def warm_up(params: SensorDriverParams, model: LidarModel) -> None:
+    """Run the scan's kernels once on an empty world (compiled, or loaded from numba's cache)."""
+    min_range, max_range = params.min_range or model.min_range, params.max_range or model.max_range
+    scan(np.zeros(3), 0.0, model.directions(0), Primitives(planes=[-1.0]), np.random.default_rng(0),
+         min_range=min_range, max_range=max_range, range_noise=params.range_noise,
+         position_noise=params.position_noise, attitude_noise=params.attitude_noise, body_box=params.body_box,
+         intensity=params.intensity)
+    scan_figures(np.zeros((1, 3), np.float32), np.zeros(3), min_range, max_range)  # float32 as scans
+
+
 class SensorDriverNode(Node):
     service = "sensor_driver"
     upstream = ()
     params_type = SensorDriverParams
+
+    @classmethod
+    def preload(cls) -> None:
+        params = SensorDriverParams()
+        warm_up(params, lidar_model(FALLBACK_MODEL, params.rate_hz))
 
     def setup(self) -> None:
         p: SensorDriverParams = self.params
@@ -74,9 +89,7 @@ class SensorDriverNode(Node):
         self.sanity = ScanSanity(SanityLimits(max_return_share=p.max_return_share)) if p.sanity_checks else None
         self._unposed = 0
         self._bad_input = CountedWarnings(self.log)
-        self._scan(np.zeros(3), 0.0, Primitives(planes=[-1.0]), np.random.default_rng(0))  # compile now,
-        # before the liveliness token: the first scan of a run must not stall a lockstep tick
-        scan_figures(np.zeros((1, 3), np.float32), np.zeros(3), self.min_range, self.max_range)  # float32 as scans
+        warm_up(p, self.model)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.points_pub = self.publisher(self.topic("points"), PointCloud)
         self.truth_pub = self.publisher(self.topic("points_truth"), PointTruth)
         self.subscribe(keys.WORLD, WorldModel, self.on_world)

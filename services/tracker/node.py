@@ -42,6 +42,10 @@ class TrackerNode(Node):
     upstream = ("sensor_driver", "classifier", keys.ORACLE)  # the scans and whichever detector runs
     params_type = TrackerParams
 
+    @classmethod
+    def preload(cls) -> None:
+        warm_up(TrackerParams())
+
     def setup(self) -> None:
         warm_up(self.params)  # compiled now, before the liveliness token: the first scan must not stall a tick
         self.core = TrackerCore(self.params)
