@@ -6,7 +6,7 @@ import os
 import signal
 import subprocess
 import sys
-import time
+import threading
 
 import pytest
 
@@ -17,29 +17,30 @@ from services.runtime import shm
 
 @pytest.fixture
 def server():
-    forks = ForkServer(lambda argv, pass_fds: _popen(argv, subprocess.DEVNULL, pass_fds))
+    said: list[str] = []
+    forks = ForkServer(lambda argv, pass_fds: _popen(argv, subprocess.DEVNULL, pass_fds), said.append)
     assert forks.available, "no child subreaper here"
+    output: list[str] = []  # read as it comes, as the launcher does: a full pipe would block the server
+    reader = threading.Thread(target=lambda: output.extend(forks.process.stdout), daemon=True)
+    reader.start()
     yield forks
     forks.close()
     forks.process.wait(timeout=30)
+    reader.join(timeout=10)
     forks.process.stdout.close()
 
 
-def test_forks_in_a_row_each_run_and_exit(server):
-    for _ in range(4):
+def test_forks_in_a_row_each_run_and_report_their_own_exit_status_and_output(server):
+    for _ in range(3):
         fork = server.start(["run", "planner", "--help"], "falconry-test run planner --help")
         assert isinstance(fork, ForkedProcess)
         assert fork.wait(timeout=60) == 0
         assert "usage:" in fork.stdout.read()
         fork.stdout.close()
-
-
-def test_a_fork_reports_its_own_exit_status_and_output(server):
     fork = server.start(["run", "planner", "--no-such-option"], "falconry-test bad option")
     assert fork.wait(timeout=60) == 2  # argparse's usage error, as an exec'd run_service would give
     assert "--no-such-option" in fork.stdout.read()
     fork.stdout.close()
-    assert os.path.exists(f"/proc/{os.getpid()}")  # still here: the fork's exit never ends the launcher
 
 
 def test_a_fork_takes_its_command_line_as_its_title(server):
@@ -48,16 +49,26 @@ def test_a_fork_takes_its_command_line_as_its_title(server):
     title = f"{sys.executable} -m services.launcher.run_service run planner --uav uav9 --connect tcp/127.0.0.1:1"
     waiting = server.start(["run", "planner", "--uav", "uav9", "--connect", "tcp/127.0.0.1:1"], title)
     try:
-        deadline, cmdline = time.monotonic() + 30, b""
-        while b"run_service" not in cmdline and time.monotonic() < deadline:
-            time.sleep(0.05)
-            cmdline = open(f"/proc/{waiting.pid}/cmdline", "rb").read()
+        assert os.getsid(waiting.pid) == waiting.pid  # its own session as soon as its pid is known
+        waiting.stdout.readline()  # its first line: it runs, and waits for Zenoh
+        cmdline = open(f"/proc/{waiting.pid}/cmdline", "rb").read()
         assert b"run planner --uav uav9 --connect tcp/127.0.0.1:1" in cmdline, cmdline
     finally:
         os.kill(waiting.pid, signal.SIGTERM)  # ends the wait for Zenoh: a stop, exit status 0
         assert waiting.wait(timeout=30) == 0
         waiting.stdout.close()
         shm.remove_orphans(shm.segments() - segments)  # its Zenoh's, as the launcher does
+
+
+def test_a_request_from_other_than_the_servers_parent_is_refused(server, monkeypatch):
+    """A request that outlived the launcher that sent it (another process's pid) forks nothing."""
+    first = server.start(["run", "planner", "--help"], "t")  # ready, and forking
+    assert first.wait(timeout=60) == 0
+    first.stdout.close()
+    monkeypatch.setattr(os, "getpid", lambda: 1)
+    assert server.start(["run", "planner", "--help"], "t") is None
+    assert not server.available
+    assert server.process.wait(timeout=30) == -signal.SIGKILL  # ended for good
 
 
 def test_a_server_gone_is_no_server_any_more(server):

@@ -49,8 +49,8 @@ def test_killed_services_are_restarted_within_2s_and_partners_see_them_go(proces
     victims = [("uav1", s) for s in keys.uav_services()] + [(keys.SIM, "simulator")]  # the default: onboard
     try:
         wait_healthy(session, [("uav2", "job_manager")] + victims, timeout=60)
-        # A crash in flight: in the launch's first seconds every service of the team still loads
-        # its libraries at once, and a restart then shares two cores with all of them.
+        # A crash in flight: in the launch's first seconds every service of the team still warms
+        # up at once, and a restart then shares two cores with all of them.
         deadline = time.monotonic() + 30 + IN_FLIGHT_NS / 1e9 / RESTART_RTF
         while mission_time[0] < IN_FLIGHT_NS and time.monotonic() < deadline:
             time.sleep(0.1)

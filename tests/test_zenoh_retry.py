@@ -304,6 +304,8 @@ def test_services_are_forks_of_the_fork_server_and_come_back_as_forks_and_the_ru
         assert "uav1/misconfigured exited with a usage error" in out.getvalue(), out.getvalue()
         assert "--no-such-option" in lines.getvalue(), lines.getvalue()  # argparse's line, through the pipe
         os.kill(server, signal.SIGKILL)
+        while _state(server) not in ("Z", None):
+            time.sleep(0.01)  # dead (not yet reaped): the next restart cannot reach it any more
         os.kill(second, signal.SIGKILL)
         run_supervisor(sup, lambda: lines.getvalue().count("up (pid") == 3, timeout=30)
         assert isinstance(child.process, subprocess.Popen), out.getvalue()
@@ -314,6 +316,13 @@ def test_services_are_forks_of_the_fork_server_and_come_back_as_forks_and_the_ru
     time.sleep(0.2)
     assert processes_mentioning(f":{port}") == [], "the service outlived the supervisor"
     assert not os.path.exists(f"/proc/{server}"), "the fork server outlived the supervisor"
+
+
+def _state(pid: int) -> str | None:
+    try:
+        return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return None
 
 
 def _parent(pid: int) -> int:

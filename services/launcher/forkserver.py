@@ -15,15 +15,19 @@ scipy, OpenCV's) are idle pools, none of which a fork inherits; OpenBLAS builds 
 the child (pthread_atfork), as in every numpy program forked by multiprocessing, and the camera and
 Object Detect run OpenCV in forks in every run. The launcher itself never forks: it holds Zenoh.
 
-The protocol, over a SOCK_SEQPACKET socket pair (one message each way per service):
-- launcher → server: JSON {"argv": the service's run_service arguments, "title": its command
-  line, "netns": the network namespace to run it in (`ip netns exec`'s NAME) or null} with one
-  file descriptor, the write end of the pipe that becomes the service's stdout and stderr;
-- server → launcher: JSON {"pid": N} or {"error": "..."}.
+The protocol, over a SOCK_SEQPACKET socket pair:
+- server → launcher, once, when the preload is done: JSON {"ready": true};
+- launcher → server, per service: JSON {"argv": the service's run_service arguments, "title": its
+  command line, "netns": the network namespace to run it in (`ip netns exec`'s NAME) or null,
+  "launcher": the launcher's pid} with one file descriptor, the write end of the pipe that
+  becomes the service's stdout and stderr;
+- server → launcher: JSON {"pid": N} or {"error": "..."}. A launcher that gets no answer in time
+  kills the server, so that no request it gave up on becomes a service later.
 
 The server forks twice: the intermediate child forks the service and exits at once, so the service
-is adopted by the launcher, which is a child subreaper (`become_subreaper`). The launcher is then
-the service's parent as with `subprocess`: it reaps it and reads its exit status
+is adopted by the launcher, which is a child subreaper (`become_subreaper`); the service tells its
+pid once it leads its own session, and the server answers once the intermediate is gone. The
+launcher is then the service's parent as with `subprocess`: it reaps it and reads its exit status
 (`ForkedProcess`), and the service's `--exit-with-parent` watches the launcher. A service stays a
 service if the server dies; the launcher then starts the next ones as fresh interpreters.
 
@@ -49,7 +53,9 @@ import traceback
 from typing import IO
 
 MESSAGE_MAX = 65536  # bytes of one request or reply
-REPLY_TIMEOUT_S = 120.0  # the first reply waits for the preload: seconds on a busy 2-core machine
+READY_TIMEOUT_S = 900.0  # the preload: seconds on a warm numba cache, minutes on a cold one and a busy machine
+READY_NOTICE_S = 5.0  # a preload longer than this is said in the run's log
+REPLY_TIMEOUT_S = 60.0  # a fork takes milliseconds; after this the server is taken for hung
 PR_SET_CHILD_SUBREAPER = 36  # linux/prctl.h
 CLONE_NEWNET = 0x40000000  # linux/sched.h: setns into a network namespace
 NETNS_DIR = "/run/netns"  # where `ip netns add` names its namespaces
@@ -63,13 +69,17 @@ def preload(loaded: set[str]) -> None:
     import numba
     import scipy.ndimage  # noqa: F401  (planner)
     import scipy.stats  # noqa: F401  (classifier)
+    import setproctitle  # noqa: F401  (every fork: missing, the server fails and the launcher starts fresh interpreters)
 
     import services.launcher.run_service  # noqa: F401  (numpy, msgspec, the zenoh module, the schemas)
     from schemas import keys
 
     numba.njit(lambda x: x + 1)(1)  # numba's compiler started: its registries and LLVM loaded
     for service in (*keys.SIM_SERVICES, *keys.UAV_SERVICES, *keys.CAMERA_SERVICES):
-        load(service, loaded)
+        try:
+            load(service, loaded)
+        except Exception as error:  # noqa: BLE001  (its forks report it again, as their own start would)
+            print(f"forkserver: loading {service} failed: {error}", file=sys.stderr)
 
 
 def load_service(argv: list[str], loaded: set[str]) -> None:
@@ -100,6 +110,10 @@ def serve(channel: socket.socket) -> int:
     loaded: set[str] = set()
     preload(loaded)
     gc.freeze()  # what the preload made stays out of every fork's collections: fewer pages copied
+    try:
+        channel.send(json.dumps({"ready": True}).encode())
+    except (BrokenPipeError, ConnectionError):
+        return 0
     while True:
         try:
             message, fds, _, _ = socket.recv_fds(channel, MESSAGE_MAX, 1)
@@ -119,9 +133,11 @@ def serve(channel: socket.socket) -> int:
 def _fork_service(channel: socket.socket, message: bytes, fds: list[int], loaded: set[str]) -> dict:
     try:
         request = json.loads(message)
-        argv, title, namespace = request["argv"], request["title"], request.get("netns")
+        argv, title, namespace, launcher = request["argv"], request["title"], request["netns"], request["launcher"]
     except (ValueError, KeyError, TypeError) as error:
-        return {"error": f"a request that is not {{argv, title}} JSON: {error}"}
+        return {"error": f"a request that is not {{argv, title, netns, launcher}} JSON: {error}"}
+    if launcher != os.getppid():  # the launcher that asked died, and the request outlived it
+        return {"error": f"the launcher that asked, pid {launcher}, is not this server's parent"}
     if len(fds) != 1 or not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
         return {"error": "a request needs one file descriptor and a list of string arguments"}
     if namespace is not None and (not isinstance(namespace, str) or not namespace or "/" in namespace):
@@ -130,49 +146,50 @@ def _fork_service(channel: socket.socket, message: bytes, fds: list[int], loaded
         load_service(argv, loaded)
     except Exception as error:  # noqa: BLE001  (the fork reports it again, as its own start would)
         print(f"forkserver: loading the service of {' '.join(argv)} failed: {error}", file=sys.stderr)
-    launcher = os.getppid()  # the service's parent once the intermediate is gone
     read_pid, write_pid = os.pipe()
     sys.stdout.flush()
     sys.stderr.flush()
     intermediate = os.fork()
-    if intermediate == 0:  # the intermediate: forks the service, tells its pid, and exits
+    if intermediate == 0:  # the intermediate: forks the service and exits (the service tells its pid)
         try:
             os.close(read_pid)
             forker = os.getpid()
-            service = os.fork()
-            if service == 0:
-                os.close(write_pid)
-                _become_service(argv, title, namespace, fds[0], channel, forker, launcher)
-            os.write(write_pid, str(service).encode())
+            if os.fork() == 0:
+                _become_service(argv, title, namespace, fds[0], channel, write_pid, forker, launcher)
         finally:
             os._exit(0)
     os.close(write_pid)
     with os.fdopen(read_pid, "rb") as pipe:
         answer = pipe.read()
     os.waitpid(intermediate, 0)
-    return {"pid": int(answer)} if answer else {"error": "the intermediate process could not fork"}
+    return {"pid": int(answer)} if answer else {"error": "the service's process could not be forked"}
 
 
 def _become_service(argv: list[str], title: str, namespace: str | None, out_fd: int,
-                    channel: socket.socket, intermediate: int, launcher: int) -> None:
+                    channel: socket.socket, pid_fd: int, intermediate: int, launcher: int) -> None:
     """In the service's process: detach from the server, then run the service; never returns.
-    `intermediate` is the process that forked this one (not os.getppid() here: it may have exited
-    before this process first ran), `launcher` the server's parent, which adopts this one then."""
+    Its pid goes to `pid_fd` once it leads its own session (so that the launcher's first signal to
+    its process group finds it). `intermediate` is the process that forked this one (not
+    os.getppid() here: it may have exited before this process first ran), `launcher` the server's
+    parent, which adopts this one then."""
     code = 1
     try:
         channel.close()
         os.setsid()
-        if namespace is not None:
-            _enter_network_namespace(namespace)
         null = os.open(os.devnull, os.O_RDONLY)
         os.dup2(null, 0)
         os.close(null)
         os.dup2(out_fd, 1)
         os.dup2(out_fd, 2)
         os.close(out_fd)
+        os.write(pid_fd, str(os.getpid()).encode())
+        os.close(pid_fd)
+        if namespace is not None:
+            _enter_network_namespace(namespace)
         signal.signal(signal.SIGINT, signal.default_int_handler)  # an interpreter's own, whatever the server's
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        import setproctitle
+        import setproctitle  # loaded by the server
+
         setproctitle.setproctitle(title)
         sys.argv = title.split(" ")
         # until the intermediate has exited and the launcher adopted this process, its parent is
@@ -295,18 +312,19 @@ class ForkServer:
     """The launcher's handle on a fork server: `start` forks a service from it; None when the
     server is not there (not started, died, or the platform has no subreaper): start it fresh."""
 
-    def __init__(self, popen) -> None:
+    def __init__(self, popen, say=lambda text: None) -> None:
         """popen(argv, pass_fds) starts a child the way the supervisor starts any (its output read
-        into the run's log)."""
+        into the run's log); say(text) tells the run's log what the server is doing, when slow."""
         self.process = None
         self._channel: socket.socket | None = None
         self._lock = threading.Lock()
+        self._ready = False
+        self._say = say
         if not become_subreaper():
             return
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
         with theirs:
             self.process = popen([sys.executable, "-m", __name__, str(theirs.fileno())], (theirs.fileno(),))
-        ours.settimeout(REPLY_TIMEOUT_S)
         self._channel = ours
 
     @property
@@ -315,34 +333,65 @@ class ForkServer:
 
     def start(self, argv: list[str], title: str, namespace: str | None = None) -> ForkedProcess | None:
         """The service `python -m services.launcher.run_service ARGV`, forked (into the network
-        namespace `namespace`, if given); None if the server cannot (it is then closed)."""
+        namespace `namespace`, if given); None if the server cannot: it is then ended for good, so
+        that no request of this launcher can still become a service after it said None. The first
+        call waits for the server's preload."""
         with self._lock:
-            if self._channel is None:
+            if self._channel is None or not self._await_ready():
                 return None
             read_end, write_end = os.pipe()
+            reply: dict = {}
             try:
-                request = {"argv": argv, "title": title, "netns": namespace}
+                request = {"argv": argv, "title": title, "netns": namespace, "launcher": os.getpid()}
                 socket.send_fds(self._channel, [json.dumps(request).encode()], [write_end])
                 reply = json.loads(self._channel.recv(MESSAGE_MAX) or b"{}")
             except (OSError, ValueError):  # it died, or did not answer in time
-                reply = {}
+                pass
             finally:
                 os.close(write_end)
+                if "pid" not in reply:  # an interrupt included
+                    os.close(read_end)
+                    self._end_locked()
             if "pid" not in reply:
-                os.close(read_end)
-                self._close_locked()
                 return None
             stdout = open(read_end, "r", buffering=1, errors="replace")  # noqa: SIM115  (the supervisor closes it)
             return ForkedProcess(reply["pid"], stdout, [title])
 
-    def close(self) -> None:
-        with self._lock:
-            self._close_locked()
+    def _await_ready(self) -> bool:
+        if self._ready:
+            return True
+        for timeout in (READY_NOTICE_S, READY_TIMEOUT_S):
+            self._channel.settimeout(timeout)
+            try:
+                self._ready = json.loads(self._channel.recv(MESSAGE_MAX) or b"{}").get("ready", False)
+            except TimeoutError:
+                self._say("waiting for the fork server to load the services' libraries "
+                          "(on a cold numba cache it compiles their kernels: minutes)")
+                continue
+            except (OSError, ValueError, AttributeError):
+                pass
+            break
+        if not self._ready:
+            self._end_locked()
+            return False
+        self._channel.settimeout(REPLY_TIMEOUT_S)
+        return True
 
-    def _close_locked(self) -> None:
+    def close(self) -> None:
+        """Let the server end (it exits when its channel closes)."""
+        with self._lock:
+            if self._channel is not None:
+                self._channel.close()
+                self._channel = None
+
+    def _end_locked(self) -> None:
+        """The server failed: close its channel and kill it, so that nothing it still holds is forked."""
         if self._channel is not None:
-            self._channel.close()  # the server sees the end and exits
+            self._channel.close()
             self._channel = None
+        if self.process is not None and self.process.poll() is None:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(self.process.pid, signal.SIGKILL)
 
 
 if __name__ == "__main__":

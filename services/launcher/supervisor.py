@@ -118,7 +118,7 @@ class Supervisor:
     def _fork(self, argv: list[str], start: ServiceStart):
         """The service forked from the run's fork server (started with the first one), or None."""
         if self._forkserver is None:
-            self._forkserver = ForkServer(self._start_forkserver)
+            self._forkserver = ForkServer(self._start_forkserver, self.say)
         if not self._forkserver.available:
             return None
         process = self._forkserver.start(start.args, " ".join(argv), start.namespace)
