@@ -3,10 +3,10 @@
 A run is about 17 processes. A fresh interpreter spends 1.5-3 CPU-s on a 2-core KVM guest before
 a service's first message: `import numba` 0.4 s, numba's first compiled call 0.7 s (the CPU target's
 registries, and the scipy.linalg its BLAS check imports), filterpy with scipy.stats 1.6 s,
-scipy.ndimage, OpenCV, numpy. Started that way, a 2-UAV run spends about 45 CPU-s on a 2 s mission,
-nearly all of it these imports, and every test that flies a fleet pays it again. The fork server
-pays it once per run (`preload`), then forks each service: a service is up in a fraction of a
-second, and a crashed one is back as fast.
+scipy.ndimage, OpenCV, numpy. Started that way, a 2-UAV run spends 46.8 CPU-s on a 2 s mission
+(benchmarks/README.md), nearly all of it these imports, and every test that flies a fleet pays it
+again. The fork server pays it once per run (`preload`), then forks each service: a service is up
+in a fraction of a second, and a crashed one is back as fast.
 
 Why a fork is safe here: the server never opens a Zenoh session (the zenoh module is imported, but
 its runtime starts with the first session, in the service), starts no thread of its own, and forks
