@@ -11,10 +11,11 @@ Children are separate processes, never a fork of this one (it holds Zenoh, which
 fork-safe), each in its own session so a terminal Ctrl-C reaches only the launcher, which then
 shuts them down in order.
 
-Warm starts: a service started as `python -m services.launcher.run_service` (or that wrapped into a
-network namespace by `ip netns exec`) is forked from the run's fork server (services/launcher/forkserver.py), an
-interpreter that loaded the services' libraries once, so that neither the launch nor a restart pays
-them again; a fresh interpreter when the server cannot fork it (gone, or no subreaper here).
+Warm starts: a service started as `python -m services.launcher.run_service` (or that wrapped into
+a network namespace by `ip netns exec`) is forked from the run's fork server
+(services/launcher/forkserver.py), an interpreter that loaded the services' libraries once, so
+that neither the launch nor a restart pays them again; a fresh interpreter when the server cannot
+fork it (gone, or no subreaper here).
 """
 from __future__ import annotations
 
@@ -27,7 +28,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
-from services.launcher.forkserver import ForkServer
+from services.launcher.forkserver import ForkedProcess, ForkServer
 from services.runtime.errors import RUNTIME_FAILURE, USAGE_ERROR
 
 MAX_RESTARTS = 5  # within RESTART_WINDOW_S; beyond that the service is given up on
@@ -115,7 +116,7 @@ class Supervisor:
                 if self._on_restart:
                     self._on_restart(child.name, code, now)
 
-    def _fork(self, argv: list[str], start: ServiceStart):
+    def _fork(self, argv: list[str], start: ServiceStart) -> ForkedProcess | None:
         """The service forked from the run's fork server (started with the first one), or None."""
         if self._forkserver is None:
             self._forkserver = ForkServer(self._start_forkserver, self.say)
