@@ -48,6 +48,7 @@ def test_a_fork_takes_its_command_line_as_its_title(server):
     segments = shm.segments()
     title = f"{sys.executable} -m services.launcher.run_service run planner --uav uav9 --connect tcp/127.0.0.1:1"
     waiting = server.start(["run", "planner", "--uav", "uav9", "--connect", "tcp/127.0.0.1:1"], title)
+    assert waiting is not None
     try:
         assert os.getsid(waiting.pid) == waiting.pid  # its own session as soon as its pid is known
         waiting.stdout.readline()  # its first line: it runs, and waits for Zenoh

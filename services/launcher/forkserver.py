@@ -19,10 +19,14 @@ The protocol, over a SOCK_SEQPACKET socket pair:
 - server → launcher, once, when the preload is done: JSON {"ready": true};
 - launcher → server, per service: JSON {"argv": the service's run_service arguments, "title": its
   command line, "netns": the network namespace to run it in (`ip netns exec`'s NAME) or null,
-  "launcher": the launcher's pid} with one file descriptor, the write end of the pipe that
-  becomes the service's stdout and stderr;
-- server → launcher: JSON {"pid": N} or {"error": "..."}. A launcher that gets no answer in time
-  kills the server, so that no request it gave up on becomes a service later.
+  "launcher": the launcher's pid} with two file descriptors: the write end of the pipe that
+  becomes the service's stdout and stderr, and the read end of the launcher's go;
+- server → launcher: JSON {"loading": SERVICE} first if it loads that service's modules and
+  kernels for this fork (an optional one's first), then {"pid": N} or {"error": "..."}.
+The fork runs the service only once the launcher, holding its pid, writes a byte on the go pipe;
+a launcher that gives up on a request (no answer in time, an interrupt) closes it instead, and
+kills the server, so that neither a fork in flight nor a request still queued becomes a service
+nobody supervises.
 
 The server forks twice: the intermediate child forks the service and exits at once, so the service
 is adopted by the launcher, which is a child subreaper (`become_subreaper`); the service tells its
@@ -82,15 +86,13 @@ def preload(loaded: set[str]) -> None:
             print(f"forkserver: loading {service} failed: {error}", file=sys.stderr)
 
 
-def load_service(argv: list[str], loaded: set[str]) -> None:
-    """Load the service that run_service's `argv` names, if it is not yet: the optional ones (the
-    oracle, the localizer with GTSAM) load once, at their first fork, for all the UAVs. A name
-    that is no service is left to the service's own start to report."""
+def service_name(argv: list[str]) -> str | None:
+    """The service run_service's `argv` names, None if it names none (left to the service's own
+    start to report)."""
     from schemas import keys
 
     service = next((argv[i + 1] for i, a in enumerate(argv[:-1]) if a == "run"), None)
-    if service in keys.SERVICES:
-        load(service, loaded)
+    return service if service in keys.SERVICES else None
 
 
 def load(service: str, loaded: set[str]) -> None:
@@ -116,7 +118,7 @@ def serve(channel: socket.socket) -> int:
         return 0
     while True:
         try:
-            message, fds, _, _ = socket.recv_fds(channel, MESSAGE_MAX, 1)
+            message, fds, _, _ = socket.recv_fds(channel, MESSAGE_MAX, 2)
         except ConnectionError:
             return 0
         if not message:  # the launcher closed its end: the run is over
@@ -138,14 +140,19 @@ def _fork_service(channel: socket.socket, message: bytes, fds: list[int], loaded
         return {"error": f"a request that is not {{argv, title, netns, launcher}} JSON: {error}"}
     if launcher != os.getppid():  # the launcher that asked died, and the request outlived it
         return {"error": f"the launcher that asked, pid {launcher}, is not this server's parent"}
-    if len(fds) != 1 or not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
-        return {"error": "a request needs one file descriptor and a list of string arguments"}
+    if len(fds) != 2 or not isinstance(argv, list) or not all(isinstance(a, str) for a in argv):
+        return {"error": "a request needs two file descriptors and a list of string arguments"}
     if namespace is not None and (not isinstance(namespace, str) or not namespace or "/" in namespace):
         return {"error": f"not a network namespace's name: {namespace!r}"}
-    try:
-        load_service(argv, loaded)
-    except Exception as error:  # noqa: BLE001  (the fork reports it again, as its own start would)
-        print(f"forkserver: loading the service of {' '.join(argv)} failed: {error}", file=sys.stderr)
+    service = service_name(argv)
+    if service is not None and service not in loaded:  # an optional one (the oracle, the localizer
+        # with GTSAM), loaded once at its first fork for all the UAVs: on a cold numba cache that
+        # takes minutes, which the launcher waits out once told
+        channel.send(json.dumps({"loading": service}).encode())
+        try:
+            load(service, loaded)
+        except Exception as error:  # noqa: BLE001  (the fork reports it again, as its own start would)
+            print(f"forkserver: loading {service} failed: {error}", file=sys.stderr)
     read_pid, write_pid = os.pipe()
     sys.stdout.flush()
     sys.stderr.flush()
@@ -155,7 +162,7 @@ def _fork_service(channel: socket.socket, message: bytes, fds: list[int], loaded
             os.close(read_pid)
             forker = os.getpid()
             if os.fork() == 0:
-                _become_service(argv, title, namespace, fds[0], channel, write_pid, forker, launcher)
+                _become_service(argv, title, namespace, fds, channel, write_pid, forker, launcher)
         finally:
             os._exit(0)
     os.close(write_pid)
@@ -165,14 +172,18 @@ def _fork_service(channel: socket.socket, message: bytes, fds: list[int], loaded
     return {"pid": int(answer)} if answer else {"error": "the service's process could not be forked"}
 
 
-def _become_service(argv: list[str], title: str, namespace: str | None, out_fd: int,
+def _become_service(argv: list[str], title: str, namespace: str | None, fds: list[int],
                     channel: socket.socket, pid_fd: int, intermediate: int, launcher: int) -> None:
     """In the service's process: detach from the server, then run the service; never returns.
-    Its pid goes to `pid_fd` once it leads its own session (so that the launcher's first signal to
-    its process group finds it). `intermediate` is the process that forked this one (not
-    os.getppid() here: it may have exited before this process first ran), `launcher` the server's
-    parent, which adopts this one then."""
+    fds: the write end of its stdout pipe and the read end of the launcher's go. Its pid goes to
+    `pid_fd` once it leads its own session (so that the launcher's first signal to its process
+    group finds it). `intermediate` is the process that forked this one (not os.getppid() here: it
+    may have exited before this process first ran), `launcher` the server's parent, which adopts
+    this one then. It runs the service only on the launcher's go, a byte the launcher writes once
+    it holds the pid: a launcher that gave up on the request (a timeout, an interrupt) or died
+    closes the pipe instead, and the fork exits, so that no service runs untracked."""
     code = 1
+    out_fd, go_fd = fds
     try:
         channel.close()
         os.setsid()
@@ -196,7 +207,9 @@ def _become_service(argv: list[str], title: str, namespace: str | None, out_fd: 
         # not the one --exit-with-parent is to watch
         while os.getppid() == intermediate:
             time.sleep(0.001)
-        if os.getppid() != launcher:  # the launcher died meanwhile: nobody is to supervise it
+        go = os.read(go_fd, 1)
+        os.close(go_fd)
+        if not go or os.getppid() != launcher:  # given up on, or the launcher died: nobody supervises it
             code = 0
             return
         from services.launcher.run_service import main
@@ -339,23 +352,41 @@ class ForkServer:
         with self._lock:
             if self._channel is None or not self._await_ready():
                 return None
-            read_end, write_end = os.pipe()
-            reply: dict = {}
+            out_read, out_write = os.pipe()
+            go_read, go_write = os.pipe()
+            pid = None
             try:
                 request = {"argv": argv, "title": title, "netns": namespace, "launcher": os.getpid()}
-                socket.send_fds(self._channel, [json.dumps(request).encode()], [write_end])
-                reply = json.loads(self._channel.recv(MESSAGE_MAX) or b"{}")
+                socket.send_fds(self._channel, [json.dumps(request).encode()], [out_write, go_read])
+                pid = self._await_pid()
             except (OSError, ValueError):  # it died, or did not answer in time
                 pass
             finally:
-                os.close(write_end)
-                if "pid" not in reply:  # an interrupt included
-                    os.close(read_end)
+                os.close(out_write)
+                os.close(go_read)
+                if pid is None:  # an interrupt included: the fork, if there is one, reads EOF and exits
+                    os.close(out_read)
+                    os.close(go_write)
                     self._end_locked()
-            if "pid" not in reply:
+            if pid is None:
                 return None
-            stdout = open(read_end, "r", buffering=1, errors="replace")  # noqa: SIM115  (the supervisor closes it)
-            return ForkedProcess(reply["pid"], stdout, [title])
+            with contextlib.suppress(OSError):  # a fork that died already: its exit tells the rest
+                os.write(go_write, b"1")
+            os.close(go_write)
+            stdout = open(out_read, "r", buffering=1, errors="replace")  # noqa: SIM115  (the supervisor closes it)
+            return ForkedProcess(pid, stdout, [title])
+
+    def _await_pid(self) -> int | None:
+        """The server's answer to a request: the fork's pid, or None. A service's first fork may
+        load its modules and kernels first (minutes on a cold numba cache): told so, this waits."""
+        while True:
+            reply = json.loads(self._channel.recv(MESSAGE_MAX) or b"null")
+            if isinstance(reply, dict) and "loading" in reply:
+                self._channel.settimeout(READY_TIMEOUT_S)
+                continue
+            self._channel.settimeout(REPLY_TIMEOUT_S)
+            pid = reply.get("pid") if isinstance(reply, dict) else None
+            return pid if isinstance(pid, int) else None
 
     def _await_ready(self) -> bool:
         if self._ready:
@@ -363,12 +394,14 @@ class ForkServer:
         for timeout in (READY_NOTICE_S, READY_TIMEOUT_S):
             self._channel.settimeout(timeout)
             try:
-                self._ready = json.loads(self._channel.recv(MESSAGE_MAX) or b"{}").get("ready", False)
+                reply = json.loads(self._channel.recv(MESSAGE_MAX) or b"null")
+                self._ready = isinstance(reply, dict) and reply.get("ready") is True
             except TimeoutError:
-                self._say("waiting for the fork server to load the services' libraries "
-                          "(on a cold numba cache it compiles their kernels: minutes)")
-                continue
-            except (OSError, ValueError, AttributeError):
+                if timeout == READY_NOTICE_S:
+                    self._say("waiting for the fork server to load the services' libraries "
+                              "(on a cold numba cache it compiles their kernels: minutes)")
+                    continue
+            except (OSError, ValueError):
                 pass
             break
         if not self._ready:
@@ -385,13 +418,13 @@ class ForkServer:
                 self._channel = None
 
     def _end_locked(self) -> None:
-        """The server failed: close its channel and kill it, so that nothing it still holds is forked."""
-        if self._channel is not None:
-            self._channel.close()
-            self._channel = None
+        """The server failed: kill it, so that nothing it still holds is forked, and close its channel."""
         if self.process is not None and self.process.poll() is None:
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(self.process.pid, signal.SIGKILL)
+        if self._channel is not None:
+            self._channel.close()
+            self._channel = None
 
 
 if __name__ == "__main__":

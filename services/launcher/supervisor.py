@@ -213,7 +213,8 @@ class Supervisor:
         server = self._forkserver
         if server is None or server.process is None:
             return
-        self.forkserver_cpu_s = process_cpu_seconds(server.process.pid)
+        if server.process.poll() is None:  # reaped, its pid may be another process's
+            self.forkserver_cpu_s = process_cpu_seconds(server.process.pid)
         server.close()
         try:
             server.process.wait(timeout=2.0)
