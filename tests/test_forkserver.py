@@ -2,8 +2,10 @@
 and reaped by this process. The supervisor's use of it: tests/test_zenoh_retry.py."""
 from __future__ import annotations
 
+import json
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -70,6 +72,26 @@ def test_a_request_from_other_than_the_servers_parent_is_refused(server, monkeyp
     assert server.start(["run", "planner", "--help"], "t") is None
     assert not server.available
     assert server.process.wait(timeout=30) == -signal.SIGKILL  # ended for good
+
+
+def test_a_fork_without_the_launchers_go_exits_without_running_its_service(server):
+    """The launcher gave up on a request after the server forked it (a timeout, an interrupt): it
+    closes the go pipe unwritten, and the fork, adopted all the same, exits 0 having run nothing."""
+    first = server.start(["run", "planner", "--help"], "t")  # ready, and forking
+    assert first.wait(timeout=60) == 0
+    first.stdout.close()
+    out_read, out_write = os.pipe()
+    go_read, go_write = os.pipe()
+    request = {"argv": ["run", "planner", "--help"], "title": "t", "netns": None, "launcher": os.getpid()}
+    socket.send_fds(server._channel, [json.dumps(request).encode()], [out_write, go_read])
+    os.close(out_write)
+    os.close(go_read)
+    reply = json.loads(server._channel.recv(65536))
+    os.close(go_write)  # no go
+    fork = ForkedProcess(reply["pid"], open(out_read), ["t"])
+    assert fork.wait(timeout=60) == 0
+    assert "usage:" not in fork.stdout.read()  # --help never ran
+    fork.stdout.close()
 
 
 def test_a_server_gone_is_no_server_any_more(server):
