@@ -20,8 +20,8 @@ $(STAMP): pyproject.toml $(LOCK)
 	$(PY) -m pip install --quiet -c $(LOCK) -e '.[test]'
 	@touch $(STAMP)
 
-# Every run starts ~17 Python processes, each importing the project: compiled once here, not by each
-# (PYTHONDONTWRITEBYTECODE, where it is set, stops them from caching it themselves)
+# A run's fork server, the tests' processes and every `falconry` command import the project: compiled
+# once here, not by each (PYTHONDONTWRITEBYTECODE, where it is set, stops them from caching it themselves)
 BYTECODE = $(PY) -m compileall -q services schemas tests benchmarks > /dev/null
 
 sim: .venv

@@ -52,14 +52,24 @@ from services.sensor_driver.faults import faulty_scan, lidar_faults
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
 
 
+def scan_ranges(params: SensorDriverParams, model: LidarModel) -> tuple[float, float]:
+    """(min, max) range of the returns a scan keeps: the parameters' where set, else the model's."""
+    return params.min_range or model.min_range, params.max_range or model.max_range
+
+
+def model_scan(params: SensorDriverParams, model: LidarModel, origin: np.ndarray, heading: float,
+               world: Primitives, rng: np.random.Generator, frame: int = 0):
+    """One scan of `world` by `model` with the driver's parameters (core.scan)."""
+    min_range, max_range = scan_ranges(params, model)
+    return scan(origin, heading, model.directions(frame), world, rng, min_range=min_range, max_range=max_range,
+                range_noise=params.range_noise, position_noise=params.position_noise,
+                attitude_noise=params.attitude_noise, body_box=params.body_box, intensity=params.intensity)
+
+
 def warm_up(params: SensorDriverParams, model: LidarModel) -> None:
     """Run the scan's kernels once on an empty world (compiled, or loaded from numba's cache)."""
-    min_range, max_range = params.min_range or model.min_range, params.max_range or model.max_range
-    scan(np.zeros(3), 0.0, model.directions(0), Primitives(planes=[-1.0]), np.random.default_rng(0),
-         min_range=min_range, max_range=max_range, range_noise=params.range_noise,
-         position_noise=params.position_noise, attitude_noise=params.attitude_noise, body_box=params.body_box,
-         intensity=params.intensity)
-    scan_figures(np.zeros((1, 3), np.float32), np.zeros(3), min_range, max_range)  # float32 as scans
+    model_scan(params, model, np.zeros(3), 0.0, Primitives(planes=[-1.0]), np.random.default_rng(0))
+    scan_figures(np.zeros((1, 3), np.float32), np.zeros(3), *scan_ranges(params, model))  # float32 as scans
 
 
 class SensorDriverNode(Node):
@@ -102,8 +112,7 @@ class SensorDriverNode(Node):
     def _use_model(self, name: str) -> None:
         p: SensorDriverParams = self.params
         self.model = lidar_model(name, p.rate_hz)
-        self.min_range = p.min_range or self.model.min_range
-        self.max_range = p.max_range or self.model.max_range
+        self.min_range, self.max_range = scan_ranges(p, self.model)
         self._masks: dict[int, np.ndarray] = {}
         # What the scan's pose noise is (one draw per scan of position and attitude, core.scan).
         self._pose_covariance = np.diag([p.position_noise ** 2] * 3 + [p.attitude_noise ** 2] * 3)
@@ -153,11 +162,7 @@ class SensorDriverNode(Node):
 
     def _scan(self, origin: np.ndarray, heading: float, world: Primitives, rng: np.random.Generator,
               frame: int = 0):
-        p: SensorDriverParams = self.params
-        return scan(origin, heading, self.model.directions(frame), world, rng,
-                    min_range=self.min_range, max_range=self.max_range, range_noise=p.range_noise,
-                    position_noise=p.position_noise, attitude_noise=p.attitude_noise,
-                    body_box=p.body_box, intensity=p.intensity)
+        return model_scan(self.params, self.model, origin, heading, world, rng, frame)
 
     def on_tick(self, now_ns: int) -> None:
         slot = now_ns // self.period_ns
