@@ -147,3 +147,31 @@ def test_tiles_cover_every_pixel_once_and_their_cones_hold_their_rays():
     for t in range(len(tiles.axes)):
         members = rays[tiles.order[tiles.start[t]:tiles.start[t + 1]]]
         assert (members @ tiles.axes[t] >= tiles.cos_half[t] - 1e-12).all()
+
+
+def test_tiles_seeing_only_the_ground_give_the_bits_of_the_general_path():
+    """A tile whose only candidate is a plane takes a short path (render.py). A second copy of the
+    ground, listed after it, sends every tile through the general path instead; the nearer-hit rule
+    keeps the first copy, so the frames must be the same bits: colour with noise and gains, depth
+    with noise and dropouts, and the primitive each pixel sees (the balloons' indices one further
+    on), from above the ground and below it."""
+    rng = np.random.default_rng(11)
+    ground = Obstacle(kind="plane", center=(0.0, 0.0, 0.0), color=(90, 120, 60))
+    balloons = [TargetTruth(id=f"b{k}", kind="balloon", position=(*rng.uniform(-20, 20, 2), rng.uniform(1, 6)),
+                            velocity=(0, 0, 0), radius=0.4, color=(200, 30, 30)) for k in range(6)]
+    once = pack(primitives_from_obstacles([ground]).with_targets(balloons))
+    twice = pack(primitives_from_obstacles([ground, ground]).with_targets(balloons))
+    params = CameraParams(width=160, height=96)  # noise, drifts and dropouts on
+    look = Appearance(sun_elevation=35.0, sun_azimuth=120.0, ambient=0.3)
+    for k, height in enumerate((5.0, 0.7, 14.0, -2.0)):
+        position = np.array([*rng.uniform(-10, 10, 2), height])
+        rotation = camera_rotation(rng.uniform(-math.pi, math.pi), rng.uniform(-10, 10))  # the horizon in view
+        gains = rng.uniform(0.8, 1.2, 3)
+        short, general = (Camera(params, np.random.default_rng(k)).render(world, look, position, rotation, gains,
+                                                                          np.random.default_rng(k))
+                          for world in (once, twice))
+        assert np.array_equal(short.rgb, general.rgb) and np.array_equal(short.depth_mm, general.depth_mm), k
+        assert not (general.hits == 1).any(), k  # the copy is never the nearer hit
+        assert np.array_equal(short.hits, np.where(general.hits > 1, general.hits - 1, general.hits)), k
+        sky = (short.hits == -1).sum()
+        assert 0 < sky < short.hits.size, (k, sky)

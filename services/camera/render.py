@@ -12,7 +12,9 @@ Tiles: a primitive can only be seen in the tiles of the image its bounding spher
 image is cut into tiles (TILE × TILE pixels) and each frame first lists, per tile, the primitives
 whose bounding sphere meets the tile's cone of rays (`tile_candidates`); each pixel then tests only
 its tile's list, in the packed order, so a frame is the same bits as testing every primitive. On
-mbzirc (16 primitives) most tiles see the ground and one or two others.
+mbzirc (16 primitives) most tiles see the ground and one or two others. A tile whose only
+candidate is the ground plane (or another plane) takes a short path: its pixels see that plane or
+the sky, each with one shade for the whole tile, so only their ranges and noise are per pixel.
 """
 from __future__ import annotations
 
@@ -118,8 +120,15 @@ def render_kernel(origin, rotation, tile_rays, order, start, candidates, counts,
     color_mask = len(color_noise) - 1  # table lengths are powers of two
     depth_mask = len(depth_noise) - 1
     top = ENCODE_LEVELS - 1
+    sky_r, sky_g, sky_b = (_encoded(sky[0] * gains[0], encode, top), _encoded(sky[1] * gains[1], encode, top),
+                           _encoded(sky[2] * gains[2], encode, top))
     for k in range(len(counts)):
         listed = counts[k]
+        if listed == 1 and kinds[candidates[k, 0]] == PLANE:
+            _plane_tile(oz, r, tile_rays, order, start[k], start[k + 1], candidates[k, 0], params, linear_colors,
+                        sun, ambient, gains, encode, sky_r, sky_g, sky_b, color_noise, color_offset, depth_noise,
+                        depth_offset, depth_sigma, depth_min, depth_max, dropout, rgb, depth_mm, hit_index)
+            continue
         for j in range(start[k], start[k + 1]):
             i = order[j]
             cx, cy, cz = tile_rays[j, 0], tile_rays[j, 1], tile_rays[j, 2]
@@ -150,20 +159,65 @@ def render_kernel(origin, rotation, tile_rays, order, start, candidates, counts,
             rgb[i, 0] = _channel(lr * gains[0], encode, top, color_noise[base & color_mask])
             rgb[i, 1] = _channel(lg * gains[1], encode, top, color_noise[(base + 1) & color_mask])
             rgb[i, 2] = _channel(lb * gains[2], encode, top, color_noise[(base + 2) & color_mask])
-            z = t * cx if q >= 0 else 0.0
-            draw = depth_noise[(depth_offset + j) & depth_mask]
-            if q >= 0 and depth_min <= z <= depth_max and abs(draw) <= dropout:
-                depth_mm[i] = np.uint16(min(max((z + depth_sigma * z * z * draw) * 1000.0 + 0.5, 1.0), 65535.0))
-            else:
-                depth_mm[i] = 0
+            depth_mm[i] = _depth(q >= 0, t * cx if q >= 0 else 0.0, depth_noise[(depth_offset + j) & depth_mask],
+                                 depth_sigma, depth_min, depth_max, dropout)
+
+
+@njit(cache=True, error_model="numpy")
+def _plane_tile(oz, r, tile_rays, order, first, end, p, params, linear_colors, sun, ambient, gains, encode,
+                sky_r, sky_g, sky_b, color_noise, color_offset, depth_noise, depth_offset, depth_sigma, depth_min,
+                depth_max, dropout, rgb, depth_mm, hit_index):
+    """`render_kernel` over the pixels first … end-1 of a tile whose only candidate is plane p:
+    the same bits. Every ray that meets the plane meets it from the camera's side, so its shade
+    (and each channel's encoded value) is one for the tile, and only the range varies."""
+    top = ENCODE_LEVELS - 1
+    height = params[p, 0]
+    below = height - oz > 0.0  # rays hitting from below point up: the normal turns to face them
+    light = ambient + (1.0 - ambient) * max(0.0, -sun[2] if below else sun[2])
+    plane_r = _encoded(linear_colors[p, 0] * light * gains[0], encode, top)
+    plane_g = _encoded(linear_colors[p, 1] * light * gains[1], encode, top)
+    plane_b = _encoded(linear_colors[p, 2] * light * gains[2], encode, top)
+    color_mask = len(color_noise) - 1
+    depth_mask = len(depth_noise) - 1
+    for j in range(first, end):
+        i = order[j]
+        cx, cy, cz = tile_rays[j, 0], tile_rays[j, 1], tile_rays[j, 2]
+        dz = r[2, 0] * cx + r[2, 1] * cy + r[2, 2] * cz
+        t = ahead((height - oz) / dz)
+        hit = t < INF
+        hit_index[i] = p if hit else -1
+        base = color_offset + 3 * j
+        rgb[i, 0] = _noisy(plane_r if hit else sky_r, color_noise[base & color_mask])
+        rgb[i, 1] = _noisy(plane_g if hit else sky_g, color_noise[(base + 1) & color_mask])
+        rgb[i, 2] = _noisy(plane_b if hit else sky_b, color_noise[(base + 2) & color_mask])
+        depth_mm[i] = _depth(hit, t * cx if hit else 0.0, depth_noise[(depth_offset + j) & depth_mask],
+                             depth_sigma, depth_min, depth_max, dropout)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _depth(hit, z, draw, depth_sigma, depth_min, depth_max, dropout):
+    """The depth value in mm of a pixel whose ray hit at optical-axis depth z (m), with its noise draw."""
+    if hit and depth_min <= z <= depth_max and abs(draw) <= dropout:
+        return np.uint16(min(max((z + depth_sigma * z * z * draw) * 1000.0 + 0.5, 1.0), 65535.0))
+    return np.uint16(0)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _encoded(linear, encode, top):
+    """The sRGB value of linear light (clipped to [0, 1]) from the table."""
+    if not linear > 0.0:  # NaN too (a world with a NaN in it): an index from NaN would read anywhere
+        linear = 0.0
+    return np.int64(encode[int(min(linear, 1.0) * top + 0.5)])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _noisy(encoded, noise):
+    return np.uint8(min(max(encoded + np.int64(noise), 0), 255))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _channel(linear, encode, top, noise):
-    if not linear > 0.0:  # NaN too (a world with a NaN in it): an index from NaN would read anywhere
-        linear = 0.0
-    level = int(min(linear, 1.0) * top + 0.5)
-    return np.uint8(min(max(np.int64(encode[level]) + np.int64(noise), 0), 255))
+    return _noisy(_encoded(linear, encode, top), noise)
 
 
 def noise_table(rng: np.random.Generator, size: int, sigma: float, dtype) -> np.ndarray:
