@@ -55,6 +55,7 @@ class LockstepGate(Generic[Item]):
         self._order = order
         self.step: int | None = None
         self._clock_bounds: dict[str, int] = {}
+        self._wanted_clock_bounds: dict[str, int] = {}
         self._acks: dict[str, dict[int, dict[str, int]]] = {}
         self._fifo: dict[str, deque[tuple[int, int | None, Item]]] = {}
         self._released: dict[str, int] = {}
@@ -108,6 +109,8 @@ class LockstepGate(Generic[Item]):
         self.step = step
         self._counted = counted
         self._clock_bounds = clock_bounds
+        # the tick names every key of the run; `missing` is asked after each message that comes in
+        self._wanted_clock_bounds = {key: bound for key, bound in clock_bounds.items() if self._wants(key)}
         self._cut = cut or _never
         for key in [k for k in self._fifo if self._cut(k)]:
             self._fifo[key].clear()  # delivered in the moment before the link really went down
@@ -134,6 +137,16 @@ class LockstepGate(Generic[Item]):
                 bounds.update(self._acks.get(service, {}).get(self.step, {}))
         return bounds
 
+    def _wanted_bounds(self, alive_upstream: set[str]) -> dict[str, int]:
+        """`bounds`, of the keys this service wants only."""
+        bounds = dict(self._wanted_clock_bounds)
+        for service in self.upstream:
+            if service in alive_upstream:
+                for key, bound in self._acks.get(service, {}).get(self.step, {}).items():
+                    if self._wants(key):
+                        bounds[key] = bound
+        return bounds
+
     def missing(self, alive_upstream: set[str]) -> list[str]:
         """What tick `step` still waits for; empty when it can be processed."""
         if self.step is None:
@@ -146,8 +159,8 @@ class LockstepGate(Generic[Item]):
             for service in self.upstream
             if service in alive_upstream and self.step not in self._acks.get(service, {})
         ]
-        for key, bound in self.bounds(alive_upstream).items():
-            if not self._wants(key) or bound == 0 or key in self._reconnecting:
+        for key, bound in self._wanted_bounds(alive_upstream).items():
+            if bound == 0 or key in self._reconnecting:
                 continue
             # bound == released: nothing new. A bound *below* what we released means the
             # publisher restarted and counts from 1 again: its message `bound` is a new one.
@@ -237,6 +250,23 @@ class FaultWindows:
     def radio_down(self, uav: str, now: float) -> bool:
         return any(u == uav and start <= now < end for u, start, end in self._radio)
 
+    def radios_down(self, now: float) -> frozenset[str]:
+        """The UAV scopes whose radio link is cut at `now`."""
+        return frozenset(u for u, start, end in self._radio if start <= now < end)
+
+    def cut_off(self, scope: str, now: float) -> Callable[[str], bool]:
+        """`parted(scope, <the name's scope>, now)` for a key or a "<scope>/<service>" name, worked
+        out once for the tick (every service asks it of every key the tick names)."""
+        down = self.radios_down(now)
+        if not down:
+            return _never
+
+        def cut(name: str) -> bool:
+            parts = name.split("/")
+            other = parts[1] if parts[0] == keys.ROOT and len(parts) > 1 else parts[0]
+            return other != scope and keys.SIM not in (scope, other) and (scope in down or other in down)
+        return cut
+
     def parted(self, one: str, other: str, now: float) -> bool:
         """Whether the radio keeps UAV scopes `one` and `other` apart at `now` (the simulator's
         scope is reached over every UAV's airframe link and is never parted)."""
@@ -246,4 +276,6 @@ class FaultWindows:
 
     def unaffected(self, names: set[str], now: float) -> set[str]:
         """Of "<uav>/<service>" names, those no fault silences at `now`."""
+        if not any(start <= now < end for _, _, start, end in self._windows):
+            return set(names)
         return {n for n in names if not self.silenced(*n.split("/", 1), now)}

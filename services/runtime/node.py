@@ -105,6 +105,7 @@ class Node:
         self._lockstep: bool | None = None  # unknown until the first clock tick
         self._pending: list[tuple[Subscription, str, Any]] = []  # data before the first tick
         self._wants_cache: dict[str, bool] = {}
+        self._order_cache: dict[str, tuple[int, str]] = {}
         self._gate: LockstepGate = LockstepGate(self.upstream, self._wants, self._order)
         self._last_step = -1
         self._started_wall = time.monotonic()
@@ -218,6 +219,7 @@ class Node:
         sub = Subscription(len(self._subs), key_expr, msgspec.msgpack.Decoder(msg_type), handler, internal, keep)
         self._subs.append(sub)
         self._wants_cache.clear()
+        self._order_cache.clear()
         if self._declared:
             self._declare_subscriber(sub)
 
@@ -281,9 +283,12 @@ class Node:
         return hit
 
     def _order(self, key: str) -> tuple[int, str]:
-        ke = zenoh.KeyExpr(key)
-        first = min((s.index for s in self._subs if zenoh.KeyExpr(s.key_expr).intersects(ke)), default=1 << 30)
-        return (first, key)
+        hit = self._order_cache.get(key)
+        if hit is None:
+            ke = zenoh.KeyExpr(key)
+            first = min((s.index for s in self._subs if zenoh.KeyExpr(s.key_expr).intersects(ke)), default=1 << 30)
+            hit = self._order_cache[key] = (first, key)
+        return hit
 
     def _handle_signal(self, signum, frame) -> None:
         self.stop()
@@ -600,11 +605,7 @@ class Node:
         """Whether a key (or a "<scope>/<service>" name) is out of reach over a cut radio link
         at mission time `now`. The simulator's tick carries everything it hears over the
         airframe links: what a partner could not have sent us over the radio must not leak in."""
-        def cut(name: str) -> bool:
-            parts = name.split("/")
-            scope = parts[1] if parts[0] == keys.ROOT and len(parts) > 1 else parts[0]
-            return self._fault_windows.parted(self.scope, scope, now)
-        return cut
+        return self._fault_windows.cut_off(self.scope, now)
 
     def _apply_tick_liveliness(self, alive: list[str], cut: Callable[[str], bool]) -> None:
         current = {name for name in alive if not cut(name)}

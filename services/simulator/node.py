@@ -288,13 +288,13 @@ class SimulatorNode(Node):
         while True:
             # a frozen, cut-off or killed service cannot answer: not waiting is part of the fault
             expected = self.fault_windows.unaffected(self._alive, seconds(tick.header.stamp))
-            waiting = [n for n in sorted(expected) if (a := self._acks.get(n)) is None or a.step < tick.step]
+            waiting = [n for n in expected if (a := self._acks.get(n)) is None or a.step < tick.step]
             if not waiting or self.stopping:
                 break
             now = time.monotonic()
             if now - started > ACK_WAIT_S:
                 self.counters.lockstep_timeouts += 1
-                self.log.warning("tick %d: no acknowledgement from %s; going on", tick.step, ", ".join(waiting))
+                self.log.warning("tick %d: no acknowledgement from %s; going on", tick.step, ", ".join(sorted(waiting)))
                 break
             if now > resend:
                 self.clock_pub.put(tick)
