@@ -44,6 +44,8 @@ LEAVING_STATES = ("LANDING", "EMERGENCY_LANDING")
 SETTLE_ATTEMPTS, SETTLE_PAUSE_S = 8, 0.25
 SIMULATOR_GONE_S = 1.0  # s to wait, at the end, for the stopped simulator's token to vanish from the router
 RECONNECT_S = 8.0  # s to wait, after restoring cut links at the end, for every service to answer again
+# s between two looks at the children (a waitpid each): the monitor's messages come hundreds a second
+POLL_CHILDREN_S = 0.05
 WATCHED = (keys.CLOCK, keys.TRUTH, keys.EVENTS, keys.WORLD) + tuple(
     keys.uav("*", topic) for topic in ("status", "tracks", "detections", "points_truth", "camera_detections",
                                        "command", "trajectory"))
@@ -221,6 +223,7 @@ class SimRun:
         next_progress = args.progress
         finished_at = None
         outcome = "finished"
+        next_poll = time.monotonic()
         while not monitor.over:
             if monitor.finished and finished_at is None:
                 finished_at = time.monotonic()
@@ -231,7 +234,9 @@ class SimRun:
             except queue.Empty:
                 pass
             self.faults.tick(monitor.mission_time)
-            supervisor.poll()
+            if (now := time.monotonic()) >= next_poll:
+                supervisor.poll()
+                next_poll = now + POLL_CHILDREN_S
             if args.progress and monitor.mission_time >= next_progress:
                 supervisor.say(monitor.progress(self.duration))
                 next_progress += args.progress
