@@ -37,7 +37,7 @@ test: .venv
 	@$(BYTECODE)
 	@status=0; \
 	echo "== make test, part 1 of 2: two workers =="; \
-	$(PY) -m pytest -q -n 2 --dist loadfile -m 'not heavy and not alone' --durations=15 || status=$$?; \
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder -m 'not heavy and not alone' --durations=15 || status=$$?; \
 	echo "== make test, part 2 of 2: tests with wall-clock deadlines, one at a time =="; \
 	$(PY) -m pytest -q -m 'alone and not heavy' --durations=5 || { code=$$?; [ $$status -ne 0 ] || status=$$code; }; \
 	exit $$status

@@ -129,6 +129,18 @@ def processes():
 SEGMENTS_AT_START = pytest.StashKey[set]()
 
 
+def pytest_collection_modifyitems(config, items):
+    """The files whose tests take longest first (by their `slow` markers), each file's tests in
+    their order. `make test`'s two workers take whole files in this order (pytest-xdist,
+    `--dist loadfile --no-loadscope-reorder`): a file that flies missions for minutes, started
+    last, would leave one worker to finish alone."""
+    seconds: dict[Path, float] = {}
+    for item in items:
+        marker = item.get_closest_marker("slow")
+        seconds[item.path] = seconds.get(item.path, 0.0) + (float(marker.args[0]) if marker else 0.0)
+    items.sort(key=lambda item: -seconds[item.path])  # stable: files stay whole
+
+
 def pytest_sessionstart(session):
     session.config.stash[SEGMENTS_AT_START] = shm.segments()
 

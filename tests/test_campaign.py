@@ -98,6 +98,7 @@ def test_the_campaigns_arena_picture_marks_where_each_engagement_aimed(tmp_path)
 
 @pytest.mark.timeout(600)
 @pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
+@pytest.mark.slow(150)
 def test_a_small_campaign_keeps_the_team_apart_and_prints_its_table(tmp_path):
     # 36 s, the shortest run a campaign draws a fault for: uav2 killed (hold) at 10.8 s of a 2-UAV run,
     # uav3's link cut at 10.5 s for 16.9 s of a 3-UAV run

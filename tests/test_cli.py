@@ -65,6 +65,7 @@ def test_help_explains_every_option(command):
     (("snapshot", "--out", "/tmp/y.png"), "--connect"),
     (("frobnicate",), "invalid choice"),
 ])
+@pytest.mark.slow(1.5)
 def test_user_mistakes_give_one_line_and_exit_2(args, expected):
     result = falconry(*args)
     assert result.returncode == 2, result.stderr

@@ -122,6 +122,7 @@ def test_docker_compose_validates_every_variant_and_rejects_a_broken_file(cli, t
     assert out.returncode != 0 and "uav1-trackr" in out.stderr, out.stderr
 
 
+@pytest.mark.slow(11)
 def test_every_service_command_is_a_valid_falconry_command(variant):
     services = falconry_services(variant)
     assert services, "compose.yaml builds no falconry service"

@@ -137,6 +137,7 @@ class Observer:
 
 @pytest.mark.timeout(600)
 @pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
+@pytest.mark.slow(54)
 def test_every_fault_type_happens_at_its_time_with_its_effect(tmp_path, port):
     scenario, summary_path = fault_scenario(tmp_path), tmp_path / "summary.json"
     launcher = subprocess.Popen(
@@ -261,6 +262,7 @@ def wait_for_namespaces(network: netns.UavNetwork, timeout: float = 30.0) -> Non
 
 @pytest.mark.timeout(300)
 @pytest.mark.skipif(netns.available() is not None, reason=f"link_cut needs {netns.available()}")
+@pytest.mark.slow(37)
 def test_a_cut_link_parts_the_uav_from_partners_and_ground_but_not_from_its_vehicle(tmp_path, port):
     """During uav1's cut (t = 6..10 s) no status of uav1 reaches uav2's namespace or the ground and
     none of uav2 reaches uav1's, while uav1's own job manager keeps publishing on the simulator's

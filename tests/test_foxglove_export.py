@@ -402,6 +402,7 @@ def test_an_unknown_format_is_a_one_line_error(exported, tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- a real run
+@pytest.mark.slow(26)
 def test_a_short_real_run_exports_and_validates(tmp_path):
     recording, target = tmp_path / "run.mcap", tmp_path / "run.foxglove.mcap"
     record_short_run(recording, "takeoff", "--uavs", "2", "--duration", "2")

@@ -70,6 +70,7 @@ def test_the_corpus_has_every_subscribed_type():
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy's overflow and invalid-value warnings: expected
 @pytest.mark.parametrize("msg_type", sorted(SUBSCRIBERS, key=lambda t: t.__name__), ids=lambda t: t.__name__)
+@pytest.mark.slow(10)
 def test_every_subscriber_survives_and_counts(msg_type, runs, monkeypatch, gigabytes_refused):
     # a fuzzed lockstep tick bounds keys nothing will send: give up waiting at once (counted as a timeout)
     monkeypatch.setattr(runtime_node, "INPUT_WAIT_S", 0.0)

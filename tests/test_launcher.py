@@ -159,6 +159,7 @@ duration = 3.0
 FAULT_KEYS = ("falconry/sim/events", "falconry/sim/faults")  # the faulted run announces its faults
 
 
+@pytest.mark.slow(140)
 def test_lockstep_runs_with_the_same_seed_give_identical_ground_truth_whatever_the_network_does(tmp_path):
     # A light LiDAR: every message is compared whatever its size, and the two runs take 53 s instead
     # of 66 (the shipped sensor flies in test_two_uav_mission_flies_and_reports); the camera stays in.
@@ -187,6 +188,7 @@ def test_lockstep_runs_with_the_same_seed_give_identical_ground_truth_whatever_t
     assert s2["health"]["dropped_stale"] > 100 and s1["health"]["dropped_stale"] == 0  # they were there
 
 
+@pytest.mark.slow(100)
 def test_two_uav_mission_flies_and_reports(tmp_path):
     # lands at 25 s as with the default margin at 40 s; both UAVs are down by about 29.6 s
     _, summary = run_lockstep(tmp_path, "mission", seed=1, duration=30, landing_margin=5.0)
@@ -220,6 +222,7 @@ def test_two_uav_mission_flies_and_reports(tmp_path):
     assert "simulator out of reach" not in log
 
 
+@pytest.mark.slow(27)
 def test_a_run_that_began_before_its_team_was_up_says_so(tmp_path):
     """A start-up wait that runs out (a loaded machine; here a 10 ms one) flies another mission than
     the seed's: the summary must not pass it off as the seed's run."""

@@ -75,6 +75,7 @@ def check_separation(summary: dict) -> None:
 
 
 @pytest.mark.timeout(600)
+@pytest.mark.slow(135)
 def test_revenge_after_the_partner_is_killed(tmp_path, port):
     faults = '\n[[faults]]\ntime = 20.0\nkind = "kill"\nuav = "uav2"\n'
     # lands at 135 s as with the default margin at 150 s (the fifth balloon falls at about 131 s)
@@ -139,6 +140,7 @@ def balloons_left_from(truth_log: Path, uav: str, at: float) -> list[float]:
 
 
 @pytest.mark.timeout(600)
+@pytest.mark.slow(73)
 def test_silent_lidar_lands_that_uav_only_and_three_uavs_share_its_area(tmp_path, port):
     faults = '\n[[faults]]\ntime = 10.0\nkind = "lidar_silent"\nuav = "uav2"\nduration = 5.0\n'
     # lands at 25 s as with the default margin at 40 s; the last UAV is down by about 30.2 s
@@ -158,6 +160,7 @@ def test_silent_lidar_lands_that_uav_only_and_three_uavs_share_its_area(tmp_path
 
 
 @pytest.mark.timeout(600)
+@pytest.mark.slow(85)
 def test_the_partner_keeps_clear_of_a_uav_hovering_after_its_onboard_computer_died(tmp_path, port):
     """A whole-UAV kill whose flight controller holds position: the survivor takes the arena over
     t_s later, leaves the hovering UAV's no-fly column alone and never comes within the safety distance."""

@@ -8,6 +8,7 @@ import json
 import subprocess
 
 import numpy as np
+import pytest
 
 from services.launcher.monitor import read_truth_log
 from services.simulator.scenario import load_scenario
@@ -23,6 +24,7 @@ def gap_to_box(position, radius: float, center, size) -> float:
     return float(np.linalg.norm(outside)) - radius
 
 
+@pytest.mark.slow(95)
 def test_a_drone_taking_off_beside_a_wall_is_detected_within_3_s_once_2_m_clear(tmp_path, port):
     scenario = load_scenario("takeoff")
     building = next(o for o in scenario.obstacles if o.name == "building")

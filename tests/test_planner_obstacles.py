@@ -377,6 +377,7 @@ def test_a_pursuit_round_a_mast_goes_to_meet_the_drone_not_after_it():
     assert turned < -10.0, f"turned {turned:.0f}° round the mast in 1 s: after the drone, not towards it"
 
 
+@pytest.mark.slow(53)
 def test_a_drone_circling_a_mast_tighter_than_the_uav_can_turn_is_met_not_trailed(monkeypatch):
     """Mast's circler turns at 2.56 m/s², more than a pursuit may ask of the UAV at its speed: the
     pursuit law chasing it from behind or meeting it head-on at speed passed it faster than the

@@ -723,6 +723,7 @@ def test_onboard_routers_carry_a_partners_own_keys_only(certs):
         router.close()
 
 
+@pytest.mark.slow(26)
 def test_a_seeded_lockstep_team_runs_whole_through_the_access_controlled_router(certs, tmp_path):
     """`falconry sim --tls --zenoh-profile router`: every service of two UAVs and the simulator,
     each with its own certificate, through the run's own `falconry router --tls --team`. In

@@ -178,6 +178,7 @@ def eigenvalues_are_psd(matrices: np.ndarray) -> bool:
 # No shrinking: 10,000 steps per example make it take minutes; the failing example is printed as found.
 @settings(max_examples=2, deadline=None, derandomize=True, database=None, phases=[Phase.explicit, Phase.generate])
 @given(seed=st.integers(0, 2**32 - 1), alpha=st.floats(0.0, 0.99), outliers=st.floats(0.0, 0.2))
+@pytest.mark.slow(12)
 def test_akhlaghi_updates_keep_q_and_r_symmetric_psd_over_10000_random_steps(uses_prior, seed, alpha, outliers):
     rng = np.random.default_rng(seed)
     params = FilterParams(alpha=alpha, adaptive_r_uses_prior=uses_prior)

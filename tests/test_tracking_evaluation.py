@@ -567,6 +567,7 @@ def test_a_missing_evaluation_is_one_line_and_exit_2():
 
 
 # --------------------------------------------------------------------------- a real run
+@pytest.mark.slow(35)
 def test_a_short_real_run_is_scored(tmp_path):
     """The oracle detector (true LiDAR hits, noisy) makes the sparse scenario's drone a confirmed
     track within a second, on a cheap LiDAR: a short, small recording with something to score."""
