@@ -243,6 +243,10 @@ class FaultWindows:
         elif command.kind in self.SILENCING and not (command.kind == "kill" and command.service):
             self._windows.append((command.uav, command.service, start, end))
 
+    def silencing(self, now: float) -> bool:
+        """Whether any service is silenced at `now` (most ticks of most runs: none)."""
+        return any(start <= now < end for _, _, start, end in self._windows)
+
     def silenced(self, uav: str, service: str, now: float) -> bool:
         return any(u == uav and s in ("", service) and start <= now < end
                    for u, s, start, end in self._windows)
@@ -276,6 +280,6 @@ class FaultWindows:
 
     def unaffected(self, names: set[str], now: float) -> set[str]:
         """Of "<uav>/<service>" names, those no fault silences at `now`."""
-        if not any(start <= now < end for _, _, start, end in self._windows):
+        if not self.silencing(now):
             return set(names)
         return {n for n in names if not self.silenced(*n.split("/", 1), now)}

@@ -649,6 +649,8 @@ class Node:
     def _answering_upstream(self) -> set[str]:
         """Upstream services that are alive and not silenced by a scheduled fault right now."""
         now = self.clock.now_ns() / 1e9
+        if not self._fault_windows.silencing(now):
+            return set(self._alive_upstream)
         return {s for s in self._alive_upstream if not self._fault_windows.silenced(self.scope, s, now)}
 
     def _on_scope_liveliness(self, key: str, alive: bool) -> None:
