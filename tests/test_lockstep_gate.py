@@ -122,6 +122,12 @@ def test_a_cut_radio_parts_a_uav_from_its_partners_but_never_from_the_simulator(
     assert windows.parted("uav1", "uav2", 2.0) and windows.parted("uav2", "uav3", 5.9)
     assert not windows.parted("uav2", "sim", 3.0) and not windows.parted("uav2", "uav2", 3.0)
     assert not windows.parted("uav1", "uav2", 6.0)
+    # what a service asks of the tick's keys and names: the same rule, the radios looked at once
+    cut = windows.cut_off("uav1", 3.0)
+    assert cut("falconry/uav2/status") and cut("uav2/tracker")
+    assert not cut("falconry/uav1/points") and not cut("falconry/sim/clock") and not cut("uav3/tracker")
+    assert windows.cut_off("uav3", 3.0)("falconry/uav2/tracks") and windows.cut_off("uav2", 3.0)("uav3/planner")
+    assert not windows.cut_off("uav1", 6.0)("falconry/uav2/status")
 
 
 def test_a_key_across_a_cut_link_is_not_waited_for_and_what_leaks_through_is_dropped():

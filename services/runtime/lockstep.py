@@ -222,6 +222,12 @@ def _never(key: str) -> bool:
     return False
 
 
+def _parted(one: str, other: str, down: frozenset[str]) -> bool:
+    """Whether UAV scopes `one` and `other` are apart while the radios of `down` are cut: a UAV
+    always reaches itself, and the simulator's scope over every UAV's airframe link."""
+    return one != other and keys.SIM not in (one, other) and (one in down or other in down)
+
+
 class FaultWindows:
     """Which services a scheduled fault keeps from acknowledging ticks (killed or frozen), so
     lockstep neither waits for them nor blocks on them, and whose radio link is cut (its
@@ -251,32 +257,25 @@ class FaultWindows:
         return any(u == uav and s in ("", service) and start <= now < end
                    for u, s, start, end in self._windows)
 
-    def radio_down(self, uav: str, now: float) -> bool:
-        return any(u == uav and start <= now < end for u, start, end in self._radio)
-
     def radios_down(self, now: float) -> frozenset[str]:
         """The UAV scopes whose radio link is cut at `now`."""
         return frozenset(u for u, start, end in self._radio if start <= now < end)
 
+    def parted(self, one: str, other: str, now: float) -> bool:
+        """Whether the radio keeps UAV scopes `one` and `other` apart at `now`."""
+        return _parted(one, other, self.radios_down(now))
+
     def cut_off(self, scope: str, now: float) -> Callable[[str], bool]:
-        """`parted(scope, <the name's scope>, now)` for a key or a "<scope>/<service>" name, worked
-        out once for the tick (every service asks it of every key the tick names)."""
+        """Whether a key or a "<scope>/<service>" name is parted from `scope` at `now`, the radios
+        looked at once for the tick (every service asks it of every key the tick names)."""
         down = self.radios_down(now)
         if not down:
             return _never
 
         def cut(name: str) -> bool:
             parts = name.split("/")
-            other = parts[1] if parts[0] == keys.ROOT and len(parts) > 1 else parts[0]
-            return other != scope and keys.SIM not in (scope, other) and (scope in down or other in down)
+            return _parted(scope, parts[1] if parts[0] == keys.ROOT and len(parts) > 1 else parts[0], down)
         return cut
-
-    def parted(self, one: str, other: str, now: float) -> bool:
-        """Whether the radio keeps UAV scopes `one` and `other` apart at `now` (the simulator's
-        scope is reached over every UAV's airframe link and is never parted)."""
-        if one == other or keys.SIM in (one, other):
-            return False
-        return self.radio_down(one, now) or self.radio_down(other, now)
 
     def unaffected(self, names: set[str], now: float) -> set[str]:
         """Of "<uav>/<service>" names, those no fault silences at `now`."""
