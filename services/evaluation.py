@@ -25,11 +25,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from services.runtime.clock import NS
+
 MATCH_DISTANCE = 1.0  # m
 MIN_HITS = 3  # rays of one scan on a target for it to count as in sight
 CAMERA_RANGE_SHARE = 0.1  # of a camera detection's distance: its match tolerance when larger than 1 m
 AIM_DISTANCE = 2.0  # m between an attack's or interception's aim point and a target's true position
-NS = 1_000_000_000
 
 
 def matched(positions: np.ndarray, targets: np.ndarray, tolerance: np.ndarray | float = MATCH_DISTANCE) -> np.ndarray:

@@ -64,8 +64,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.geometry import heading_quaternions, quaternion, rotation_matrix, wrap_angle, yaw_of
+from services.runtime.clock import NS
 
-NS = 1_000_000_000
 MAX_DIFF_S = 0.05  # s: a pose is matched to the truth only with a truth tick this close (the simulator's tick)
 MIN_SCAN_POINTS = 100  # a scan with fewer finite returns in range is not registered (silent or NaN LiDAR)
 

@@ -78,6 +78,8 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from services.runtime.clock import NS
+
 CUTOFF = 2.5  # m, GOSPA's c
 ORDER = 2.0  # GOSPA's p
 TRACKED_KINDS = ("drone",)
@@ -86,7 +88,6 @@ MAX_TRUTH_AGE_NS = 1_000_000_000  # a Detections message this long after the lat
 # message comes once per alive_period (1 s, services/tracker/core.py), and half as much again is slack
 TRACKER_SILENCE_NS = 1_500_000_000
 AXES = ("x", "y", "z")
-NS = 1_000_000_000
 
 
 def _points(points) -> np.ndarray:

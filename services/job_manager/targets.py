@@ -13,8 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.geometry import distance_to_edges, is_covariance, point_in_polygon, with_variance_floor
-
-NS = 1_000_000_000
+from services.runtime.clock import NS
 
 
 class TargetFilter:

@@ -65,8 +65,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.job_manager.plans import PlannedPath, first_breach, straight_on
+from services.runtime.clock import NS
 
-NS = 1_000_000_000
 ENGAGED_STATES = ("GOING_TO_TARGET", "DESTROYING")
 GIVE_WAY_SPEED = 0.5  # m/s towards a partner: slower, a hovering UAV is not flying into it
 GIVE_WAY_SLACK = 0.5  # m: the yielding partner climbs to vertical_separation; this much short of it is clear

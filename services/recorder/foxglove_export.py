@@ -47,12 +47,12 @@ from schemas.messages import (CompressedFrame, Detections, GroundTruth, Header, 
 from services.recorder.foxglove_schemas import json_schema_of
 from services.recorder.json_view import JsonView, NotFinite, base64_text, json_bytes, struct_view
 from services.recorder.mcap_io import ReadReport, read_recording
+from services.runtime.clock import NS
 from services.tracker.view import track_position
 from services.viz.style import DETECTION_COLOR, TRUTH_COLOR
 
 MESSAGE_ENCODING = "json"
 SCHEMA_ENCODING = "jsonschema"
-NS = 1_000_000_000
 # Entities of a SceneUpdate replace the previous update's: Foxglove keeps entities until deleted.
 DELETE_ALL = int(fg.SceneEntityDeletionType.All)
 FLOAT32 = int(fg.PackedElementFieldNumericType.Float32)

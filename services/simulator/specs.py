@@ -11,6 +11,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from schemas.messages import DEFAULT_UAV_RADIUS, ConstraintProfile, FaultCommand, FaultKind, Header
+from services.runtime.clock import NS
 
 MAX_UAVS = 3  # the largest team the command line accepts (--uavs 2|3)
 POLE_RADIUS = 0.05
@@ -19,7 +20,7 @@ POLE_RADIUS = 0.05
 def pole_name(balloon: str) -> str:
     """The name of a balloon's pole among the world's static obstacles (its balloon's target id + '_pole')."""
     return f"{balloon}_pole"
-NS = 1_000_000_000
+
 
 Vec3 = tuple[float, float, float]
 Point2 = tuple[float, float]

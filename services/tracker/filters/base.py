@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
-NS = 1_000_000_000
+from services.runtime.clock import NS
 
 
 @dataclass(frozen=True)
