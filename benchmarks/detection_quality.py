@@ -41,6 +41,7 @@ from services.launcher.plot import plot_curves  # noqa: E402
 from services.lidar.models import lidar_model  # noqa: E402
 from services.lidar.rays import body_mask, pack_mask, scan_rays  # noqa: E402
 from services.mapper.core import MapperParams  # noqa: E402
+from services.runtime.clock import NS  # noqa: E402
 from services.sensor_driver.core import (DEFAULT_BODY_BOX, Primitives, primitives_from_obstacles, scan,  # noqa: E402
                                          yaw_rotation)
 from services.simulator.core import Simulation  # noqa: E402
@@ -55,7 +56,6 @@ ERROR_GOAL = 0.17  # m, mean position error of seed 000 Table III (simulation)
 BIN = 5.0  # m
 MAX_DISTANCE = 50.0
 CENTRE = np.array([50.0, 40.0, 10.0])  # the observer's station in the open field (inside the map's grid)
-NS = 1_000_000_000
 
 Path3 = Callable[[float], np.ndarray]
 

@@ -30,6 +30,7 @@ from services.job_manager.params import JobManagerParams  # noqa: E402
 from services.planner import pursuit as pursuit_law  # noqa: E402
 from services.planner.avoid import Airspace, Clearances, Surroundings  # noqa: E402
 from services.planner.commands import PlannerParams, pursuit_clear, start_state  # noqa: E402
+from services.runtime.clock import NS  # noqa: E402
 from services.simulator import contact  # noqa: E402
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.paths import DronePath  # noqa: E402
@@ -41,7 +42,6 @@ from services.tracker.filters.models import turning_path  # noqa: E402
 from services.tracker.filters.turning import TurnHistory  # noqa: E402
 from services.tracker.view import PredictedPath  # noqa: E402
 
-NS = 1_000_000_000
 STEP = 0.01  # s, the simulator's largest sub-step
 START_DISTANCE = 12.0  # m from the drone
 START_HEIGHT = 5.0  # m

@@ -30,6 +30,7 @@ from schemas.messages import TargetTruth  # noqa: E402
 from services.evaluation import in_sight  # noqa: E402
 from services.lidar.models import lidar_model  # noqa: E402
 from services.mapper.core import MapperCore  # noqa: E402
+from services.runtime.clock import NS  # noqa: E402
 from services.sensor_driver.core import primitives_from_obstacles, scan  # noqa: E402
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
@@ -37,7 +38,6 @@ from services.tracker.core import OccupiedVoxels, TrackerCore, TrackerParams  # 
 from services.tracker.filters import FILTERS  # noqa: E402
 from services.voxels.apriori import obstacle_voxels  # noqa: E402
 
-NS = 1_000_000_000
 SENSOR = "os0-128"
 RATE_HZ = 10.0
 TARGETS = 10

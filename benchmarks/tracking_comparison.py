@@ -53,6 +53,7 @@ import numpy as np  # noqa: E402
 
 from schemas.messages import Obstacle, TargetTruth  # noqa: E402
 from services.lidar.models import lidar_model  # noqa: E402
+from services.runtime.clock import NS  # noqa: E402
 from services.sensor_driver.core import (DEFAULT_MOUNT, SensorDriverParams, primitives_from_obstacles,  # noqa: E402
                                          scan, yaw_rotation)
 from services.simulator.core import Simulation  # noqa: E402
@@ -67,7 +68,6 @@ SCENARIO = "sparse"
 OBSERVER = "uav1"
 OBSERVER_HEIGHT = 5.0  # m: where the planner holds uav1 in this scenario (sparse.toml)
 RATE_HZ = 10.0
-NS = 1_000_000_000
 FILTERS = (("kf", False), ("particle", False), ("adaptive", True))  # (filter, recovery), seed 002 sec. 5.2
 GOAL_VS_PARTICLE = 0.5  # adaptive / particle 3-D RMSE: seed 002's 2.8 / 5.5 m
 GOAL_VS_KF = 0.25  # adaptive / fixed KF: 2.8 / 13.0 m

@@ -129,6 +129,7 @@ def processes():
 SEGMENTS_AT_START = pytest.StashKey[set]()
 
 
+@pytest.hookimpl(trylast=True)  # after `-m` has deselected: only the tests that run count
 def pytest_collection_modifyitems(config, items):
     """The files whose tests take longest first (by their `slow` markers), each file's tests in
     their order. `make test`'s two workers take whole files in this order (pytest-xdist,
@@ -137,6 +138,8 @@ def pytest_collection_modifyitems(config, items):
     seconds: dict[Path, float] = {}
     for item in items:
         marker = item.get_closest_marker("slow")
+        if marker is not None and len(marker.args) != 1:
+            raise pytest.UsageError(f"{item.nodeid}: slow takes the test's seconds, e.g. @pytest.mark.slow(30)")
         seconds[item.path] = seconds.get(item.path, 0.0) + (float(marker.args[0]) if marker else 0.0)
     items.sort(key=lambda item: -seconds[item.path])  # stable: files stay whole
 

@@ -156,14 +156,14 @@ def test_tiles_seeing_only_the_ground_give_the_bits_of_the_general_path():
     with noise and dropouts, and the primitive each pixel sees (the balloons' indices one further
     on), from above the ground and below it."""
     rng = np.random.default_rng(11)
-    ground = Obstacle(kind="plane", center=(0.0, 0.0, 0.0), color=(90, 120, 60))
+    ground = Obstacle(kind="plane", center=(0.0, 0.0, 0.6), color=(90, 120, 60))  # not at 0: its height counts
     balloons = [TargetTruth(id=f"b{k}", kind="balloon", position=(*rng.uniform(-20, 20, 2), rng.uniform(1, 6)),
                             velocity=(0, 0, 0), radius=0.4, color=(200, 30, 30)) for k in range(6)]
     once = pack(primitives_from_obstacles([ground]).with_targets(balloons))
     twice = pack(primitives_from_obstacles([ground, ground]).with_targets(balloons))
     params = CameraParams(width=160, height=96)  # noise, drifts and dropouts on
     look = Appearance(sun_elevation=35.0, sun_azimuth=120.0, ambient=0.3)
-    for k, height in enumerate((5.0, 0.7, 14.0, -2.0)):
+    for k, height in enumerate((5.0, 1.3, 14.0, -2.0)):
         position = np.array([*rng.uniform(-10, 10, 2), height])
         rotation = camera_rotation(rng.uniform(-math.pi, math.pi), rng.uniform(-10, 10))  # the horizon in view
         gains = rng.uniform(0.8, 1.2, 3)

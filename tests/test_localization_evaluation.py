@@ -28,9 +28,9 @@ from services.launcher.cli import main
 from services.recorder import localization_input
 from services.recorder.localization_input import evaluate_localization
 from services.recorder.mcap_io import McapRecordWriter
+from services.runtime.clock import NS
 from tests.conftest import REPO, falconry_argv
 
-NS = 1_000_000_000
 TICK = NS // 20  # the simulator's 50 ms tick
 encode = msgspec.msgpack.encode
 

@@ -185,3 +185,19 @@ def test_a_message_given_up_on_is_not_waited_for_again_but_released_if_it_comes(
     gate.begin(3, {"falconry/uav1/tracks": 9})
     gate.record_ack("classifier", 3, {})
     assert gate.missing(UP) == ["falconry/uav1/tracks#9"]  # the next one is waited for as ever
+
+
+def test_a_subscription_added_during_a_tick_is_waited_for_and_a_cut_during_it_parts_its_keys():
+    """What the gate works out once at `begin` follows the service: a subscription declared during
+    the tick (`rewant`) and a radio cut announced during it (`recut`)."""
+    wanted = {"falconry/uav1/odometry"}
+    gate = LockstepGate((), wants=lambda key: key in wanted, joining=False)
+    gate.begin(3, {"falconry/uav1/odometry": 4, "falconry/uav2/status": 9})
+    assert gate.missing(set()) == ["falconry/uav1/odometry#4"]
+    wanted.add("falconry/uav2/status")
+    gate.rewant()
+    assert set(gate.missing(set())) == {"falconry/uav1/odometry#4", "falconry/uav2/status#9"}
+    gate.hold("falconry/uav1/odometry", 4, "odo4")
+    gate.hold("falconry/uav2/status", 9, "status9")
+    gate.recut(lambda key: key.startswith("falconry/uav2/"))
+    assert [item for _, item in gate.release(set())] == ["odo4"]  # uav2's status is across the cut

@@ -11,8 +11,8 @@ from schemas.arrays import from_numpy
 from schemas.messages import ConstraintProfile, Header, MissionCommand, TrajectoryReference
 from services.geometry import point_in_polygon
 from services.planner.commands import PlannerParams, VehicleState, plan_command, start_state
+from services.runtime.clock import NS
 
-NS = 1_000_000_000
 PARAMS = PlannerParams()
 
 

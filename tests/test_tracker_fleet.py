@@ -13,11 +13,11 @@ from hypothesis import strategies as st
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, Header, Track, Tracks
+from services.runtime.clock import NS
 from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
                                     covariance_intersection, sound_partner_track)
 from tests.tools.health import wait_healthy
 
-NS = 1_000_000_000
 PARAMS = FusionParams(radius_min=2.5, radius_confidence=1.5, process_rates=(0.01, 0.8, 0.05), stale_after=1.0)
 
 

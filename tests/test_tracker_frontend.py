@@ -8,6 +8,7 @@ import msgspec
 import numpy as np
 import pytest
 
+from services.runtime.clock import NS
 from services.tracker.filters import FilterParams, make_filter
 from services.tracker.filters.base import Estimate, Filter, Innovation, Update
 from services.tracker.filters.deleting import MissedStepsDeleter
@@ -16,7 +17,6 @@ from services.tracker.frontend import (Candidates, FrontEndParams, cluster_label
                                        voxel_downsample)
 from services.tracker.single import Outcome, SingleTargetParams, SingleTargetTracker, single_target_tracker, track
 
-NS = 1_000_000_000
 PERIOD = NS // 10  # 10 Hz scans
 OBSERVER = np.array([0.0, 0.0, 5.0])
 

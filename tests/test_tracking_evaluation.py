@@ -26,10 +26,10 @@ from services.evaluation_tracking import (ScanDetections, TrackingScore, Trackin
                                           score_detections, score_tracks, tracking_step)
 from services.launcher.cli import main
 from services.recorder.mcap_io import McapRecordWriter
+from services.runtime.clock import NS
 from tests.conftest import REPO, falconry_argv
 from tests.tools.run import record_short_run
 
-NS = 1_000_000_000
 TICK = NS // 20  # the simulator's 50 ms tick
 encode = msgspec.msgpack.encode
 

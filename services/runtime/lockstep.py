@@ -109,8 +109,7 @@ class LockstepGate(Generic[Item]):
         self.step = step
         self._counted = counted
         self._clock_bounds = clock_bounds
-        # the tick names every key of the run; `missing` is asked after each message that comes in
-        self._wanted_clock_bounds = {key: bound for key, bound in clock_bounds.items() if self._wants(key)}
+        self.rewant()  # the tick names every key of the run; `missing` is asked after each message
         self._cut = cut or _never
         for key in [k for k in self._fifo if self._cut(k)]:
             self._fifo[key].clear()  # delivered in the moment before the link really went down
@@ -119,6 +118,15 @@ class LockstepGate(Generic[Item]):
             if self._cut(key):
                 self._reconnecting.add(key)
                 self._floor[key] = max(self._floor.get(key, 0), bound)
+
+    def rewant(self) -> None:
+        """The service's subscriptions changed: which of the tick's keys it waits for, again."""
+        self._wanted_clock_bounds = {key: bound for key, bound in self._clock_bounds.items() if self._wants(key)}
+
+    def recut(self, cut: Callable[[str], bool]) -> None:
+        """A radio fault came in during the tick: the keys it parts from now on (what `begin`
+        already let through stays)."""
+        self._cut = cut
 
     def rejoin(self) -> None:
         self.joining = True

@@ -220,6 +220,7 @@ class Node:
         self._subs.append(sub)
         self._wants_cache.clear()
         self._order_cache.clear()
+        self._gate.rewant()
         if self._declared:
             self._declare_subscriber(sub)
 
@@ -627,6 +628,8 @@ class Node:
 
     def _on_fault(self, command: FaultCommand, key: str) -> None:
         self._fault_windows.add(command)  # a partner's cut radio parts us too
+        if command.kind == "link_cut":  # it may part keys of the tick under way
+            self._gate.recut(self._radio_cut(self.clock.now_ns() / 1e9))
         if self._delivery_faults.add(command, self._wants):
             self.log.warning("fault %s%s from %.2f s%s", command.kind, f" on {command.topic}" if command.topic else "",
                              command.header.stamp / 1e9, f" for {command.duration:g} s" if command.duration else "")
