@@ -27,6 +27,19 @@ def test_scenario_doc_carries_the_loader_reference():
     assert scenario.__doc__.strip("\n") in (REPO / "docs/scenarios.md").read_text()
 
 
+def test_the_scenario_docs_fault_examples_load(tmp_path):
+    """The `[[faults]]` example of docs/scenarios.md, added to a shipped scenario, is one the loader
+    takes (it once showed a `slow` delay the loader refuses)."""
+    examples = re.findall(r"```toml\n(.*?)```", (REPO / "docs/scenarios.md").read_text(), re.S)
+    faults = [block for block in examples if "[[faults]]" in block]
+    assert faults
+    base = (REPO / "services/simulator/scenarios/mbzirc.toml").read_text()
+    for k, block in enumerate(faults):
+        path = tmp_path / f"example{k}.toml"
+        path.write_text(base + "\n" + block)
+        assert len(scenario.load_scenario(str(path)).faults) >= block.count("[[faults]]")
+
+
 def test_readme_names_every_service_and_command():
     readme = (REPO / "README.md").read_text()
     for service in keys.SERVICES:
