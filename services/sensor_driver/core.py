@@ -28,7 +28,7 @@ import msgspec
 import numpy as np
 
 from schemas.messages import Obstacle, TargetTruth, WorldModel
-from services.lidar.models import lidar_model
+from services.lidar.models import LidarModel, lidar_model
 from services.sensor_driver import numpy_caster
 from services.sensor_driver.raycast import BOX, CONE, CYLINDER, PLANE, SPHERE, Packed, cast_kernel, scan_kernel
 
@@ -321,3 +321,17 @@ def scan(origin: np.ndarray, heading: float, directions: np.ndarray, world: Prim
                 INTENSITY_FULL_RANGE if intensity else 0.0, points, hits, brightness)
     return Scan(points.reshape(*shape, 3), hits.reshape(shape),
                 brightness.reshape(shape) if intensity else None)
+
+
+def scan_ranges(params: SensorDriverParams, model: LidarModel) -> tuple[float, float]:
+    """(min, max) range of the returns a scan keeps: the parameters' where set, else the model's."""
+    return params.min_range or model.min_range, params.max_range or model.max_range
+
+
+def model_scan(params: SensorDriverParams, model: LidarModel, origin: np.ndarray, heading: float,
+               world: Primitives, rng: np.random.Generator, frame: int = 0):
+    """One scan of `world` by `model` with the driver's parameters (`scan`)."""
+    min_range, max_range = scan_ranges(params, model)
+    return scan(origin, heading, model.directions(frame), world, rng, min_range=min_range, max_range=max_range,
+                range_noise=params.range_noise, position_noise=params.position_noise,
+                attitude_noise=params.attitude_noise, body_box=params.body_box, intensity=params.intensity)

@@ -41,29 +41,16 @@ from services.sensor_driver.core import (
     FALLBACK_MODEL,
     Primitives,
     SensorDriverParams,
+    model_scan,
     noise_stream_key,
     primitives_from_obstacles,
     reregistered,
-    scan,
+    scan_ranges,
     yaw_rotation,
 )
 from services.sensor_driver.faults import faulty_scan, lidar_faults
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'
-
-
-def scan_ranges(params: SensorDriverParams, model: LidarModel) -> tuple[float, float]:
-    """(min, max) range of the returns a scan keeps: the parameters' where set, else the model's."""
-    return params.min_range or model.min_range, params.max_range or model.max_range
-
-
-def model_scan(params: SensorDriverParams, model: LidarModel, origin: np.ndarray, heading: float,
-               world: Primitives, rng: np.random.Generator, frame: int = 0):
-    """One scan of `world` by `model` with the driver's parameters (core.scan)."""
-    min_range, max_range = scan_ranges(params, model)
-    return scan(origin, heading, model.directions(frame), world, rng, min_range=min_range, max_range=max_range,
-                range_noise=params.range_noise, position_noise=params.position_noise,
-                attitude_noise=params.attitude_noise, body_box=params.body_box, intensity=params.intensity)
 
 
 def warm_up(params: SensorDriverParams, model: LidarModel) -> None:
