@@ -117,8 +117,6 @@ def render_kernel(origin, rotation, tile_rays, order, start, candidates, counts,
     ox, oy, oz = origin[0], origin[1], origin[2]
     r = rotation
     cull = cull_setup(ox, oy, oz, kinds, bounds)
-    color_mask = len(color_noise) - 1  # table lengths are powers of two
-    depth_mask = len(depth_noise) - 1
     top = ENCODE_LEVELS - 1
     sky_r, sky_g, sky_b = (_encoded(sky[0] * gains[0], encode, top), _encoded(sky[1] * gains[1], encode, top),
                            _encoded(sky[2] * gains[2], encode, top))
@@ -155,12 +153,10 @@ def render_kernel(origin, rotation, tile_rays, order, start, candidates, counts,
                 lr, lg, lb = linear_colors[q, 0] * light, linear_colors[q, 1] * light, linear_colors[q, 2] * light
             else:
                 lr, lg, lb = sky[0], sky[1], sky[2]
-            base = color_offset + 3 * j
-            rgb[i, 0] = _channel(lr * gains[0], encode, top, color_noise[base & color_mask])
-            rgb[i, 1] = _channel(lg * gains[1], encode, top, color_noise[(base + 1) & color_mask])
-            rgb[i, 2] = _channel(lb * gains[2], encode, top, color_noise[(base + 2) & color_mask])
-            depth_mm[i] = _depth(q >= 0, t * cx if q >= 0 else 0.0, depth_noise[(depth_offset + j) & depth_mask],
-                                 depth_sigma, depth_min, depth_max, dropout)
+            _write_pixel(i, j, _encoded(lr * gains[0], encode, top), _encoded(lg * gains[1], encode, top),
+                         _encoded(lb * gains[2], encode, top), q >= 0, t * cx if q >= 0 else 0.0, color_noise,
+                         color_offset, depth_noise, depth_offset, depth_sigma, depth_min, depth_max, dropout,
+                         rgb, depth_mm)
 
 
 @njit(cache=True, error_model="numpy")
@@ -177,8 +173,6 @@ def _plane_tile(oz, r, tile_rays, order, first, end, p, params, linear_colors, s
     plane_r = _encoded(linear_colors[p, 0] * light * gains[0], encode, top)
     plane_g = _encoded(linear_colors[p, 1] * light * gains[1], encode, top)
     plane_b = _encoded(linear_colors[p, 2] * light * gains[2], encode, top)
-    color_mask = len(color_noise) - 1
-    depth_mask = len(depth_noise) - 1
     for j in range(first, end):
         i = order[j]
         cx, cy, cz = tile_rays[j, 0], tile_rays[j, 1], tile_rays[j, 2]
@@ -186,20 +180,26 @@ def _plane_tile(oz, r, tile_rays, order, first, end, p, params, linear_colors, s
         t = ahead((height - oz) / dz)
         hit = t < INF
         hit_index[i] = p if hit else -1
-        base = color_offset + 3 * j
-        rgb[i, 0] = _noisy(plane_r if hit else sky_r, color_noise[base & color_mask])
-        rgb[i, 1] = _noisy(plane_g if hit else sky_g, color_noise[(base + 1) & color_mask])
-        rgb[i, 2] = _noisy(plane_b if hit else sky_b, color_noise[(base + 2) & color_mask])
-        depth_mm[i] = _depth(hit, t * cx if hit else 0.0, depth_noise[(depth_offset + j) & depth_mask],
-                             depth_sigma, depth_min, depth_max, dropout)
+        _write_pixel(i, j, plane_r if hit else sky_r, plane_g if hit else sky_g, plane_b if hit else sky_b, hit,
+                     t * cx if hit else 0.0, color_noise, color_offset, depth_noise, depth_offset, depth_sigma,
+                     depth_min, depth_max, dropout, rgb, depth_mm)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _depth(hit, z, draw, depth_sigma, depth_min, depth_max, dropout):
-    """The depth value in mm of a pixel whose ray hit at optical-axis depth z (m), with its noise draw."""
+def _write_pixel(i, j, red, green, blue, hit, z, color_noise, color_offset, depth_noise, depth_offset, depth_sigma,
+                 depth_min, depth_max, dropout, rgb, depth_mm):
+    """Pixel i (the j-th in tile order, which the noise tables are read in) from its encoded
+    colour and, when its ray hit, the depth z (m) along the optical axis: both with their noise."""
+    base = color_offset + 3 * j
+    color_mask = len(color_noise) - 1  # table lengths are powers of two
+    rgb[i, 0] = _noisy(red, color_noise[base & color_mask])
+    rgb[i, 1] = _noisy(green, color_noise[(base + 1) & color_mask])
+    rgb[i, 2] = _noisy(blue, color_noise[(base + 2) & color_mask])
+    draw = depth_noise[(depth_offset + j) & (len(depth_noise) - 1)]
     if hit and depth_min <= z <= depth_max and abs(draw) <= dropout:
-        return np.uint16(min(max((z + depth_sigma * z * z * draw) * 1000.0 + 0.5, 1.0), 65535.0))
-    return np.uint16(0)
+        depth_mm[i] = np.uint16(min(max((z + depth_sigma * z * z * draw) * 1000.0 + 0.5, 1.0), 65535.0))
+    else:
+        depth_mm[i] = 0
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -213,11 +213,6 @@ def _encoded(linear, encode, top):
 @njit(cache=True, error_model="numpy", inline="always")
 def _noisy(encoded, noise):
     return np.uint8(min(max(encoded + np.int64(noise), 0), 255))
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _channel(linear, encode, top, noise):
-    return _noisy(_encoded(linear, encode, top), noise)
 
 
 def noise_table(rng: np.random.Generator, size: int, sigma: float, dtype) -> np.ndarray:
