@@ -572,6 +572,7 @@ def test_a_turning_prediction_is_carried_on_round_its_turn_not_along_its_last_st
        distance=st.floats(1.0, 15.0), velocity=st.tuples(*[st.floats(-5.0, 5.0)] * 2, st.floats(-1.5, 1.5)),
        climb=st.floats(-1.0, 1.0))
 @example(radius=6.0, speed=4.0, bearing=5.0, distance=4.0, velocity=(1.0, 1.0, 1.0), climb=-1.0)  # a turn starved
+@example(radius=8.0, speed=3.546875, bearing=4.1875, distance=13.5, velocity=(1.0, 0.0, 0.0), climb=-1.0)  # a descent starved
 def test_a_rendezvous_with_a_turning_target_stays_within_the_profile_and_meets_it(radius, speed, bearing, distance,
                                                                                   velocity, climb):
     from services.planner import pursuit as law

@@ -344,7 +344,7 @@ def pursuit(position, target_position, target_velocity, *, profile: ConstraintPr
         demand = _limit_velocity(aim_velocity + closing, profile)
         above = max(p[2] - floor + min(v[2], 0.0) / GAIN, 0.0)  # less what the lag of taking up the demand sinks
         lowest = -np.sqrt(2.0 * braking * above)  # can still stop above it
-        held_up = demand[2] < lowest
+        held_up = min(demand[2], v[2]) < lowest  # the demand, or a descent lagging behind it, would sink too far
         demand[2] = max(demand[2], lowest)
         if barrier is not None:
             demand = barrier(p, demand)
