@@ -7,7 +7,7 @@ a flat disc of that radius, 0.3 m thick). The scans come from the sensor driver'
 classifier and the mapper are the services' cores in the services' order (benchmarks/
 perception_loop.py), the map learnt from nothing (no a-priori map) unless said otherwise.
 
-Prints, over every matched detection (within 1 m of the target, services/evaluation.py), the mean
+Prints, over every matched detection (within 1 m of the target, services/tools/evaluation/__init__.py), the mean
 and standard deviation of the position error (goal: mean at most 0.17 m, Table III), beside the
 error of the returns' centroid alone (eq. 19, without the classifier's surface_bias correction), the recall
 over distance in 5 m bins (all scans, and the scans in which at least 3 rays hit the target) as a
@@ -35,15 +35,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a plain checkout
 import numpy as np  # noqa: E402
 
 from schemas.messages import Obstacle, TargetTruth  # noqa: E402
-from services import evaluation  # noqa: E402
+from services.tools import evaluation  # noqa: E402
 from services.classifier.core import SensorPose  # noqa: E402
-from services.launcher.plot import plot_curves  # noqa: E402
-from services.lidar.models import lidar_model  # noqa: E402
-from services.lidar.rays import body_mask, pack_mask, scan_rays  # noqa: E402
+from services.tools.launcher.plot import plot_curves  # noqa: E402
+from services.lib.lidar.models import lidar_model  # noqa: E402
+from services.lib.lidar.rays import body_mask, pack_mask, scan_rays  # noqa: E402
 from services.mapper.core import MapperParams  # noqa: E402
-from services.runtime.clock import NS  # noqa: E402
-from services.sensor_driver.core import (DEFAULT_BODY_BOX, Primitives, primitives_from_obstacles, scan,  # noqa: E402
-                                         yaw_rotation)
+from services.lib.runtime.clock import NS  # noqa: E402
+from services.lib.geometry import yaw_rotation
+from services.lib.world.primitives import Primitives, primitives_from_obstacles
+from services.sensor_driver.core import DEFAULT_BODY_BOX, scan
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 

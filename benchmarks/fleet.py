@@ -34,7 +34,7 @@ def fly(scenario: str, uavs: int, sensor: str, duration: float, seed: int, work:
     config = work / "sensor.toml"
     config.write_text(f'[sensor_driver]\nmodel = "{sensor}"\n')
     summary = work / f"{scenario}-{uavs}.json"
-    argv = [sys.executable, "-m", "services.launcher", "sim", scenario, "--uavs", str(uavs), "--seed", str(seed),
+    argv = [sys.executable, "-m", "services.tools.launcher", "sim", scenario, "--uavs", str(uavs), "--seed", str(seed),
             "--lockstep", "--detector", detector, "--duration", str(duration), "--quiet", "--progress", "0",
             "--config", str(config), "--summary-json", str(summary)]
     result = subprocess.run(argv, capture_output=True, text=True)

@@ -36,7 +36,7 @@ GOALS_MS = {"sighting → reference": (100.0, 150.0)}  # p50, p95
 
 def fly(args: argparse.Namespace, work: Path) -> dict:
     summary = work / "summary.json"
-    argv = [sys.executable, "-m", "services.launcher", "sim", args.scenario, "--uavs", str(args.uavs),
+    argv = [sys.executable, "-m", "services.tools.launcher", "sim", args.scenario, "--uavs", str(args.uavs),
             "--seed", str(args.seed), "--duration", str(args.duration), "--rtf", str(args.rtf), "--quiet",
             "--progress", "0",
             "--summary-json", str(summary)]

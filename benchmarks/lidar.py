@@ -37,8 +37,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a plain checkout
 import numpy as np  # noqa: E402
 
 from schemas.messages import Obstacle  # noqa: E402
-from services.sensor_driver import core, numpy_caster  # noqa: E402
-from services.lidar.models import lidar_model  # noqa: E402
+from services.lib.world import numpy_caster, primitives  # noqa: E402
+from services.sensor_driver import core  # noqa: E402
+from services.lib.lidar.models import lidar_model  # noqa: E402
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 
@@ -49,11 +50,11 @@ POSES = [(45.0, 4.0, 5.0, 1.57), (50.0, 25.0, 5.0, 0.3), (24.0, 40.0, 6.0, -2.0)
          (68.0, 30.0, 8.0, -1.0), (15.0, 15.0, 4.0, 0.8)]
 
 
-def mbzirc_world() -> core.Primitives:
+def mbzirc_world() -> primitives.Primitives:
     scenario = load_scenario("mbzirc")
     sim = Simulation(scenario, ["uav1", "uav2"], 1)
     targets = [t.truth() if hasattr(t, "truth") else t for t in sim.targets()]
-    return core.primitives_from_obstacles(sim.obstacles()).with_targets(targets)
+    return primitives.primitives_from_obstacles(sim.obstacles()).with_targets(targets)
 
 
 def timed(run: Callable[[int], object], scans: int) -> np.ndarray:
@@ -66,10 +67,10 @@ def timed(run: Callable[[int], object], scans: int) -> np.ndarray:
     return np.array(times) * 1e3
 
 
-def bench_model(name: str, world: core.Primitives, scans: int) -> tuple[float, float, float]:
+def bench_model(name: str, world: primitives.Primitives, scans: int) -> tuple[float, float, float]:
     model = lidar_model(name)
     rng = np.random.default_rng(0)
-    packed = core.pack(world)
+    packed = primitives.pack(world)
 
     def numba_scan(i: int):
         x, y, z, heading = POSES[i % len(POSES)]
@@ -128,8 +129,8 @@ def geometry_cases() -> list[tuple[str, list[Obstacle], np.ndarray, np.ndarray, 
 def check_geometry() -> bool:
     ok = True
     for name, obstacles, origin, direction, expected in geometry_cases():
-        world = core.primitives_from_obstacles(obstacles)
-        t = core.cast(origin, direction[None, :], world)[0]
+        world = primitives.primitives_from_obstacles(obstacles)
+        t = primitives.cast(origin, direction[None, :], world)[0]
         cast_error = float(np.linalg.norm(origin + t * direction - expected)) if np.isfinite(t) else math.inf
         result = core.scan(origin, 0.0, direction.reshape(1, 1, 3), world, np.random.default_rng(0),
                            range_noise=0.0, max_range=1e3, body_box=None)
@@ -153,7 +154,7 @@ def main() -> int:
     start = time.perf_counter()
     world = mbzirc_world()
     core.scan(np.zeros(3), 0.0, lidar_model("os0-32").directions(0), world, np.random.default_rng(0))
-    print(f"mbzirc world: {len(core.pack(world))} primitives; numba compile / cache load "
+    print(f"mbzirc world: {len(primitives.pack(world))} primitives; numba compile / cache load "
           f"{time.perf_counter() - start:.1f} s; one thread; {scans} scans per model from {len(POSES)} poses")
     results = {name: bench_model(name, world, scans)
                for name in ("os0-128", "os0-128-2048", "os1-128", "os0-64", "os0-32-512", "mid360")}

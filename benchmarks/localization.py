@@ -38,11 +38,11 @@ from mission import run  # noqa: E402
 from schemas import keys  # noqa: E402
 from schemas.arrays import to_numpy  # noqa: E402
 from schemas.messages import ImuBatch, Odometry, PointCloud  # noqa: E402
-from services.geometry import rotation_matrix  # noqa: E402
+from services.lib.geometry import rotation_matrix  # noqa: E402
 from services.localizer.core import Localizer, LocalizerParams, sensor_frame  # noqa: E402
-from services.recorder.localization_input import evaluate_localization  # noqa: E402
-from services.recorder.mcap_io import read_recording  # noqa: E402
-from services.recorder.selection import KeyFilter  # noqa: E402
+from services.tools.evaluation.localization_input import evaluate_localization  # noqa: E402
+from services.tools.recorder.mcap_io import read_recording  # noqa: E402
+from services.tools.recorder.selection import KeyFilter  # noqa: E402
 
 POSITION_GOAL_PCT = 0.5
 YAW_GOAL_PCT = 0.1

@@ -29,7 +29,7 @@ def run(scenario: str, uavs: int, seed: int, duration: float, workdir: Path, det
         extra: tuple[str, ...] = ()) -> dict:
     """One lockstep `falconry sim` run (`extra`: more of its options); its summary."""
     summary = workdir / f"{Path(scenario).stem}-{uavs}-{seed}.json"  # a scenario may be a TOML file's path
-    argv = [sys.executable, "-m", "services.launcher", "sim", scenario, "--uavs", str(uavs), "--seed", str(seed),
+    argv = [sys.executable, "-m", "services.tools.launcher", "sim", scenario, "--uavs", str(uavs), "--seed", str(seed),
             "--lockstep", "--detector", detector, "--duration", str(duration), "--quiet", "--progress", "0",
             "--summary-json", str(summary), *extra]
     result = subprocess.run(argv, capture_output=True, text=True)

@@ -37,10 +37,10 @@ import numpy as np  # noqa: E402
 from schemas.arrays import from_numpy, to_numpy  # noqa: E402
 from schemas.messages import Header, PointCloud, VoxelMap, WorldModel  # noqa: E402
 from services.classifier.core import SensorPose  # noqa: E402
-from services.geometry import rotation_matrix  # noqa: E402
-from services.lidar.rays import scan_rays  # noqa: E402
-from services.recorder.mcap_io import read_recording  # noqa: E402
-from services.runtime.health import process_usage  # noqa: E402
+from services.lib.geometry import rotation_matrix  # noqa: E402
+from services.lib.lidar.rays import scan_rays  # noqa: E402
+from services.tools.recorder.mcap_io import read_recording  # noqa: E402
+from services.lib.runtime.health import process_usage  # noqa: E402
 
 from perception_loop import PerceptionLoop  # noqa: E402  (beside this file)
 
@@ -52,7 +52,7 @@ WARM_UP = 3  # scans left out of the figures (numba loads its caches, numpy warm
 def record(path: Path, duration: float) -> None:
     config = path.with_suffix(".toml")
     config.write_text(f'[sensor_driver]\nmodel = "{SENSOR}"\n')
-    argv = [sys.executable, "-m", "services.launcher", "sim", "mbzirc", "--uavs", "2", "--lockstep", "--duration",
+    argv = [sys.executable, "-m", "services.tools.launcher", "sim", "mbzirc", "--uavs", "2", "--lockstep", "--duration",
             str(duration), "--detector", "oracle", "--quiet", "--progress", "0", "--config", str(config),
             "--record", str(path)]
     print(f"recording {duration:g} s of mbzirc with {SENSOR} scans ...", flush=True)

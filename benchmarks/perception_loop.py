@@ -15,9 +15,9 @@ import numpy as np
 
 from schemas.messages import Obstacle
 from services.classifier.core import ClassifiedScan, ClassifierCore, ClassifierParams, SensorPose
-from services.lidar.rays import ScanRays
+from services.lib.lidar.rays import ScanRays
 from services.mapper.core import MapDelta, MapperCore, MapperParams
-from services.voxels.apriori import obstacle_voxels
+from services.lib.voxels.apriori import obstacle_voxels
 
 
 @dataclass(frozen=True)

@@ -41,8 +41,8 @@ from services.planner.commands import PlannerParams, VehicleState, plan_command,
 from services.planner.freespace import FreeSpace  # noqa: E402
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
-from services.voxels.apriori import obstacle_voxels  # noqa: E402
-from services.voxels.grid import GridGeometry  # noqa: E402
+from services.lib.voxels.apriori import obstacle_voxels  # noqa: E402
+from services.lib.voxels.grid import GridGeometry  # noqa: E402
 from services.mapper.core import MapperParams  # noqa: E402
 
 PLAN_GOAL_MS = 20.0
@@ -71,7 +71,7 @@ def apriori_space(scenario, clearances: Clearances) -> FreeSpace:
 
 def recorded_space(path: str, uav: str, clearances: Clearances, ground_z: float) -> FreeSpace:
     """The map `uav`'s mapper had published by the end of a recording."""
-    from services.recorder.mcap_io import read_recording
+    from services.tools.recorder.mcap_io import read_recording
 
     decoder = msgspec.msgpack.Decoder(VoxelMap)
     space = FreeSpace(clearances.plan)

@@ -1,7 +1,7 @@
 """Single-target LiDAR tracking, three filters compared (seed 002 sec. 5.2 and its results table).
 
 The `sparse` scenario (services/simulator/scenarios/sparse.toml): uav1 is the observer, held at
-its start (3, 2) at 5 m with its Livox Mid-360 (services/lidar/models.py, the sensor driver's
+its start (3, 2) at 5 m with its Livox Mid-360 (services/lib/lidar/models.py, the sensor driver's
 default 2 cm range noise, 10 Hz); the scenario's target drone (0.65 m, a flat disc 0.3 m thick)
 manoeuvres on its seeded random path 10-35 m away at up to 5 m/s and 3 m/s², and returns 1-4
 points per scan. The scans come from the sensor driver's caster (services.sensor_driver.core.scan)
@@ -52,10 +52,12 @@ import msgspec  # noqa: E402
 import numpy as np  # noqa: E402
 
 from schemas.messages import Obstacle, TargetTruth  # noqa: E402
-from services.lidar.models import lidar_model  # noqa: E402
-from services.runtime.clock import NS  # noqa: E402
-from services.sensor_driver.core import (DEFAULT_MOUNT, SensorDriverParams, primitives_from_obstacles,  # noqa: E402
-                                         scan, yaw_rotation)
+from services.lib.lidar.models import lidar_model  # noqa: E402
+from services.lib.runtime.clock import NS  # noqa: E402
+from services.lib.geometry import yaw_rotation
+from services.lib.lidar.models import DEFAULT_MOUNT
+from services.lib.world.primitives import primitives_from_obstacles
+from services.sensor_driver.core import scan, SensorDriverParams
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
 from services.tracker.filters import FilterParams, make_filter  # noqa: E402

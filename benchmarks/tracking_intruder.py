@@ -78,7 +78,7 @@ def tallies(figures: dict) -> dict[str, Tally]:
 
 
 def evaluate(recording: Path) -> dict:
-    argv = [sys.executable, "-m", "services.launcher", "evaluate", "tracking", str(recording), "--json"]
+    argv = [sys.executable, "-m", "services.tools.launcher", "evaluate", "tracking", str(recording), "--json"]
     result = subprocess.run(argv, capture_output=True, text=True)
     if result.returncode != 0:
         raise SystemExit(f"evaluate tracking {recording} failed ({result.returncode}): {result.stderr[-2000:]}")

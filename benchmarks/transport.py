@@ -43,9 +43,9 @@ import zenoh  # noqa: E402
 
 from schemas.arrays import from_numpy, to_numpy  # noqa: E402
 from schemas.messages import Header, PointCloud, Pose, SimEvent  # noqa: E402
-from services.runtime import shm as shm_segments  # noqa: E402
-from services.runtime.node import TypedPublisher  # noqa: E402
-from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session  # noqa: E402
+from services.lib.runtime import shm as shm_segments  # noqa: E402
+from services.lib.runtime.node import TypedPublisher  # noqa: E402
+from services.lib.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session  # noqa: E402
 
 ROOT = "bench"
 REPLY_TIMEOUT_S = 2.0

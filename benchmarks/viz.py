@@ -27,7 +27,7 @@ SLOWDOWN_GOAL = 0.10  # issue 8: a mission with the viewer at most 10 % slower
 def run(args: argparse.Namespace, workdir: Path, label: str, rrd: Path | None) -> dict:
     summary = workdir / f"{label}.json"
     log = workdir / f"{label}.log"
-    argv = [sys.executable, "-m", "services.launcher", "sim", args.scenario, "--uavs", str(args.uavs),
+    argv = [sys.executable, "-m", "services.tools.launcher", "sim", args.scenario, "--uavs", str(args.uavs),
             "--seed", str(args.seed), "--lockstep", "--duration", str(args.duration), "--quiet", "--progress", "0",
             "--detector", "classifier",  # the figures in benchmarks/README.md were measured with the LiDAR alone
             "--summary-json", str(summary), "--log-file", str(log)] + (["--rrd", str(rrd)] if rrd else [])

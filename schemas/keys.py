@@ -82,7 +82,7 @@ def ack(scope: str, service: str) -> str:
 
 
 # Per-UAV topics that a party other than the UAV's own services publishes: the access control of
-# a team (services/runtime/tls.py) grants exactly these, and their publishers name them from here.
+# a team (services/lib/runtime/tls.py) grants exactly these, and their publishers name them from here.
 ODOMETRY = "odometry"  # the flight controller's pose; in simulation the simulator stands in for it
 IMU = "imu"  # the flight controller's accelerometer and gyroscope samples; in simulation the simulator's
 LOCALIZATION = "localization"  # the localizer's estimate (Odometry with its health), which the flight controller flies on

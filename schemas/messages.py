@@ -51,12 +51,12 @@ class PointCloud(msgspec.Struct, kw_only=True):
     sensor_model: str = ""
     min_range: float = 0.0
     max_range: float = 0.0
-    frame: int = 0  # the model's beam pattern of this scan (n-th frame since mission time 0; services/lidar)
+    frame: int = 0  # the model's beam pattern of this scan (n-th frame since mission time 0; services/lib/lidar)
     # uint8 (height, ceil(width / 8)), each row's bits packed (numpy.packbits): 1 where the ray meets the
     # carrier's own body, so its missing return says nothing about the world (the mapper skips it)
     mask: Array | None = None
     pose_covariance: Array | None = None  # float64 6×6 over (x, y, z, roll, pitch, yaw) of sensor_pose
-    # Why the driver's sanity check (services/lidar/sanity.py) failed this scan ("" : it passed). A
+    # Why the driver's sanity check (services/lib/lidar/sanity.py) failed this scan ("" : it passed). A
     # failed scan is published for the record only: every consumer skips its points.
     sanity: str = ""
 
@@ -142,7 +142,7 @@ class ImuBatch(msgspec.Struct, kw_only=True):
     batch's stamp, header.stamp), so consecutive batches tile the stream without gap or repeat (tick
     0's batch holds none). `accelerometer` is the specific force, acceleration minus gravity (at rest
     +9.81 m/s² along z, in free fall 0), `gyroscope` the angular rate; both carry the sensor's white
-    noise and bias (services/simulator/imu.py). Every batch is needed: subscribe without shedding."""
+    noise and bias (services/lib/imu.py). Every batch is needed: subscribe without shedding."""
 
     header: Header  # stamp: the tick's end; frame: the UAV's body frame, named after the UAV ("uav1")
     stamps: Array  # int64 (N,) mission time of each sample, ns

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from services.runtime import shm
-from services.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session
+from services.lib.runtime import shm
+from services.lib.runtime.zenoh_config import ZenohSettings, free_port, init_logging, open_session
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -87,7 +87,7 @@ def hub(port):
 
 
 def falconry_argv(*args: str) -> list[str]:
-    return [sys.executable, "-m", "services.launcher", *args]
+    return [sys.executable, "-m", "services.tools.launcher", *args]
 
 
 class Processes:

@@ -9,7 +9,7 @@ import pytest
 
 from schemas.messages import Appearance, Obstacle, TargetTruth
 from services.camera.core import Camera, CameraParams, Gains, Intrinsics, camera_rotation
-from services.sensor_driver.core import pack, primitives_from_obstacles
+from services.lib.world.primitives import pack, primitives_from_obstacles
 
 QUIET = dict(color_noise=0.0, depth_noise=0.0, depth_dropout=0.0, exposure_drift=0.0, white_balance_drift=0.0)
 SKY = Appearance(sky=(10, 20, 250), ambient=1.0)
@@ -113,7 +113,7 @@ def test_a_tiled_frame_sees_what_the_caster_sees_through_every_pixel():
     too short would lose what the pixel sees. The LiDAR's caster, which tests every primitive,
     must see the same primitive at the same range through every pixel, from poses inside bounding
     spheres, beside them and far away, with primitives filling several tiles and grazing others."""
-    from services.sensor_driver.raycast import cast_kernel
+    from services.lib.world.raycast import cast_kernel
 
     rng = np.random.default_rng(5)
     obstacles = [Obstacle(kind="plane", center=(0.0, 0.0, 0.0), color=(90, 90, 90))]

@@ -9,7 +9,7 @@ import pytest
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.classifier import kernels as classifier_kernels
 from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose, warm_up
-from services.voxels import kernels as voxel_kernels
+from services.lib.voxels import kernels as voxel_kernels
 from tests.tools.compiled import in_fresh_interpreter, newly_compiled
 
 ORIGIN, SHAPE, VOXEL = (0.0, 0.0, 0.0), (80, 60, 30), 0.5  # 40 × 30 × 15 m
@@ -137,7 +137,7 @@ def test_label_sets_count_returns_per_voxel_with_infinite_weight_for_flying_obje
 
 
 def test_a_voxel_with_returns_of_several_classes_takes_the_most_cautious():
-    from services.voxels.labels import label_sets
+    from services.lib.voxels.labels import label_sets
     slot = np.full(80 * 60 * 30, -1, np.int32)
     voxels, labels, weights, outside = label_sets(
         np.array([[1.1, 1.1, 1.1], [1.2, 1.2, 1.2], [1.3, 1.3, 1.3], [5.1, 1.1, 1.1], [5.2, 1.1, 1.1]]),

@@ -123,7 +123,7 @@ def test_a_native_viewer_without_a_display_says_what_to_use_instead():
 
 
 def test_the_summary_sums_each_services_cpu_over_the_uavs_largest_first():
-    from services.launcher.sim_cmd import cpu_line
+    from services.tools.launcher.sim_cmd import cpu_line
 
     cpu = {"uav1/mapper": 2.0, "uav2/mapper": 3.0, "uav1/classifier": 1.0, "sim/simulator": 0.5, "launcher": 0.7}
     assert cpu_line(cpu) == "mapper 5.0, classifier 1.0, launcher 0.7, simulator 0.5"
@@ -133,7 +133,7 @@ def test_messages_missed_by_a_stopped_service_are_counted_apart_from_the_deliver
     """A killed or frozen service misses what is sent while it is gone, by an amount that follows
     wall time; the delivery's own losses are what services that ran throughout did not receive."""
     from schemas.messages import FaultCommand, Header, ServiceHealth
-    from services.launcher.sim_cmd import health_totals, stopped_services
+    from services.tools.launcher.sim_cmd import health_totals, stopped_services
 
     def health(uav, service, received=None, published=None):
         return ServiceHealth(header=Header(), uav=uav, service=service, pid=1, uptime=1.0, state="running",
@@ -156,7 +156,7 @@ def test_health_is_asked_again_until_a_message_still_on_its_way_has_arrived():
     """The planner's reference of the last tick reaches the job manager after the question did once
     in a while: asked again, it is received; a message the network lost stays lost."""
     from schemas.messages import Header, ServiceHealth
-    from services.launcher.sim_cmd import health_totals, until_received
+    from services.tools.launcher.sim_cmd import health_totals, until_received
 
     reference = "falconry/uav1/reference"
 
@@ -184,7 +184,7 @@ def test_only_the_masters_own_give_ups_make_a_lockstep_run_another_than_its_seed
     """A frozen service's downstream gives up on it by design; the simulator going on without a
     live service is what changes the run."""
     from schemas.messages import Header, ServiceHealth
-    from services.launcher.sim_cmd import health_totals
+    from services.tools.launcher.sim_cmd import health_totals
 
     def health(uav, service, timeouts):
         return ServiceHealth(header=Header(), uav=uav, service=service, pid=1, uptime=1.0, state="running",
@@ -198,20 +198,20 @@ def test_only_the_masters_own_give_ups_make_a_lockstep_run_another_than_its_seed
 
 
 def test_the_launchers_light_service_entry_is_falconry_run():
-    """The launcher starts services with `python -m services.launcher.run_service`: the same `run`
+    """The launcher starts services with `python -m services.tools.launcher.run_service`: the same `run`
     command (its options, its one-line errors) without importing every other command."""
     import subprocess
     import sys
 
     def entry(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "services.launcher.run_service", *args],
+        return subprocess.run([sys.executable, "-m", "services.tools.launcher.run_service", *args],
                               capture_output=True, text=True, timeout=60)
     full, light = falconry("run", "--help"), entry("run", "--help")
     assert light.returncode == 0 and light.stdout == full.stdout
     for args in (("run", "tracker"), ("run", "tracker", "--uav", "uav1", "--log-level", "loud")):
         a, b = falconry(*args), entry(*args)
         assert (a.returncode, a.stderr) == (b.returncode, b.stderr) and b.returncode == 2, b.stderr
-    imported = subprocess.run([sys.executable, "-c", "import sys, services.launcher.run_service; "
+    imported = subprocess.run([sys.executable, "-c", "import sys, services.tools.launcher.run_service; "
                                "print(sorted(m for m in sys.modules if m.endswith('_cmd')))"],
                               capture_output=True, text=True, timeout=60)
-    assert imported.stdout.strip() == "['services.launcher.run_cmd']", imported.stdout
+    assert imported.stdout.strip() == "['services.tools.launcher.run_cmd']", imported.stdout

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from schemas.messages import CompressedFrame, GroundTruth
-from services.geometry import rotation_matrix
-from services.recorder.mcap_io import read_recording
+from services.lib.geometry import rotation_matrix
+from services.tools.recorder.mcap_io import read_recording
 from tests.conftest import REPO, falconry_argv
 
 SCENARIO = """\

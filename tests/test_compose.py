@@ -29,9 +29,9 @@ import pytest
 import zenoh
 
 from schemas import keys
-from services.launcher.cli import build_parser
-from services.launcher.registry import node_class
-from services.runtime.zenoh_config import ZenohSettings, free_port, open_session
+from services.tools.launcher.cli import build_parser
+from services.tools.registry import node_class
+from services.lib.runtime.zenoh_config import ZenohSettings, free_port, open_session
 
 from tests.tools.run import end_partner
 from tests.tools.compose import (COMPOSE, REPO, TLS_ENV, UAV3_OVERRIDE, compose_cli, falconry_services, render,
@@ -349,7 +349,7 @@ def test_compose_router_carries_data_between_falconry_clients():
 
 PARTNER = textwrap.dedent("""
     import json, sys, zenoh
-    from services.runtime.zenoh_config import ZenohSettings, open_session
+    from services.lib.runtime.zenoh_config import ZenohSettings, open_session
     path, listen, connect = sys.argv[1:4]
     config = zenoh.Config.from_file(path)
     config.insert_json5("listen/endpoints", json.dumps([listen]))

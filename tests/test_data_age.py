@@ -12,10 +12,10 @@ import pytest
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, Header, MissionCommand, SimClock, TrajectoryReference, Tracks
-from services.evaluation import PipelineAges
-from services.launcher.monitor import RunMonitor
-from services.launcher.sim_cmd import WATCHED, data_age_lines
-from services.recorder.mcap_io import McapRecordWriter
+from services.tools.evaluation import PipelineAges
+from services.tools.launcher.monitor import RunMonitor
+from services.tools.launcher.sim_cmd import WATCHED, data_age_lines
+from services.tools.recorder.mcap_io import McapRecordWriter
 from tests.conftest import REPO, falconry_argv
 
 MS = 1_000_000

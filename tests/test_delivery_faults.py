@@ -65,7 +65,7 @@ def test_duplicates_a_slow_consumer_and_a_clock_step_on_a_wall_clock_service(hub
         tracker = processes.start("run", "tracker", "--uav", "uav1", "--clock", "wall", "--connect", endpoint)
         wait_healthy(session, [("uav1", "tracker")])
         # it answers while its Kalman and assignment libraries still load right after its token
-        # (services/runtime/warmup.py): the import holds the interpreter for a moment, long enough to
+        # (services/lib/runtime/warmup.py): the import holds the interpreter for a moment, long enough to
         # shed one of messages 20 ms apart (0.5-1.8 s here). The counts below are those of a service
         # running steadily.
         time.sleep(2.5)

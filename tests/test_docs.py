@@ -11,9 +11,9 @@ from typing import get_args
 import pytest
 
 from schemas import keys
-from services.launcher.cli import build_parser
+from services.tools.launcher.cli import build_parser
 from schemas.messages import FaultKind
-from services.launcher.params_cmd import render
+from services.tools.launcher.params_cmd import render
 from services.simulator import scenario
 from tests.conftest import REPO
 

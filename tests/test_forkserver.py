@@ -1,4 +1,4 @@
-"""The fork server (services/launcher/forkserver.py) on its own: real forks of run_service, adopted
+"""The fork server (services/tools/launcher/forkserver.py) on its own: real forks of run_service, adopted
 and reaped by this process. The supervisor's use of it: tests/test_zenoh_retry.py."""
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import threading
 
 import pytest
 
-from services.launcher.forkserver import ForkedProcess, ForkServer
-from services.launcher.supervisor import _popen
-from services.runtime import shm
+from services.tools.launcher.forkserver import ForkedProcess, ForkServer
+from services.tools.launcher.supervisor import _popen
+from services.lib.runtime import shm
 
 
 @pytest.fixture
@@ -48,7 +48,7 @@ def test_forks_in_a_row_each_run_and_report_their_own_exit_status_and_output(ser
 def test_a_fork_takes_its_command_line_as_its_title(server):
     """Read from a fork that lives on: a service waiting for a Zenoh that is not there."""
     segments = shm.segments()
-    title = f"{sys.executable} -m services.launcher.run_service run planner --uav uav9 --connect tcp/127.0.0.1:1"
+    title = f"{sys.executable} -m services.tools.launcher.run_service run planner --uav uav9 --connect tcp/127.0.0.1:1"
     waiting = server.start(["run", "planner", "--uav", "uav9", "--connect", "tcp/127.0.0.1:1"], title)
     assert waiting is not None
     try:

@@ -29,10 +29,10 @@ from schemas.arrays import from_numpy
 from schemas.catalogue import CATALOGUE
 from schemas.messages import (ALL_MESSAGES, CompressedFrame, Detections, GroundTruth, Header, Obstacle, Odometry,
                               PointCloud, Pose, TargetTruth, Track, Tracks, VehicleTruth, WorldModel)
-from services.launcher.cli import main
-from services.recorder.foxglove_export import ScanInfo, foxglove_quaternion
-from services.recorder.json_view import json_bytes, struct_view
-from services.recorder.mcap_io import McapRecordWriter
+from services.tools.launcher.cli import main
+from services.tools.viz.foxglove_export import ScanInfo, foxglove_quaternion
+from services.tools.recorder.json_view import json_bytes, struct_view
+from services.tools.recorder.mcap_io import McapRecordWriter
 from tests.conftest import REPO, falconry_argv
 from tests.tools.run import record_short_run
 from tests.tools.samples import sample

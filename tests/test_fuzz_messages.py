@@ -26,8 +26,8 @@ from hypothesis import HealthCheck, given, settings
 
 from schemas import keys
 from schemas.messages import LabelSet, PointCloud, PointTruth, SimClock, VoxelMap
-from services.runtime import node as runtime_node
-from services.voxels.replica import MapReplica
+from services.lib.runtime import node as runtime_node
+from services.lib.voxels.replica import MapReplica
 from tests.tools.fuzz import (CASES_RUN, FAMILIES, Case, FuzzRun, cases, corpus, encode, sparse, subscribers,
                               wire)
 

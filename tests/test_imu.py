@@ -1,4 +1,4 @@
-"""The simulated IMU (services/simulator/imu.py): noise statistics at rest, the bias random walk, the
+"""The simulated IMU (services/lib/imu.py): noise statistics at rest, the bias random walk, the
 frame conventions, reproducibility across tick splits, and preintegration with GTSAM against the
 closed-form motion, noise-free (exact to rounding) and noisy (within the σ the densities give).
 
@@ -13,7 +13,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from services.simulator.imu import Imu, ImuParams, ImuSamples, TickMotion, grid_stamps
+from services.lib.imu import Imu, ImuParams, ImuSamples, TickMotion, grid_stamps
 from services.simulator.specs import NS
 
 TICK_NS = NS // 20  # the simulator's 50 ms tick

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from services.geometry import point_in_polygon, polygon_area, signed_area
+from services.lib.geometry import point_in_polygon, polygon_area, signed_area
 from services.job_manager.areas import clip_x, split_area
 
 RECT = np.array([[0.0, 0.0], [90.0, 0.0], [90.0, 40.0], [0.0, 40.0]])
@@ -63,7 +63,7 @@ def test_point_in_polygon():
 
 
 def test_distance_to_the_outline_inside_and_out():
-    from services.geometry import distance_to_edges
+    from services.lib.geometry import distance_to_edges
     # (75, 45) lies in the cut-out block, 15 m above its lower edge
     points = np.array([[25.0, 45.0], [75.0, 45.0], [50.0, 30.0], [-3.0, -4.0], [102.0, 15.0]])
     np.testing.assert_allclose(distance_to_edges(points, L_SHAPE), [15.0, 15.0, 0.0, 5.0, 2.0])

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.geometry import polygon_area
+from services.lib.geometry import polygon_area
 from services.job_manager.core import State
 from services.job_manager.team import breach_time
 from tests.test_job_manager_machine import BALLOON, HOME, Rig, s

@@ -14,7 +14,7 @@ import zenoh
 
 from schemas import keys
 from schemas.messages import SimClock
-from services.launcher.monitor import read_truth_log
+from services.tools.launcher.monitor import read_truth_log
 from services.simulator.scenario import SCENARIO_DIR
 from tests.conftest import falconry_argv
 from tests.tools.health import health, wait_healthy

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from services.lidar.models import MODEL_NAMES, BeamSpacing, beam_spacing, lidar_model, mid360_directions
-from services.lidar.uncertainty import sampling_covariance
+from services.lib.lidar.models import MODEL_NAMES, BeamSpacing, beam_spacing, lidar_model, mid360_directions
+from services.lib.lidar.uncertainty import sampling_covariance
 
 
 def elevation_azimuth_deg(directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -30,9 +30,9 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
-from services.lidar.models import BeamSpacing
-from services.lidar.uncertainty import sampling_covariance
-from services.sensor_driver.core import DEFAULT_MOUNT
+from services.lib.lidar.models import BeamSpacing
+from services.lib.lidar.uncertainty import sampling_covariance
+from services.lib.lidar.models import DEFAULT_MOUNT
 from tests.conftest import REPO
 from tests.tools.health import wait_healthy
 from tests.tools.nodes import collect, start_healthy
@@ -44,7 +44,7 @@ TICK_NS = 50_000_000
 # as a per-UAV service.
 ORACLE = """
 import sys
-from services.launcher.cli import main
+from services.tools.launcher.cli import main
 from schemas import keys
 keys.UAV_SERVICES = keys.UAV_SERVICES + (keys.ORACLE,)
 sys.exit(main(sys.argv[1:]))

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from services.geometry import rotation_matrix
-from services.lidar.models import lidar_model
-from services.lidar.rays import body_mask, pack_mask, ray_ends, scan_rays, unpack_mask
-from services.lidar.uncertainty import (hit_probability, mean_hit_probability, point_covariance, point_jacobian,
+from services.lib.geometry import rotation_matrix
+from services.lib.lidar.models import lidar_model
+from services.lib.lidar.rays import body_mask, pack_mask, ray_ends, scan_rays, unpack_mask
+from services.lib.lidar.uncertainty import (hit_probability, mean_hit_probability, point_covariance, point_jacobian,
                                         roll_pitch_yaw)
 from services.sensor_driver.core import small_rotation
 from tests.conftest import REPO, falconry_argv

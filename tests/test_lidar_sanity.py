@@ -1,4 +1,4 @@
-"""The LiDAR sanity checks (services/lidar/sanity.py) on scans the simulated sensor casts in a built-in
+"""The LiDAR sanity checks (services/lib/lidar/sanity.py) on scans the simulated sensor casts in a built-in
 arena: a flight's scans pass, a garbage scan and a NaN burst fail, and detections made while the
 sensor fails or settles are not trusted by the tracker or the job manager."""
 from __future__ import annotations
@@ -11,9 +11,10 @@ from hypothesis import strategies as st
 from schemas.messages import Obstacle
 from services.job_manager.core import JobManager, State
 from services.job_manager.params import JobManagerParams
-from services.lidar.models import lidar_model
-from services.lidar.sanity import NS, SanityLimits, ScanSanity, SensorTrust, scan_figures
-from services.sensor_driver.core import primitives_from_obstacles, scan
+from services.lib.lidar.models import lidar_model
+from services.lib.lidar.sanity import NS, SanityLimits, ScanSanity, SensorTrust, scan_figures
+from services.lib.world.primitives import primitives_from_obstacles
+from services.sensor_driver.core import scan
 from services.sensor_driver.faults import faulty_scan
 from services.simulator.scenario import load_scenario
 from services.tracker.core import TrackerCore, TrackerParams

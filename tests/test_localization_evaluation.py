@@ -20,15 +20,15 @@ import pytest
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import GroundTruth, Header, Odometry, PointCloud, Pose, VehicleTruth
-from services.evaluation_localization import (CannotScore, KissIcpOdometry, Trajectory, TruthTrack,
+from services.tools.evaluation.localization import (CannotScore, KissIcpOdometry, Trajectory, TruthTrack,
                                               absolute_trajectory_error, anchored_baseline, heading_quaternions, match,
                                               mount_transform, path_length, pose_matrix, score_localization,
                                               sensor_frame_points, wrap_angle, yaw_of, yaw_turned)
-from services.launcher.cli import main
-from services.recorder import localization_input
-from services.recorder.localization_input import evaluate_localization
-from services.recorder.mcap_io import McapRecordWriter
-from services.runtime.clock import NS
+from services.tools.launcher.cli import main
+from services.tools.evaluation import localization_input
+from services.tools.evaluation.localization_input import evaluate_localization
+from services.tools.recorder.mcap_io import McapRecordWriter
+from services.lib.runtime.clock import NS
 from tests.conftest import REPO, falconry_argv
 
 TICK = NS // 20  # the simulator's 50 ms tick

@@ -12,12 +12,14 @@ import numpy as np
 import pytest
 
 from schemas.messages import Obstacle
-from services.lidar.models import lidar_model
+from services.lib.lidar.models import lidar_model
 from services.localizer.core import Localizer, LocalizerParams, restart_frame_covariance, sensor_frame
 from services.localizer.features import FeatureParams, extract_features
-from services.sensor_driver.core import (DEFAULT_MOUNT, SensorDriverParams, primitives_from_obstacles, reregistered,
-                                        scan, yaw_rotation)
-from services.runtime.clock import to_ns
+from services.lib.geometry import yaw_rotation
+from services.lib.lidar.models import DEFAULT_MOUNT
+from services.lib.world.primitives import primitives_from_obstacles
+from services.sensor_driver.core import reregistered, scan, SensorDriverParams
+from services.lib.runtime.clock import to_ns
 from services.simulator.core import Simulation
 from services.simulator.positioning import EstimateRelay
 from services.simulator.scenario import load_scenario
@@ -82,7 +84,7 @@ def test_the_simulator_publishes_the_belief_and_calls_it_lost_once_the_estimates
     from schemas import keys
     from schemas.arrays import from_numpy, to_numpy
     from schemas.messages import Header, Odometry, Pose
-    from services.geometry import heading_quaternion
+    from services.lib.geometry import heading_quaternion
     from tests.tools.fuzz import encode, wire
 
     wired = wire("simulator", positioning="lidar")
@@ -241,7 +243,7 @@ def hover_through_the_node(first_odometry: dict, ticks: int = 8, fail_at: int | 
     from schemas import keys
     from schemas.arrays import from_numpy
     from schemas.messages import Header, ImuBatch, Odometry, PointCloud, Pose
-    from services.geometry import heading_quaternion
+    from services.lib.geometry import heading_quaternion
     from tests.tools.fuzz import UAV, encode, wire
 
     wired = wire("localizer")  # the node logs to a logger of its own (the harness's), at ERROR

@@ -9,7 +9,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from services.lidar.models import beam_directions
+from services.lib.lidar.models import beam_directions
 from services.localizer import features as feature_kernels
 from services.localizer import graph, poles
 from services.localizer.association import AssociationParams, FeatureMap, associate, transform_features

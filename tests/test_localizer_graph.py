@@ -1,6 +1,6 @@
 """The localizer's fusion and precision steps (services/localizer/graph.py) on a synthetic world: a floor,
 three walls, a sloping ceiling and five lines, seen without occlusion from a known trajectory (constant
-acceleration, constant yaw rate, level), with the simulator's IMU (services/simulator/imu.py)
+acceleration, constant yaw rate, level), with the simulator's IMU (services/lib/imu.py)
 noise-free or noisy. Sightings are generated from the true pose in the body frame with known ids.
 
 Random checks run on fixed seeds: deterministic, with margins set from the reported covariance."""
@@ -21,7 +21,7 @@ from services.localizer.graph import (GraphParams, LocalizerGraph, Observation, 
                                       align_rigidly, line_residuals, observations, odometry_covariance,
                                       plane_residuals, precision_problem, tangent_basis)
 from services.localizer.graph import _Landmark, _ScanRecord  # to build a precision problem by hand
-from services.simulator.imu import Imu, ImuParams, TickMotion
+from services.lib.imu import Imu, ImuParams, TickMotion
 from services.simulator.specs import NS
 
 SCAN_NS = NS // 10  # 10 Hz scans

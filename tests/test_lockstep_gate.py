@@ -1,5 +1,5 @@
 """The lockstep gate decides what a service processes at each tick, independent of arrival timing."""
-from services.runtime.lockstep import LockstepGate
+from services.lib.runtime.lockstep import LockstepGate
 
 UP = {"classifier"}
 
@@ -94,7 +94,7 @@ def test_joining_mid_run_does_not_wait_but_the_first_step_of_a_run_does_for_thos
 
 def test_fault_windows_silence_only_the_faulted_services_for_their_duration():
     from schemas.messages import FaultCommand, Header
-    from services.runtime.lockstep import FaultWindows
+    from services.lib.runtime.lockstep import FaultWindows
 
     windows = FaultWindows()
     windows.add(FaultCommand(header=Header(stamp=10_000_000_000), kind="freeze", uav="uav2", service="tracker",
@@ -114,7 +114,7 @@ def test_fault_windows_silence_only_the_faulted_services_for_their_duration():
 
 def test_a_cut_radio_parts_a_uav_from_its_partners_but_never_from_the_simulator():
     from schemas.messages import FaultCommand, Header
-    from services.runtime.lockstep import FaultWindows
+    from services.lib.runtime.lockstep import FaultWindows
 
     windows = FaultWindows()
     windows.add(FaultCommand(header=Header(stamp=2_000_000_000), kind="link_cut", uav="uav2", duration=4.0))

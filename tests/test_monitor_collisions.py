@@ -8,8 +8,8 @@ import pytest
 from schemas import keys
 from schemas.messages import (GroundTruth, Header, MissionCommand, Obstacle, SimEvent, TargetTruth, VehicleTruth,
                               WorldModel)
-from services.launcher.monitor import RunMonitor
-from services.launcher.sim_cmd import WATCHED, clearance_line, collisions_line
+from services.tools.launcher.monitor import RunMonitor
+from services.tools.launcher.sim_cmd import WATCHED, clearance_line, collisions_line
 
 S = 1_000_000_000
 encode = msgspec.msgpack.encode
@@ -143,7 +143,7 @@ def test_a_uav_braking_along_its_attack_towards_the_pole_is_still_attacking_unti
 
 
 def test_a_uav_out_of_the_arena_or_above_its_ceiling_is_a_geofence_breach():
-    from services.launcher.monitor import RunMonitor
+    from services.tools.launcher.monitor import RunMonitor
 
     monitor = RunMonitor()
     monitor._on_world(WorldModel(header=Header(stamp=0), scenario="fence", min_height=1.0, arena=[(0.0, 0.0), (20.0, 0.0), (20.0, 20.0), (0.0, 20.0)],

@@ -10,7 +10,7 @@ import pytest
 
 from schemas.messages import Appearance, TargetTruth
 from services.camera.core import Camera, CameraParams, camera_rotation
-from services.geometry import quaternion
+from services.lib.geometry import quaternion
 from services.object_detect.colors import (
     HUE_UNITS,
     ColorFile,
@@ -24,7 +24,7 @@ from services.object_detect.colors import (
     to_space,
 )
 from services.object_detect.core import CameraView, ObjectDetectParams, detect, find_blobs
-from services.sensor_driver.core import pack, primitives_from_obstacles
+from services.lib.world.primitives import pack, primitives_from_obstacles
 
 
 def hsv_pixels(hues_half_degrees, s=200, v=180) -> np.ndarray:
@@ -210,7 +210,7 @@ def test_picking_a_colour_from_a_frame_finds_the_balloon_the_wrong_colour_does_n
     k = cam.intrinsics
     u, v = k.project((rotation.T @ (centre - position))[None])[0]
     out = tmp_path / "green.toml"
-    result = subprocess.run([sys.executable, "-m", "services.launcher", "colors", "pick", str(image), "--roi",
+    result = subprocess.run([sys.executable, "-m", "services.tools.launcher", "colors", "pick", str(image), "--roi",
                              f"{int(u) - 5},{int(v) - 5},10,10", "--out", str(out)], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
     view = CameraView(k.fx, k.fy, k.cx, k.cy, position, quaternion(rotation))

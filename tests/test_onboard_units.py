@@ -16,10 +16,10 @@ from pathlib import Path
 import pytest
 
 from schemas import keys
-from services.launcher.cli import build_parser, main
-from services.launcher.systemd_units import (ROUTER_UNIT, TARGET_UNIT, UnitSettings, render_units, unit_name)
-from services.runtime.errors import USAGE_ERROR
-from services.runtime.zenoh_config import free_port
+from services.tools.launcher.cli import build_parser, main
+from services.tools.launcher.systemd_units import (ROUTER_UNIT, TARGET_UNIT, UnitSettings, render_units, unit_name)
+from services.lib.runtime.errors import USAGE_ERROR
+from services.lib.runtime.zenoh_config import free_port
 from tests.conftest import REPO
 
 CHECKED_IN = REPO / "deploy" / "onboard" / "systemd"

@@ -5,11 +5,12 @@ import numpy as np
 import pytest
 
 from schemas.messages import Obstacle, TargetTruth
-from services.lidar.models import lidar_model
+from services.lib.lidar.models import lidar_model
 from schemas.voxels import BACKGROUND, FLYING
 from services.oracle.core import MAX_PENDING, OracleParams, ScanPairs, detect, label, scan_rng
-from services.voxels.grid import GridGeometry
-from services.sensor_driver.core import primitives_from_obstacles, scan
+from services.lib.voxels.grid import GridGeometry
+from services.lib.world.primitives import primitives_from_obstacles
+from services.sensor_driver.core import scan
 
 NAN = np.nan
 

@@ -10,7 +10,7 @@ import subprocess
 import numpy as np
 import pytest
 
-from services.launcher.monitor import read_truth_log
+from services.tools.launcher.monitor import read_truth_log
 from services.simulator.scenario import load_scenario
 from tests.conftest import REPO, falconry_argv
 

@@ -1,10 +1,10 @@
-"""The run summary's perception score (services/evaluation.py): detections and confirmed tracks
+"""The run summary's perception score (services/tools/evaluation/__init__.py): detections and confirmed tracks
 against the targets standing at their stamps."""
 from __future__ import annotations
 
 import numpy as np
 
-from services.evaluation import PerceptionScore
+from services.tools.evaluation import PerceptionScore
 
 TARGETS = np.array([[0.0, 0.0, 5.0], [20.0, 0.0, 5.0]])
 

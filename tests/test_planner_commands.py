@@ -9,9 +9,9 @@ import pytest
 
 from schemas.arrays import from_numpy
 from schemas.messages import ConstraintProfile, Header, MissionCommand, TrajectoryReference
-from services.geometry import point_in_polygon
+from services.lib.geometry import point_in_polygon
 from services.planner.commands import PlannerParams, VehicleState, plan_command, start_state
-from services.runtime.clock import NS
+from services.lib.runtime.clock import NS
 
 PARAMS = PlannerParams()
 
@@ -148,6 +148,6 @@ def test_targets_beyond_the_arena_are_aimed_inside_and_no_reference_rises_above_
 
 def inside_by(points, polygon) -> np.ndarray:
     """(N,) how far inside the polygon each point is (negative: outside)."""
-    from services.geometry import distance_to_edges
+    from services.lib.geometry import distance_to_edges
     inside = point_in_polygon(points, np.asarray(polygon))
     return np.where(inside, 1.0, -1.0) * distance_to_edges(points, np.asarray(polygon))

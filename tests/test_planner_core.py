@@ -27,7 +27,7 @@ from services.planner.core import (
     wrap_angle,
 )
 from services.planner.intercept import sample_intercept
-from services.runtime.clock import NS
+from services.lib.runtime.clock import NS
 
 SWEEP = ConstraintProfile(name="sweeping", max_speed=5.0, max_acceleration=1.5)
 ATTACK = ConstraintProfile(name="attack", max_speed=8.3, max_acceleration=3.0)
@@ -261,7 +261,7 @@ def test_inner_rectangle_of_rectilinear_polygons(area, low, high):
     (np.array([[0, 0], [8, -8], [16, 0], [8, 8]], float), 64.0),  # a square turned 45°: an 8 × 8 square
 ])
 def test_inner_rectangle_of_slanted_polygons_is_inside_and_near_best(area, best):
-    from services.geometry import point_in_polygon
+    from services.lib.geometry import point_in_polygon
 
     low, high = inner_rectangle(area)
     corners = np.array([[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]]])
@@ -487,7 +487,7 @@ def _chase_the_circler(start_bearing: float, limit: float = 20.0, env=None) -> f
     from services.tracker.core import TURN_MIN_SPEED, TrackerParams
     from services.tracker.filters.models import turning_path
     from services.tracker.filters.turning import TurnHistory
-    from services.tracker.view import PredictedPath
+    from services.lib.tracks import PredictedPath
 
     scenario = load_scenario("mast")
     [spec] = [d for d in scenario.drones if d.name == "circler"]
@@ -551,7 +551,7 @@ def test_a_turning_prediction_is_carried_on_round_its_turn_not_along_its_last_st
     """A rendezvous may meet the target past the tracker's 2 s path: carried straight on from
     there, a circling drone's meeting was planned where it never goes and moved on with every
     update, and the UAV trailed it (mast's circler from bearing 4 rad, 40 s uncaught)."""
-    from services.tracker.view import PredictedPath
+    from services.lib.tracks import PredictedPath
 
     angle = 0.8 * 0.25 * np.arange(0, 9)  # 3.2 m/s on a 4 m circle, sampled every 0.25 s
     circle = np.stack([4.0 * np.cos(angle), 4.0 * np.sin(angle), 6.0 + 0.1 * np.arange(0, 9)], axis=1)
@@ -576,7 +576,7 @@ def test_a_turning_prediction_is_carried_on_round_its_turn_not_along_its_last_st
 def test_a_rendezvous_with_a_turning_target_stays_within_the_profile_and_meets_it(radius, speed, bearing, distance,
                                                                                   velocity, climb):
     from services.planner import pursuit as law
-    from services.tracker.view import PredictedPath
+    from services.lib.tracks import PredictedPath
 
     rate = speed / radius  # anticlockwise round (0, 0, 6), climbing or sinking
     angle = bearing + rate * 0.25 * np.arange(1, 9)

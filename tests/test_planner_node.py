@@ -15,7 +15,7 @@ from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import (ConstraintProfile, Header, MissionCommand, Obstacle, Odometry, PlanReport, Pose,
                               SimClock, TrajectoryReference, VoxelMap, WorldModel)
 from services.planner.freespace import FreeSpace
-from services.voxels.grid import GridGeometry
+from services.lib.voxels.grid import GridGeometry
 from tests.tools.health import health, wait_healthy
 
 pytestmark = pytest.mark.alone  # a real-time node whose subscriptions meet within fixed sleeps

@@ -13,9 +13,9 @@ from services.planner.avoid import Airspace, Clearances, Surroundings, body_clea
 from services.planner.commands import PlannerParams, VehicleState, meeting_route, plan_command
 from services.planner.freespace import FreeSpace
 from services.planner.search import Band, route
-from services.tracker.view import PredictedPath
-from services.voxels.apriori import obstacle_voxels
-from services.voxels.grid import GridGeometry
+from services.lib.tracks import PredictedPath
+from services.lib.voxels.apriori import obstacle_voxels
+from services.lib.voxels.grid import GridGeometry
 
 GRID = GridGeometry((-10.0, -10.0, -1.0), (160, 120, 52), 0.5)
 CLEAR = Clearances(0.4, 1.0, 0.3)
@@ -413,7 +413,7 @@ def fenced_env(*obstacles: Obstacle) -> Surroundings:
 
 def inside_by(points: np.ndarray) -> np.ndarray:
     """(N,) m each point lies inside NOTCHED (negative: outside)."""
-    from services.geometry import distance_to_edges, point_in_polygon
+    from services.lib.geometry import distance_to_edges, point_in_polygon
     gap = distance_to_edges(points[:, :2], NOTCHED)
     return np.where(point_in_polygon(points[:, :2], NOTCHED), gap, -gap)
 

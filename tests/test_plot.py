@@ -9,9 +9,9 @@ import pytest
 
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, GroundTruth, Header, SimEvent, UavStatus, VehicleTruth
-from services.launcher.monitor import RunMonitor
-from services.launcher.plot import plot_timeline
-from services.runtime.errors import UsageError
+from services.tools.launcher.monitor import RunMonitor
+from services.tools.launcher.plot import plot_timeline
+from services.lib.runtime.errors import UsageError
 
 S = 1_000_000_000
 encode = msgspec.msgpack.encode
@@ -83,7 +83,7 @@ def test_the_monitor_judges_engagements_by_their_aim_and_scores_the_camera():
     one follow it); an aim within 2 m of a standing target went for it, one at a pole top did not.
     Camera detections count as matched or false like the LiDAR's."""
     from schemas.messages import MissionCommand, TargetTruth
-    from services.launcher.sim_cmd import engagement_line
+    from services.tools.launcher.sim_cmd import engagement_line
     monitor = RunMonitor()
     balloon = (30.0, 30.0, 4.0)
     monitor.handle("falconry/sim/truth", encode(GroundTruth(header=Header(stamp=S), step=0, targets=[
@@ -141,7 +141,7 @@ def test_a_chase_taken_up_again_just_after_the_capture_aims_at_the_captured_dron
 
 
 def test_a_camera_detection_matches_within_a_tenth_of_its_distance_a_lidar_one_within_1_m():
-    from services import evaluation
+    from services.tools import evaluation
     target = np.array([[40.0, 0.0, 4.0]])
     off = np.array([[37.5, 0.0, 4.0], [0.5, 0.0, 4.0]])  # 2.5 m short at 37.5 m; 0.5 m from a target at 1 m
     near = np.array([[1.0, 0.0, 4.0]])

@@ -12,8 +12,8 @@ import pytest
 
 from schemas import keys
 from schemas.messages import Tracks
-from services.runtime.counted import CountedWarnings
-from services.runtime.zenoh_config import ZenohConfigError, ZenohSettings, build
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.zenoh_config import ZenohConfigError, ZenohSettings, build
 from tests.tools.health import wait_healthy
 
 pytestmark = pytest.mark.alone  # services stopped within 2 s of the wall clock
@@ -94,8 +94,8 @@ def detections_listener(endpoint: str):
     """A tracker node of uav1 subscribed to its detections over a real session to `endpoint`, its
     subscription declared as the node declares it: (node, key)."""
     from schemas.messages import Detections
-    from services.runtime.node import Node
-    from services.runtime.zenoh_config import open_session
+    from services.lib.runtime.node import Node
+    from services.lib.runtime.zenoh_config import open_session
 
     class Listener(Node):
         service = "tracker"
@@ -112,7 +112,7 @@ def test_a_subscription_a_lockstep_wait_gave_up_on_is_declared_again_and_receive
     """A subscription that no longer reaches its publisher (here undeclared behind the node's back,
     as a declaration lost on the way would be) delivers nothing; declared again after a give-up, it
     does, and the old declaration is gone. Not more than once per REDECLARE_EVERY_S."""
-    from services.runtime.zenoh_config import undeclare_all
+    from services.lib.runtime.zenoh_config import undeclare_all
 
     session, endpoint = hub
     node, key = detections_listener(endpoint)
@@ -149,7 +149,7 @@ def test_the_old_subscription_is_gone_from_the_network_before_the_new_one_is_dec
     undeclaring one of two; so a re-declaration made beside the old subscriber never leaves the
     process. At the moment the new one is declared, the publisher must already see no subscriber
     (polled, so no two declarations can arrive as one), and afterwards see it again."""
-    from services.runtime.zenoh_config import undeclare_all
+    from services.lib.runtime.zenoh_config import undeclare_all
 
     session, endpoint = hub
     publisher = session.declare_publisher(keys.uav("uav1", "detections"))

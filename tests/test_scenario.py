@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from services.geometry import point_in_polygon, signed_area
+from services.lib.geometry import point_in_polygon, signed_area
 from services.simulator.scenario import (
     ScenarioError,
     builtin_scenarios,

@@ -8,17 +8,11 @@ import numpy as np
 import pytest
 
 from schemas.messages import Obstacle, TargetTruth
-from services.lidar.models import beam_directions
-from services.sensor_driver import core
-from services.sensor_driver import numpy_caster as reference
-from services.sensor_driver.core import (
-    Primitives,
-    cast,
-    cast_with_ids,
-    primitives_from_obstacles,
-    scan,
-    target_spheres,
-)
+from services.lib.lidar.models import beam_directions
+from services.lib.world import numpy_caster as reference
+from services.lib.world import primitives
+from services.lib.world.primitives import cast, cast_with_ids, Primitives, primitives_from_obstacles, target_spheres
+from services.sensor_driver.core import scan
 from services.sensor_driver.faults import faulty_scan, lidar_faults
 
 MM = 1e-3
@@ -217,7 +211,7 @@ def test_hit_ids_name_the_target_and_match_the_returns():
         on = result.points[result.hits == k]
         assert len(on) >= 2 and np.linalg.norm(on - np.array(centre, np.float32), axis=1).max() < 0.5
     drone = result.points[result.hits == 3]
-    assert np.abs(drone[:, 2] - 5.0).max() < core.DRONE_BODY_HEIGHT / 2 + 0.1  # a flat body, not a ball
+    assert np.abs(drone[:, 2] - 5.0).max() < primitives.DRONE_BODY_HEIGHT / 2 + 0.1  # a flat body, not a ball
     assert (result.points[result.hits == 0][:, 2] < 0.1).all()  # the rest is ground
 
 
@@ -258,7 +252,7 @@ def test_intensity_falls_with_range_and_incidence():
     directions = unit([1, 0, 0], [1, 1, 0], [1, 0, 0]).reshape(1, 3, 3)
     near = scan(np.array([-3.5, 0.0, 0.0]), 0.0, directions, wall, np.random.default_rng(0), intensity=True)
     far = scan(np.array([-10.5, 0.0, 0.0]), 0.0, directions, wall, np.random.default_rng(0), intensity=True)
-    static = core.REFLECTIVITY["static"]
+    static = primitives.REFLECTIVITY["static"]
     assert near.intensity.dtype == np.float32
     assert abs(near.intensity[0, 0] - static) < 1e-6  # head-on within the full-signal range
     assert abs(near.intensity[0, 1] - static * math.cos(math.pi / 4)) < 1e-6  # 45°, 4.2 m away
@@ -283,7 +277,7 @@ def test_faulty_scans_hide_the_world():
 
 
 def test_mid360_scan_sees_a_balloon_with_a_few_points():
-    from services.lidar.models import lidar_model
+    from services.lib.lidar.models import lidar_model
 
     model = lidar_model("mid360")
     balloon = [TargetTruth(id="b", kind="balloon", position=(15.0, 0.0, 8.0), velocity=(0, 0, 0), radius=0.3)]

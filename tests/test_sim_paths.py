@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from services.geometry import point_in_polygon
+from services.lib.geometry import point_in_polygon
 from services.simulator.paths import DronePath
 from services.simulator.scenario import ScenarioError, parse_scenario
 

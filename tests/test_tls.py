@@ -1,4 +1,4 @@
-"""Mutual TLS and the team's access control (services/runtime/tls.py, `falconry certs`, `--tls`).
+"""Mutual TLS and the team's access control (services/lib/runtime/tls.py, `falconry certs`, `--tls`).
 
 Certificates are made by the real `falconry certs` into the test's directory; every Zenoh check
 runs real sessions on loopback through a router configured by the same code as `falconry router
@@ -32,12 +32,12 @@ import zenoh
 
 from schemas import keys
 from schemas.messages import Header, MissionCommand, UavStatus
-from services.launcher import cli
-from services.launcher.registry import node_class
-from services.launcher.router_cmd import router_config
-from services.runtime import tls
-from services.runtime.health import query_health
-from services.runtime.zenoh_config import (ZenohConfigError, ZenohSettings, ZenohUnreachable, build, free_port,
+from services.tools.launcher import cli
+from services.tools.registry import node_class
+from services.tools.launcher.router_cmd import router_config
+from services.lib.runtime import tls
+from services.lib.runtime.health import query_health
+from services.lib.runtime.zenoh_config import (ZenohConfigError, ZenohSettings, ZenohUnreachable, build, free_port,
                                            open_session)
 from tests.tools.run import end_partner
 from tests.conftest import REPO, falconry_argv
@@ -48,7 +48,7 @@ SETTLE_S = 1.0  # after the controls arrived, forbidden messages sent meanwhile 
 
 
 def falconry(*args: str) -> tuple[int, str, str]:
-    """`falconry ARGS` in this process (services.launcher.cli.main): (exit code, stdout, stderr)."""
+    """`falconry ARGS` in this process (services.tools.launcher.cli.main): (exit code, stdout, stderr)."""
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
@@ -350,7 +350,7 @@ def test_session_settings_with_tls(certs):
     (["sim"], "sim"),
 ])
 def test_each_command_presents_its_identity(certs, argv, identity):
-    from services.launcher.common import zenoh_settings
+    from services.tools.launcher.common import zenoh_settings
     args = cli.build_parser().parse_args([*argv, "--tls", str(certs)])
     assert zenoh_settings(args).tls_identity == identity
     assert zenoh_settings(cli.build_parser().parse_args([*argv, "--tls", ""])).tls_dir is None
@@ -655,7 +655,7 @@ PARTNER = textwrap.dedent("""
     # uav2's onboard router (its deploy config, moved onto the test's port and certificates) with
     # uav2's services, a uav1 certificate holder connected to it, and the router's own session.
     import json, select, sys, zenoh
-    from services.runtime.zenoh_config import ZenohSettings, open_session
+    from services.lib.runtime.zenoh_config import ZenohSettings, open_session
     path, certs, listen, connect = sys.argv[1:5]
     config = zenoh.Config.from_file(path)
     config.insert_json5("listen/endpoints", json.dumps([listen]))
@@ -781,7 +781,7 @@ def test_the_security_sections_commands_are_valid():
 def test_falconry_sim_hands_tls_to_every_process(certs, profile):
     """`falconry sim --tls`: tls/ endpoints everywhere, each child derives its own identity from
     its command line, the launcher is sim, and the run's own router enforces the team's ACL."""
-    from services.launcher.plan import plan_run
+    from services.tools.launcher.plan import plan_run
 
     args = cli.build_parser().parse_args(["sim", "--tls", str(certs), "--zenoh-profile", profile, "--viz", "web"])
     plan = plan_run(args, TEAM, seed=1, duration=3.0, port=7999, network=None)
@@ -793,7 +793,7 @@ def test_falconry_sim_hands_tls_to_every_process(certs, profile):
         assert plan.router[plan.router.index("--listen") + 1] == "tls/127.0.0.1:7999"
     else:
         assert plan.router is None
-    from services.launcher.common import zenoh_settings
+    from services.tools.launcher.common import zenoh_settings
     children = dict(plan.children, viewer=plan.viewer)
     for name, argv in children.items():
         child = cli.build_parser().parse_args(argv[argv.index("--log-level") + 2:])

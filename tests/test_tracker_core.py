@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from schemas.voxels import STATE_OCCUPIED
-from services.classifier.core import half_width_across, surface_offset
-from services.runtime.clock import NS
+from services.lib.lidar.surface import half_width_across, surface_offset
+from services.lib.runtime.clock import NS
 from services.tracker import kernels as tracker_kernels
 from services.tracker.core import OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, warm_up
 from services.tracker.filters.models import manoeuvre_path, manoeuvre_state, turning_path
 from services.tracker.kernels import points_near
-from services.voxels import kernels as voxel_kernels
+from services.lib.voxels import kernels as voxel_kernels
 from tests.tools.compiled import in_fresh_interpreter, newly_compiled
 
 PERIOD = NS // 10  # 10 Hz scans

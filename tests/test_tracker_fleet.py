@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, Header, Track, Tracks
-from services.runtime.clock import NS
+from services.lib.runtime.clock import NS
 from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
                                     covariance_intersection, sound_partner_track)
 from tests.tools.health import wait_healthy

@@ -8,7 +8,7 @@ import msgspec
 import numpy as np
 import pytest
 
-from services.runtime.clock import NS
+from services.lib.runtime.clock import NS
 from services.tracker.filters import FilterParams, make_filter
 from services.tracker.filters.base import Estimate, Filter, Innovation, Update
 from services.tracker.filters.deleting import MissedStepsDeleter

@@ -21,12 +21,12 @@ from hypothesis import strategies as st
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, GroundTruth, Header, TargetTruth, Track, Tracks, VehicleTruth, WorldModel
-from services.evaluation_tracking import (ScanDetections, TrackingScore, TrackingStep, TrackSet, TruthSnapshot,
+from services.tools.evaluation.tracking import (ScanDetections, TrackingScore, TrackingStep, TrackSet, TruthSnapshot,
                                           TruthTimeline, alike, fleet, fleet_alike, fleet_detections, gospa, left_out,
                                           score_detections, score_tracks, tracking_step)
-from services.launcher.cli import main
-from services.recorder.mcap_io import McapRecordWriter
-from services.runtime.clock import NS
+from services.tools.launcher.cli import main
+from services.tools.recorder.mcap_io import McapRecordWriter
+from services.lib.runtime.clock import NS
 from tests.conftest import REPO, falconry_argv
 from tests.tools.run import record_short_run
 
@@ -596,7 +596,7 @@ def test_a_short_real_run_is_scored(tmp_path):
 def test_a_uavs_score_takes_the_tracks_it_keeps_not_the_fleet_tracks_it_passes_on():
     from schemas.arrays import from_numpy
     from schemas.messages import Header, Track, Tracks
-    from services.recorder.tracking_input import confirmed_tracks, own_tracks
+    from services.tools.evaluation.tracking_input import confirmed_tracks, own_tracks
 
     def track(track_id: int, source: str, confirmed: bool = True) -> Track:
         return Track(id=track_id, state=from_numpy(np.full(9, float(track_id))), covariance=from_numpy(np.eye(9)),

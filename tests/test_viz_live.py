@@ -10,8 +10,8 @@ import pytest
 
 from schemas.arrays import from_numpy
 from schemas.messages import Header, Odometry, PointCloud, Pose
-from services.runtime.zenoh_config import ZenohSettings, open_session
-from services.viz.live import LiveFeed
+from services.lib.runtime.zenoh_config import ZenohSettings, open_session
+from services.tools.viz.live import LiveFeed
 
 pytestmark = pytest.mark.alone  # a feed timed on the wall clock
 

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from services.runtime.zenoh_config import free_port
-from services.viz import draw
-from services.viz.output import RerunOutput, archetype, blueprint
-from services.viz.settings import grpc_address
+from services.lib.runtime.zenoh_config import free_port
+from services.tools.viz import draw
+from services.tools.viz.output import RerunOutput, archetype, blueprint
+from services.tools.viz.settings import grpc_address
 from tests.tools.rrd import VIEWER_BINARY, entity_times, verify
 from tests.tools.run import wait_for_port
 

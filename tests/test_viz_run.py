@@ -14,8 +14,8 @@ import warnings
 
 import pytest
 
-from services.runtime.zenoh_config import free_port
-from services.viz.scene import UAV_FAMILIES, WORLD_FAMILIES
+from services.lib.runtime.zenoh_config import free_port
+from services.tools.viz.scene import UAV_FAMILIES, WORLD_FAMILIES
 from tests.conftest import REPO, falconry_argv
 from tests.tools.rrd import RERUN, entity_times, family_times, verify
 from tests.tools.run import wait_for_port

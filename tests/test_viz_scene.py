@@ -27,13 +27,13 @@ from schemas.messages import (
     VoxelMap,
     WorldModel,
 )
-from services.tracker.view import predicted_path
-from services.viz import draw
-from services.viz.geometry import cone_mesh, covariance_ellipsoids, thin_out
-from services.viz.mapview import MapView
-from services.viz.scene import SceneBuilder
-from services.viz.settings import ViewParams
-from services.viz.style import DETECTION_COLOR, FALSE_COLOR, MATCHED_COLOR
+from services.lib.tracks import predicted_path
+from services.tools.viz import draw
+from services.tools.viz.geometry import cone_mesh, covariance_ellipsoids, thin_out
+from services.tools.viz.mapview import MapView
+from services.tools.viz.scene import SceneBuilder
+from services.tools.viz.settings import ViewParams
+from services.tools.viz.style import DETECTION_COLOR, FALSE_COLOR, MATCHED_COLOR
 
 S = 1_000_000_000
 encode = msgspec.msgpack.encode

@@ -8,7 +8,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import cdist
 
 from schemas.voxels import STATE_FREE, STATE_TENTATIVE, STATE_UNKNOWN
-from services.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
+from services.lib.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
 
 SHAPE = np.array([20, 16, 12])
 CORNER = np.array([-1.0, -2.0, 0.5])

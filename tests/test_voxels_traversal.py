@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.lidar.rays import ray_ends
-from services.voxels import traversal
-from services.voxels.traversal import accumulate_ray_lengths, cast_scan, cast_scan_per_ray
+from services.lib.lidar.rays import ray_ends
+from services.lib.voxels import traversal
+from services.lib.voxels.traversal import accumulate_ray_lengths, cast_scan, cast_scan_per_ray
 
 SHAPE = np.array([20, 16, 12])
 CORNER = np.array([-1.0, -2.0, 0.5])

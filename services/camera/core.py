@@ -31,7 +31,8 @@ import numpy as np
 
 from schemas.messages import Appearance
 from services.camera.render import Tiles, encode_table, noise_table, render_kernel, srgb_to_linear, tile_candidates
-from services.sensor_driver.core import Packed, yaw_rotation
+from services.lib.geometry import yaw_rotation
+from services.lib.world.primitives import Packed
 
 D435_HORIZONTAL_FOV = 69.4  # degrees, colour camera
 D435_VERTICAL_FOV = 42.5

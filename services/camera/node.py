@@ -22,11 +22,11 @@ from schemas.arrays import from_numpy
 from schemas.messages import (Appearance, CameraFrame, CompressedFrame, FaultCommand, GroundTruth, Header, Pose,
                               WorldModel)
 from services.camera.core import CAMERA_FAULTS, Camera, CameraParams, Gains, frozen_or_saturated
-from services.geometry import quaternion
-from services.runtime.counted import CountedWarnings
-from services.runtime.node import Node
-from services.runtime.sensor_faults import SensorFaults
-from services.sensor_driver.core import Primitives, noise_stream_key, pack, primitives_from_obstacles
+from services.lib.geometry import quaternion
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.node import Node
+from services.lib.runtime.sensor_faults import SensorFaults
+from services.lib.world.primitives import noise_stream_key, pack, Primitives, primitives_from_obstacles
 
 RNG_SALT = zlib.crc32(b"camera")  # a fixed number, so the stream differs from other services'
 

@@ -1,5 +1,5 @@
-"""The simulated camera's compiled renderer: one ray per pixel through the sensor driver's caster
-(services/sensor_driver/raycast.py, the same world the LiDAR sees), then shading, the camera's
+"""The simulated camera's compiled renderer: one ray per pixel through the shared caster
+(services/lib/world/raycast.py, the same world the LiDAR sees), then shading, the camera's
 gains, sRGB encoding and sensor noise; and the aligned depth image. numba, `cache=True`,
 deterministic (the noise comes from tables and offsets the caller draws).
 
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from services.sensor_driver.raycast import INF, PLANE, ahead, cull_setup, hit_range, outward_normal
+from services.lib.world.raycast import INF, PLANE, ahead, cull_setup, hit_range, outward_normal
 
 ENCODE_LEVELS = 4096  # linear light is quantised to this many levels before the sRGB table
 TILE = 16  # pixels on a side of a culling tile
@@ -133,7 +133,7 @@ def render_kernel(origin, rotation, tile_rays, order, start, candidates, counts,
             dx = r[0, 0] * cx + r[0, 1] * cy + r[0, 2] * cz
             dy = r[1, 0] * cx + r[1, 1] * cy + r[1, 2] * cz
             dz = r[2, 0] * cx + r[2, 1] * cy + r[2, 2] * cz
-            t, q = INF, -1  # the nearest hit over the tile's list: written out (raycast.py's note)
+            t, q = INF, -1  # the nearest hit over the tile's list: written out (services/lib/world/raycast.py's note)
             for m in range(listed):
                 p = candidates[k, m]
                 if kinds[p] == PLANE:

@@ -16,7 +16,7 @@
    takes the most cautious one: flying object over unknown over background.
 4. A detection per flying object: the centroid of its returns (eq. 19) moved away from the sensor
    along the line of sight by `surface_bias` × the cluster's half-width across that line (see
-   `surface_offset`, `half_width_across`); a covariance made of the
+   services/lib/lidar/surface.py); a covariance made of the
    returns' spread (which stands for the one-sided sampling bias, up to the target's radius,
    sec. V-A), where between the beams the target's centre lies (`sampling_covariance`: sec. V-A
    leaves out that a far target is seen only where a few beams cross it), the pose and range
@@ -48,12 +48,13 @@ import numpy as np
 
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.classifier.kernels import cluster_stats, downsample, group_by
-from services.lidar.models import BeamSpacing
-from services.lidar.uncertainty import hit_probability, point_covariance, sampling_covariance
-from services.voxels.grid import GridGeometry
-from services.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
-from services.voxels.replica import MapReplica, geometry_of
-from services.voxels.labels import label_sets
+from services.lib.lidar.models import BeamSpacing
+from services.lib.lidar.surface import half_width_across, surface_offset
+from services.lib.lidar.uncertainty import hit_probability, point_covariance, sampling_covariance
+from services.lib.voxels.grid import GridGeometry
+from services.lib.voxels.kernels import clusters_near_occupied, enclosed_by_free, euclidean_clusters
+from services.lib.voxels.replica import MapReplica, geometry_of
+from services.lib.voxels.labels import label_sets
 
 
 class ClassifierParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -245,35 +246,6 @@ def warm_up(params: ClassifierParams) -> int:
     target = np.array([3.0, 2.0, 4.0]) + 0.1 * np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [0]), -1).reshape(-1, 3)
     points = np.concatenate([ground, target, np.full((2, 3), np.nan)]).astype(np.float32)
     return len(core.classify(points, SensorPose(np.array([0.0, 0.0, 2.0]), np.eye(3))).point_labels)
-
-
-def half_width_across(members: np.ndarray, centroid: np.ndarray, sensor: np.ndarray) -> float:
-    """Half the cluster's extent across the line of sight from `sensor` to `centroid`: the larger
-    of its extents along the two directions across that line. Few returns under-measure it (the
-    outermost rays miss the rim); only range noise can add to it, by about a centimetre (intruder:
-    up to 0.333 m for a 0.325 m drone). 0 for a single return."""
-    line = _line_of_sight(centroid, sensor)
-    if line is None or len(members) < 2:
-        return 0.0
-    across = np.cross(line, [0.0, 0.0, 1.0])
-    if np.linalg.norm(across) < 1e-6:  # looking straight up or down
-        across = np.array([1.0, 0.0, 0.0])
-    across /= np.linalg.norm(across)
-    offsets = members - centroid
-    return 0.5 * max(float(np.ptp(offsets @ across)), float(np.ptp(offsets @ np.cross(line, across))))
-
-
-def surface_offset(centroid: np.ndarray, sensor: np.ndarray, bias: float, half_width: float) -> np.ndarray:
-    """The shift from the returns' centroid to the target's centre estimate: `bias` × the target's
-    half-width across the line of sight, away from the sensor (module docstring)."""
-    line = _line_of_sight(centroid, sensor)
-    return np.zeros(3) if line is None else bias * half_width * line
-
-
-def _line_of_sight(centroid: np.ndarray, sensor: np.ndarray) -> np.ndarray | None:
-    line = np.asarray(centroid, dtype=np.float64) - np.asarray(sensor, dtype=np.float64)
-    distance = float(np.linalg.norm(line))
-    return None if distance == 0.0 else line / distance
 
 
 def _empty_scan() -> ClassifiedScan:

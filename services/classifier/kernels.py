@@ -1,6 +1,6 @@
 """The classifier's per-point passes, compiled (numba, `cache=True`; deterministic): a scan's valid
 returns onto a grid (downsampling), per-cluster statistics and grouping points by cluster (the voxel
-label sets of eq. 16–18 are services/voxels/labels.py). Each is one pass over the points; `slot`
+label sets of eq. 16–18 are services/lib/voxels/labels.py). Each is one pass over the points; `slot`
 arrays (int32 over a grid, all -1) are scratch that every pass leaves as it found it.
 """
 from __future__ import annotations
@@ -10,7 +10,7 @@ import math
 import numpy as np
 from numba import njit
 
-from services.voxels.labels import point_cell
+from services.lib.voxels.labels import point_cell
 
 INF = math.inf
 

@@ -14,10 +14,10 @@ import numpy as np
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, VoxelMap
 from services.classifier.core import ClassifierCore, ClassifierParams, SensorPose, warm_up
-from services.geometry import rotation_matrix
-from services.lidar.models import beam_spacing
-from services.runtime.counted import CountedWarnings
-from services.runtime.node import Node
+from services.lib.geometry import rotation_matrix
+from services.lib.lidar.models import beam_spacing
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.node import Node
 
 
 class ClassifierNode(Node):
@@ -101,7 +101,7 @@ class ClassifierNode(Node):
         ))
 
     def _report_bad_input(self) -> None:
-        """Refused input, counted (services/runtime/counted.py); returns outside the map are normal at
+        """Refused input, counted (services/lib/runtime/counted.py); returns outside the map are normal at
         the arena's edge: said once."""
         c = self.core.counters
         self._bad_input.update({"points with infinite coordinates dropped": c.invalid_points,

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from services.geometry import as_polygon, counter_clockwise, polygon_area
+from services.lib.geometry import as_polygon, counter_clockwise, polygon_area
 
 _BISECTION_STEPS = 100
 

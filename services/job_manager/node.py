@@ -33,9 +33,9 @@ from schemas.messages import (
 from services.job_manager.core import NS, JobManager, MissionDecision, State
 from services.job_manager.params import JobManagerParams
 from services.job_manager.plans import PlannedPath
-from services.runtime.counted import CountedWarnings
-from services.runtime.node import Node
-from services.tracker.view import (path_step, track_path, track_position, track_position_covariance, track_positions,
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.node import Node
+from services.lib.tracks import (path_step, track_path, track_position, track_position_covariance, track_positions,
                                    track_velocities, track_velocity)
 
 # Pre-flight check (seed 004 §3.6): every service this UAV's mission depends on is alive,

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import msgspec
 
-from services.lidar.sanity import SETTLE_TIME
+from services.lib.lidar.sanity import SETTLE_TIME
 
 
 class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -81,5 +81,5 @@ class JobManagerParams(msgspec.Struct, forbid_unknown_fields=True):
     # sensor_timeout lands as a silent LiDAR does (an emergency landing)
     degraded_speed: float = 2.0  # m/s
     # s after a LiDAR scan or camera frame that failed its sanity check (PointCloud.sanity) during
-    # which that sensor's detections are not acted on (services/lidar/sanity.py)
+    # which that sensor's detections are not acted on (services/lib/lidar/sanity.py)
     sensor_settle_time: float = SETTLE_TIME

@@ -11,7 +11,7 @@ import numpy as np
 
 from services.job_manager.params import JobManagerParams
 from services.job_manager.targets import NS, TargetFilter
-from services.tracker.view import PredictedPath
+from services.lib.tracks import PredictedPath
 
 STILL_RADIUS = 0.5  # m
 STILL_TIME = 1.0  # s

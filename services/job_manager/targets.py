@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from services.geometry import distance_to_edges, is_covariance, point_in_polygon, with_variance_floor
-from services.runtime.clock import NS
+from services.lib.geometry import distance_to_edges, is_covariance, point_in_polygon, with_variance_floor
+from services.lib.runtime.clock import NS
 
 
 class TargetFilter:
@@ -51,7 +51,7 @@ class TargetFilter:
                  velocity: np.ndarray | None = None, max_speed: float = 5.0,
                  covariance: np.ndarray | None = None, tethered: bool = False,
                  observed: int | None = None) -> None:
-        from filterpy.kalman import KalmanFilter  # imported here: see services/runtime/warmup.py
+        from filterpy.kalman import KalmanFilter  # imported here: see services/lib/runtime/warmup.py
 
         self._floor = measurement_sigma**2
         first_noise = self._noise(covariance)

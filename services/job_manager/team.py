@@ -65,7 +65,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from services.job_manager.plans import PlannedPath, first_breach, straight_on
-from services.runtime.clock import NS
+from services.lib.runtime.clock import NS
 
 ENGAGED_STATES = ("GOING_TO_TARGET", "DESTROYING")
 GIVE_WAY_SPEED = 0.5  # m/s towards a partner: slower, a hovering UAV is not flying into it

@@ -30,7 +30,7 @@ from services.localizer.association import AssociationParams, FeatureMap, associ
 from services.localizer.features import FeatureParams, Features, extract_features
 from services.localizer.graph import (GraphParams, LocalizerGraph, PoseEstimate, line_residuals, observations,
                                       symmetric_psd, tangent_basis)
-from services.sensor_driver.core import DEFAULT_MOUNT
+from services.lib.lidar.models import DEFAULT_MOUNT
 
 
 class LocalizerParams(msgspec.Struct, forbid_unknown_fields=True):

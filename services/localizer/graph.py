@@ -15,9 +15,9 @@ Seed 003's method, as read here:
 How it is done here, and why:
 - One state per scan: pose X(k), world velocity V(k) and IMU bias B(k) at the scan's stamp. Between
   scans a gtsam.ImuFactor from a PreintegratedImuMeasurements (gravity GRAVITY along world −z; body
-  FLU, accelerometer = specific force, as services/simulator/imu.py) and a bias random-walk
+  FLU, accelerometer = specific force, as services/lib/imu.py) and a bias random-walk
   BetweenFactor with σ = walk · √Δt. The IMU's noise densities and walks default to
-  services/simulator/imu.py's ImuParams, the bias prior to its switch-on σ.
+  services/lib/imu.py's ImuParams, the bias prior to its switch-on σ.
 - IMU samples are held until the next sample's stamp (as GTSAM integrates them, and as
   tests/test_imu.py feeds them); the sample in effect at a scan's stamp is split there and carries on
   into the next interval. add_imu may run ahead of add_scan: samples at or after the scan's stamp wait.
@@ -142,10 +142,10 @@ import msgspec
 import numpy as np
 from numba import njit
 
-from services.geometry import GRAVITY
+from services.lib.geometry import GRAVITY
 from services.localizer.features import EdgeFeature, Features, PlaneFeature
-from services.simulator.imu import ImuParams
-from services.simulator.specs import NS
+from services.lib.imu import ImuParams
+from services.lib.runtime.clock import NS
 
 _IMU = ImuParams()  # the simulated IMU's defaults: the noise the fusion step expects
 Health = Literal["tracking", "degraded", "lost"]

@@ -31,13 +31,13 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Header, ImuBatch, Odometry, PointCloud, Pose
-from services.geometry import quaternion, rotation_matrix
+from services.lib.geometry import quaternion, rotation_matrix
 from services.localizer.core import (Localizer, LocalizerParams, ScanResult, restart_frame_covariance,
                                      sensor_frame, warm_up)
 from services.localizer.graph import worst_position_sigma
-from services.runtime.clock import to_ns
-from services.runtime.counted import CountedWarnings
-from services.runtime.node import Node
+from services.lib.runtime.clock import to_ns
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.node import Node
 
 
 # The estimate is published on fixed grids, far below anything it is good for. iSAM2 is not

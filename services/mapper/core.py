@@ -23,7 +23,7 @@ every intersected voxel"), so with 0.5 m voxels one ray through a voxel weighs u
 separate-cluster grouping uses voxel adjacency within d_sep (up to the 26-neighbourhood), and
 only around the sensor (within d_max + d_search), where the scan can have changed anything.
 
-Pure: numpy in, numpy out (plus the compiled kernels of services/voxels).
+Pure: numpy in, numpy out (plus the compiled kernels of services/lib/voxels).
 """
 from __future__ import annotations
 
@@ -35,10 +35,10 @@ import numpy as np
 
 from schemas import voxels
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
-from services.lidar.rays import ScanRays
+from services.lib.lidar.rays import ScanRays
 from services.mapper.update import THRESHOLDS, apply_ray_lengths, first_occurrences, weakly_held_voxels
-from services.voxels.grid import GridGeometry
-from services.voxels.traversal import cast_scan
+from services.lib.voxels.grid import GridGeometry
+from services.lib.voxels.traversal import cast_scan
 
 
 class MapperParams(msgspec.Struct, forbid_unknown_fields=True):
@@ -58,7 +58,7 @@ class MapperParams(msgspec.Struct, forbid_unknown_fields=True):
     # The a-priori map (sec. III-E): "world": the world model's static obstacles pinned occupied,
     # the simulation's stand-in for the surveyed site of the seed's experiments (nothing is pinned
     # where no world model is published); "": learn everything; or an .npz file
-    # (services/voxels/apriori.py)
+    # (services/lib/voxels/apriori.py)
     apriori: str = "world"
 
     def __post_init__(self) -> None:

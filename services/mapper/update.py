@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 from schemas import voxels
-from services.voxels.kernels import find_root, union_sets
+from services.lib.voxels.kernels import find_root, union_sets
 
 THRESHOLDS = np.array([voxels.UNCERTAIN, voxels.TENTATIVE_OCCUPIED, voxels.CONFIDENT_OCCUPIED], dtype=np.float32)
 

@@ -33,7 +33,7 @@ import cv2
 import msgspec
 import numpy as np
 
-from services.geometry import rotation_matrix
+from services.lib.geometry import rotation_matrix
 from services.object_detect.colors import ColorFile
 
 MEDIAN_DEPTH_OFFSET = 1 / math.sqrt(2)  # × R: the median depth of a sphere's visible half in front of its centre

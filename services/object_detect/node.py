@@ -20,9 +20,9 @@ from schemas.messages import CameraFrame, ColorUpdate, Detections, Header
 from services.object_detect.colors import ColorFile, ColorFileError, load_color_file, parse_color_file
 from services.object_detect.core import CameraView, ObjectDetectParams, detect
 from services.object_detect.sanity import FrameSanity
-from services.runtime.counted import CountedWarnings
-from services.runtime.errors import UsageError
-from services.runtime.node import Node
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.errors import UsageError
+from services.lib.runtime.node import Node
 
 BUILT_IN = Path(__file__).resolve().parent / "colors"
 

@@ -6,7 +6,7 @@ repeating its last image — or **saturated**: more than `max_clipped` of its pi
 every channel, or black in every channel (a blinding glare, a lens cap, an exposure control gone
 wrong); a balloon's colour cannot be told in either. Like a failing LiDAR scan, a failing frame's
 detections are none, and those of the next `SETTLE_TIME` s are not acted on
-(services/lidar/sanity.py, `SensorTrust`).
+(services/lib/lidar/sanity.py, `SensorTrust`).
 """
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ reproducible and a replayed scan gives the same detections).
 
 A detection is the centroid of the target's returns (float64) plus N(0, sigma²·I) noise, with
 covariance sigma²·I plus, given the sensor's beam spacing, where between the beams the target's
-centre lies (services/lidar/uncertainty.sampling_covariance: the centroid of a few returns is
+centre lies (services/lib/lidar/uncertainty.sampling_covariance: the centroid of a few returns is
 not the target's centre, and the classifier says so too), the number of points and the extent
 (largest side of their axis-aligned bounding box, as the classifier reports it). Detections come
 in ascending target order.
@@ -20,10 +20,10 @@ import msgspec
 import numpy as np
 
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
-from services.lidar.models import BeamSpacing
-from services.lidar.uncertainty import sampling_covariance
-from services.voxels.grid import GridGeometry
-from services.voxels.labels import label_sets
+from services.lib.lidar.models import BeamSpacing
+from services.lib.lidar.uncertainty import sampling_covariance
+from services.lib.voxels.grid import GridGeometry
+from services.lib.voxels.labels import label_sets
 
 RNG_SALT = zlib.crc32(b"oracle")
 MAX_PENDING = 8  # scans waiting for their other half; older ones are dropped

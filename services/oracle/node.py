@@ -13,11 +13,11 @@ import numpy as np
 
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, PointTruth, VoxelMap
-from services.lidar.models import beam_spacing
+from services.lib.lidar.models import beam_spacing
 from services.oracle.core import OracleParams, ScanPairs, detect, label, scan_rng, warm_up
-from services.runtime.node import Node
-from services.voxels.grid import GridGeometry
-from services.voxels.replica import MapReplica, geometry_of
+from services.lib.runtime.node import Node
+from services.lib.voxels.grid import GridGeometry
+from services.lib.voxels.replica import MapReplica, geometry_of
 
 
 class OracleNode(Node):

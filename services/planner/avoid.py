@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schemas.messages import ConstraintProfile
-from services.geometry import nearest_on_edges, point_in_polygon
+from services.lib.geometry import nearest_on_edges, point_in_polygon
 from services.planner.freespace import SAMPLE_STEP, FreeSpace
 from services.planner.search import FREE_SEARCH_STEPS, Band, nearest_free, route
 from services.planner.timing import DT, STOP_ANGLE, Path, fly, speed_caps

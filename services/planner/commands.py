@@ -33,8 +33,8 @@ from services.planner.avoid import (
     with_lead_in,
 )
 from services.planner.search import route
-from services.tracker.view import PredictedPath
-from services.runtime.clock import NS
+from services.lib.tracks import PredictedPath
+from services.lib.runtime.clock import NS
 
 # The route round an obstacle to a moving target (meeting_route):
 ROUTE_SPEED_SHARE = 0.5  # of the profile's speed a route round an obstacle is reckoned to be flown at (it curves)

@@ -1,5 +1,5 @@
 """What the UAV knows is occupied, as its planner asks about it (pure: numpy and the compiled
-kernels of services/voxels/clearance.py; the node hands in the map messages).
+kernels of services/lib/voxels/clearance.py; the node hands in the map messages).
 
 The source is the UAV's own mapper (falconry/<uav>/map): the mission's a-priori map (the world
 model's static obstacles, which the mapper pins occupied) and everything its LiDAR has shown it
@@ -18,7 +18,7 @@ Three questions:
   only where it comes closer than it started, or where it is not clear ESCAPE_LENGTH along;
 - `blocked(low, high)`: the search grid over a box of voxels — a voxel is blocked when an occupied
   box lies closer than `search_radius` to its centre, kept as a count per voxel that each map
-  message updates where it changed (services/voxels/clearance.py).
+  message updates where it changed (services/lib/voxels/clearance.py).
 The arena's edge is a wall to the planner (`set_arena`): the voxel columns of a band
 FENCE_BAND wide just outside the arena polygon count as occupied above the ground, as far out
 as makes a plan that keeps the plan clearance from them keep about `keep_inside` (the planner's
@@ -42,10 +42,10 @@ import math
 import numpy as np
 
 from schemas.voxels import STATE_TENTATIVE, STATE_UNKNOWN
-from services.geometry import distance_to_edges, point_in_polygon
-from services.voxels.clearance import add_counts, box_clearance, first_within, inflation_offsets, nearest_box
-from services.voxels.grid import GridGeometry
-from services.voxels.replica import MapReplica
+from services.lib.geometry import distance_to_edges, point_in_polygon
+from services.lib.voxels.clearance import add_counts, box_clearance, first_within, inflation_offsets, nearest_box
+from services.lib.voxels.grid import GridGeometry
+from services.lib.voxels.replica import MapReplica
 
 SAMPLE_STEP = 0.2  # m between the points a polyline is checked at
 NO_EXEMPTION = np.array([0.0, 0.0, 0.0, 0.0])
@@ -141,7 +141,7 @@ class FreeSpace:
         allowed = point_in_polygon(centres, self.arena) & (distance_to_edges(centres, self.arena) >= self.keep_inside)
         if not allowed.any():
             return
-        from scipy.ndimage import distance_transform_edt  # imported here: see services/runtime/warmup.py
+        from scipy.ndimage import distance_transform_edt  # imported here: see services/lib/runtime/warmup.py
 
         apart = distance_transform_edt(~allowed.reshape(nx, ny), sampling=g.voxel_size).ravel()
         self.fence = (apart >= self.clearance_kept) & (apart <= self.clearance_kept + FENCE_BAND)

@@ -42,16 +42,16 @@ from schemas.messages import (
     VoxelMap,
     WorldModel,
 )
-from services.geometry import yaw_of
+from services.lib.geometry import yaw_of
 from services.planner import core, guard
 from services.planner.avoid import Airspace, Clearances, Surroundings, airspace_of, mount_exemption
 from services.planner.commands import (ApproachMemory, Plan, PlannerParams, VehicleState, plan_command, start_state,
                                        warm_up)
 from services.planner.freespace import FreeSpace
 from services.planner.watchdog import JobManagerWatchdog
-from services.runtime.clock import NS
-from services.runtime.counted import CountedWarnings
-from services.runtime.node import Node
+from services.lib.runtime.clock import NS
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.node import Node
 
 EXEMPT_ACTIONS = ("approach", "attack")  # their target's pole and balloon are passed over (avoid.py)
 

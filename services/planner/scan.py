@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from schemas.messages import ConstraintProfile
-from services.geometry import as_polygon, point_in_polygon
+from services.lib.geometry import as_polygon, point_in_polygon
 from services.planner.timing import DT, Path, fly
 
 MAX_LINES = 10_000  # the most sweep lines planned: 10 km of area at 1 m spacing

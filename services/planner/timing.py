@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.messages import ConstraintProfile
-from services.geometry import wrap_angle
+from services.lib.geometry import wrap_angle
 
 DT = 0.1
 STOP_ANGLE = 2.0 * np.pi / 3.0

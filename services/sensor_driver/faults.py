@@ -3,14 +3,14 @@
 `lidar_silent` publishes nothing, `lidar_nan` an all-NaN cloud, `lidar_garbage` a return on
 every beam at a random range (uniform within the sensor's range limits), as a sensor whose
 timing went wrong would give; neither of the last two hit anything real, so the truth says -1
-for every ray. Pure: the node feeds the commands (services/runtime/sensor_faults.py) and asks what
+for every ray. Pure: the node feeds the commands (services/lib/runtime/sensor_faults.py) and asks what
 is in force.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from services.runtime.sensor_faults import SensorFaults
+from services.lib.runtime.sensor_faults import SensorFaults
 from services.sensor_driver.core import Scan
 
 LIDAR_FAULTS = ("lidar_silent", "lidar_nan", "lidar_garbage")

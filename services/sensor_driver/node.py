@@ -5,11 +5,11 @@ Ray-casts the simulator's world (static obstacles from falconry/sim/world and th
 survey lacks from falconry/sim/truth, standing targets and the own pose from the truth too) at
 `rate_hz` of mission time with the LiDAR model the
 parameters name, or else the one the scenario names for this UAV in the world model
-(core.SensorDriverParams, services/lidar/models.py). Both messages of a scan carry the same stamp; the
+(core.SensorDriverParams, services/lib/lidar/models.py). Both messages of a scan carry the same stamp; the
 PointTruth never enters the PointCloud, so perception cannot see it. LiDAR faults scheduled on
 falconry/sim/faults for this UAV are acted on here: `lidar_silent` publishes nothing,
 `lidar_nan` an all-NaN cloud, `lidar_garbage` random ranges on every beam (truth -1 for both).
-Every scan then goes through the sanity checks of services/lidar/sanity.py (`sanity_checks`): one
+Every scan then goes through the sanity checks of services/lib/lidar/sanity.py (`sanity_checks`): one
 that fails is still published, for the record, with the reason in `PointCloud.sanity`, which
 makes every consumer skip its points; the failures are counted warnings.
 Only this service and the simulator may read ground truth. Later issues add a recorded-file
@@ -31,23 +31,15 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import FaultCommand, GroundTruth, Header, Odometry, PointCloud, PointTruth, Pose, WorldModel
-from services.geometry import heading_quaternion, yaw_of
-from services.lidar.models import LidarModel, lidar_model
-from services.lidar.rays import body_mask, pack_mask, unpack_mask
-from services.lidar.sanity import SanityLimits, ScanSanity, scan_figures
-from services.runtime.counted import CountedWarnings
-from services.runtime.node import Node
-from services.sensor_driver.core import (
-    FALLBACK_MODEL,
-    Primitives,
-    SensorDriverParams,
-    model_scan,
-    noise_stream_key,
-    primitives_from_obstacles,
-    reregistered,
-    scan_ranges,
-    yaw_rotation,
-)
+from services.lib.geometry import heading_quaternion, yaw_of
+from services.lib.lidar.models import LidarModel, lidar_model
+from services.lib.lidar.rays import body_mask, pack_mask, unpack_mask
+from services.lib.lidar.sanity import SanityLimits, ScanSanity, scan_figures
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.node import Node
+from services.lib.geometry import yaw_rotation
+from services.lib.world.primitives import noise_stream_key, Primitives, primitives_from_obstacles
+from services.sensor_driver.core import FALLBACK_MODEL, model_scan, reregistered, scan_ranges, SensorDriverParams
 from services.sensor_driver.faults import faulty_scan, lidar_faults
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'

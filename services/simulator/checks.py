@@ -12,9 +12,9 @@ import numpy as np
 
 from schemas import keys
 from schemas.catalogue import uav_topics
-from services.runtime.delivery import MAX_DELAY_S
-from services.geometry import deepest_point, point_in_polygon, polygon_self_intersection, signed_area
-from services.lidar.models import lidar_model
+from services.lib.runtime.delivery import MAX_DELAY_S
+from services.lib.geometry import deepest_point, point_in_polygon, polygon_self_intersection, signed_area
+from services.lib.lidar.models import lidar_model
 from services.simulator import paths
 from services.simulator.specs import (
     MAX_UAVS,

@@ -5,7 +5,7 @@ integrates the UAVs in sub-steps of at most MAX_SUBSTEP_S and checks collisions,
 drone captures at every sub-step. The pieces live in their own modules: `vehicles.py` (UAV point
 masses, odometry with noise and jumps, emergency landing, touching the ground), `targets.py`
 (balloons swaying in the wind, scripted drones, destruction and capture), `paths.py` (the drones'
-scripted paths), `imu.py` (each UAV's accelerometer and gyroscope), `contact.py` (distances to the
+scripted paths), services/lib/imu.py (each UAV's accelerometer and gyroscope, the model the localizer fuses), `contact.py` (distances to the
 static obstacles).
 
 Collisions: an alive, airborne UAV whose body (a sphere of its [uav] radius about its centre)
@@ -42,7 +42,7 @@ import numpy as np
 
 from schemas.messages import Obstacle
 from services.simulator import contact
-from services.simulator.imu import Imu, ImuParams, ImuSamples, TickMotion
+from services.lib.imu import Imu, ImuParams, ImuSamples, TickMotion
 from services.simulator.specs import NS, POLE_RADIUS, Scenario, pole_name
 from services.simulator.targets import Balloons, Drones, TargetState
 from services.simulator.vehicles import Fleet, OdometryReading, VehicleState, make_reference

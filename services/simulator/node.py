@@ -46,14 +46,14 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
-from services.geometry import heading_quaternion, wrap_angle, yaw_of
-from services.runtime.clock import seconds, to_ns
-from services.runtime.errors import UsageError
-from services.runtime.counted import CountedWarnings
-from services.runtime.lockstep import ACK_WAIT_S, TICK_RESEND_S, LockstepGate
-from services.runtime.node import Node
+from services.lib.geometry import heading_quaternion, wrap_angle, yaw_of
+from services.lib.runtime.clock import seconds, to_ns
+from services.lib.runtime.errors import UsageError
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.lockstep import ACK_WAIT_S, TICK_RESEND_S, LockstepGate
+from services.lib.runtime.node import Node
 from services.simulator.core import ImuSamples, Simulation
-from services.simulator.imu import ImuParams
+from services.lib.imu import ImuParams
 from services.simulator.positioning import EstimateRelay
 from services.simulator.checks import check_team
 from services.simulator.scenario import load_scenario
@@ -68,7 +68,7 @@ class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     startup_timeout: float = 120.0
     startup_settle: float = 1.0  # s of wall time between the last service coming up and the first tick
     world_period: float = 1.0  # s of mission time between WorldModel re-publications
-    # Every UAV's IMU, a Pixhawk-class one by default: services/simulator/imu.py documents each field
+    # Every UAV's IMU, a Pixhawk-class one by default: services/lib/imu.py documents each field
     # and its source. A rate_hz that is a multiple of 100 puts samples on the physics' 10 ms sub-steps.
     imu: ImuParams = msgspec.field(default_factory=ImuParams)
     # s of mission time without a new localizer estimate after which a UAV flying without GNSS

@@ -18,7 +18,7 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from services.geometry import deepest_point, point_in_polygon
+from services.lib.geometry import deepest_point, point_in_polygon
 from services.simulator.specs import DroneSpec, Scenario
 
 MARGIN = 0.5  # m of clearance random manoeuvres keep from their region's walls

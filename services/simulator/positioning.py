@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.geometry import wrap_angle
+from services.lib.geometry import wrap_angle
 
 HISTORY = 200  # ticks of truth kept to meet a late estimate (10 s at the default 20 Hz)
 

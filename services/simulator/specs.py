@@ -11,7 +11,7 @@ from typing import Annotated, Literal
 import msgspec
 
 from schemas.messages import DEFAULT_UAV_RADIUS, ConstraintProfile, FaultCommand, FaultKind, Header
-from services.runtime.clock import NS
+from services.lib.runtime.clock import NS
 
 MAX_UAVS = 3  # the largest team the command line accepts (--uavs 2|3)
 POLE_RADIUS = 0.05

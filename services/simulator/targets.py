@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.messages import TargetTruth
-from services.geometry import GRAVITY
+from services.lib.geometry import GRAVITY
 from services.simulator.paths import DronePath
 from services.simulator.specs import Scenario
 

@@ -48,7 +48,7 @@ from typing import NamedTuple
 import numpy as np
 
 from schemas.messages import VehicleTruth
-from services.geometry import GRAVITY
+from services.lib.geometry import GRAVITY
 from services.simulator.checks import start_poses
 from services.simulator.specs import NS, Scenario
 

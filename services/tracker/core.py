@@ -39,7 +39,7 @@ Where Falconry departs from the seed, and why:
 - Two tracks that end up on the same cluster are merged, keeping the older identity: the cloud
   update lets both take the nearest centroid, and two copies of one target would otherwise
   coexist until one drifts off.
-- The surface offset of a cloud's centroid (the classifier's `surface_offset`: the returns lie on
+- The surface offset of a cloud's centroid (services/lib/lidar/surface.py: the returns lie on
   the near side, `surface_bias` × the half-width short of the centre along the line of sight) is
   taken with the target's half-width as the track knows it: the widest its returns were across
   the line of sight in this or any earlier correction (capped at `max_half_width`), not this
@@ -76,16 +76,16 @@ import msgspec
 import numpy as np
 
 from schemas.voxels import STATE_OCCUPIED
-from services.classifier.core import half_width_across, surface_offset
-from services.geometry import is_covariance
-from services.lidar.sanity import SETTLE_TIME, SensorTrust
+from services.lib.lidar.surface import half_width_across, surface_offset
+from services.lib.geometry import is_covariance
+from services.lib.lidar.sanity import SETTLE_TIME, SensorTrust
 from services.tracker.filters import FILTERS, FilterParams, make_filter
 from services.tracker.filters.base import NS, Estimate, InnovationStatistics
 from services.tracker.filters.models import (covariance_at_least, manoeuvre_path, manoeuvre_state, turning_path,
                                             uncertainty_radius)
 from services.tracker.filters.turning import Turn, TurnHistory
 from services.tracker.kernels import points_near
-from services.voxels.kernels import clusters_near_occupied, euclidean_clusters
+from services.lib.voxels.kernels import clusters_near_occupied, euclidean_clusters
 
 TURN_MIN_SPEED = 1.0  # m/s: slower, a track's heading is noise and its trajectory does not turn
 
@@ -149,7 +149,7 @@ class TrackerParams(msgspec.Struct, forbid_unknown_fields=True):
     alive_period: float = 1.0  # s; the node sends an empty Tracks at least this often
     fleet: bool = True  # join the partners' tracks into the published picture (fleet.py)
     partner_timeout: float = 1.0  # s without a partner's tracks before they are left out
-    # s after the LiDAR's last scan that failed its sanity check (services/lidar/sanity.py) during
+    # s after the LiDAR's last scan that failed its sanity check (services/lib/lidar/sanity.py) during
     # which detections neither start nor count to a track, and partners leave our tracks out
     sensor_settle_time: float = SETTLE_TIME
 

@@ -24,14 +24,14 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, PointCloud, Track, Tracks, VoxelMap
-from services.runtime.clock import to_ns
-from services.runtime.counted import CountedWarnings
-from services.runtime.node import Node
+from services.lib.runtime.clock import to_ns
+from services.lib.runtime.counted import CountedWarnings
+from services.lib.runtime.node import Node
 from services.tracker.core import (OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, published_trajectory,
                                    warm_up)
 from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
                                     partner_number, sound_partner_track)
-from services.voxels.replica import MapReplica
+from services.lib.voxels.replica import MapReplica
 
 
 FUTURE_TOLERANCE_NS = 1_000_000_000  # a stamp may lead the node's clock by this much (clock skew, a late tick)

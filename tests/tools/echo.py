@@ -7,7 +7,7 @@ import queue
 import msgspec
 
 from schemas.messages import ALL_MESSAGES
-from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session
+from services.lib.runtime.zenoh_config import ZenohSettings, init_logging, open_session
 
 
 def echo_main(endpoint: str) -> None:

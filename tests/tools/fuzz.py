@@ -58,10 +58,10 @@ from schemas.messages import (
     VoxelMap,
     WorldModel,
 )
-from services.launcher.registry import node_class
-from services.runtime.node import Node
-from services.runtime.typed import _numpy_scalars
-from services.runtime.zenoh_config import ZenohSettings
+from services.tools.registry import node_class
+from services.lib.runtime.node import Node
+from services.lib.runtime.typed import _numpy_scalars
+from services.lib.runtime.zenoh_config import ZenohSettings
 from tests.tools.samples import concrete
 
 M = TypeVar("M", bound=msgspec.Struct)
@@ -80,7 +80,7 @@ class FuzzRun:
 # What tests/conftest.py prints at the end of the session: message type -> its run.
 CASES_RUN = pytest.StashKey[dict[str, FuzzRun]]()
 
-# What the nodes put on the wire (services/runtime/typed.py, TypedPublisher).
+# What the nodes put on the wire (services/lib/runtime/typed.py, TypedPublisher).
 encode = msgspec.msgpack.Encoder(enc_hook=_numpy_scalars).encode
 
 

@@ -17,7 +17,7 @@ import msgspec
 
 from schemas import keys
 from schemas.messages import SimClock, UavStatus
-from services.runtime.zenoh_config import ZenohSettings, init_logging, open_session
+from services.lib.runtime.zenoh_config import ZenohSettings, init_logging, open_session
 
 
 def main() -> None:

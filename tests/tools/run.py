@@ -8,7 +8,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from services.runtime.zenoh_config import ZenohSettings, open_session
+from services.lib.runtime.zenoh_config import ZenohSettings, open_session
 
 
 def wait_for_port(port: int, timeout: float = 20.0) -> None:
@@ -64,8 +64,8 @@ def end_partner(partner: subprocess.Popen) -> None:
 def record_short_run(recording: Path, *sim_args: str) -> None:
     """`falconry sim SIM_ARGS --lockstep --record RECORDING` on a free port, quiet; fails the test
     with the run's output if it fails, and removes the shared-memory segments it left."""
-    from services.runtime import shm
-    from services.runtime.zenoh_config import free_port
+    from services.lib.runtime import shm
+    from services.lib.runtime.zenoh_config import free_port
     from tests.conftest import REPO, falconry_argv
 
     segments_before = shm.segments()

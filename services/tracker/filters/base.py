@@ -17,7 +17,7 @@ from typing import Protocol
 
 import numpy as np
 
-from services.runtime.clock import NS
+from services.lib.runtime.clock import NS
 
 
 @dataclass(frozen=True)

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from services.lib.tracks import manoeuvre_path
 from services.tracker.filters.base import NS
 from services.tracker.filters.turning import Turn
 
@@ -89,23 +90,6 @@ def bounded_in_units_of(matrix: np.ndarray, unit: np.ndarray, low: float, high: 
     scale = np.sqrt(np.asarray(unit, dtype=np.float64))
     normalised = matrix / np.outer(scale, scale)
     return clipped_eigenvalues(normalised, low, high) * np.outer(scale, scale)
-
-
-def manoeuvre_path(mean: np.ndarray, step: float, count: int, manoeuvre_time: float) -> np.ndarray:
-    """(count, 3) predicted positions every `step` s ahead of a position-velocity-acceleration
-    state, the acceleration taken to fade with time constant τ = `manoeuvre_time` (Singer's
-    manoeuvre model, 1970): p + v t + a τ² (e^(-t/τ) - 1 + t/τ). τ = inf is the constant-acceleration
-    extrapolation of eq. 27 (p + v t + a t²/2), which over seconds turns the few tenths of a second
-    a manoeuvre lasts into metres; a smaller τ keeps the acceleration's short-term effect and
-    then flies straight on at v + a τ."""
-    m = np.asarray(mean, dtype=np.float64).reshape(-1)
-    t = step * np.arange(1, count + 1, dtype=np.float64)[:, None]
-    if np.isinf(manoeuvre_time):
-        reach = 0.5 * t * t
-    else:
-        tau = manoeuvre_time
-        reach = tau * tau * (np.exp(-t / tau) - 1.0 + t / tau)
-    return (m[:3] + m[3:6] * t + m[6:9] * reach).reshape(-1, 3)
 
 
 def turning_path(mean: np.ndarray, step: float, count: int, manoeuvre_time: float, turn: Turn | None) -> np.ndarray:

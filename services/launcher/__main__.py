@@ -1,5 +1,0 @@
-import sys
-
-from services.launcher.cli import main
-
-sys.exit(main())

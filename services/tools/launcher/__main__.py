@@ -1,0 +1,5 @@
+import sys
+
+from services.tools.launcher.cli import main
+
+sys.exit(main())
