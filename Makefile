@@ -7,7 +7,12 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 LOCK := deploy/requirements.lock
-SIM_ARGS ?= mbzirc --uavs 2 --lockstep --duration 90 --seed 1
+# `make sim` flies SCENARIO with the defaults below; SIM_ARGS adds options after them, and a later
+# option wins (`make sim SIM_ARGS="--uavs 3 --seed 4"`, `make sim SCENARIO=intruder`,
+# `make sim SIM_ARGS=--no-lockstep` for real time)
+SCENARIO ?= mbzirc
+SIM_DEFAULTS := --uavs 2 --lockstep --duration 90 --seed 1
+SIM_ARGS ?=
 CAMPAIGN_ARGS ?= --runs 20 --seed 1
 
 .PHONY: .venv sim test acceptance bench bench-tracking bench-tracking-intruder bench-interception bench-localization bench-obstacles bench-planner campaign schemas lock clean
@@ -26,7 +31,7 @@ BYTECODE = $(PY) -m compileall -q services schemas tests benchmarks > /dev/null
 
 sim: .venv
 	@$(BYTECODE)
-	$(VENV)/bin/falconry sim $(SIM_ARGS)
+	$(VENV)/bin/falconry sim $(SCENARIO) $(SIM_DEFAULTS) $(SIM_ARGS)
 
 # The whole target must stay under 15 minutes; each part lists its slowest tests. Two parts: the
 # tests that tolerate a busy machine (in-process tests, lockstep fleets) two files at a time on

@@ -17,9 +17,10 @@ def add_simulator_options(parser: argparse.ArgumentParser, *, positional_scenari
     group.add_argument("--uavs", type=int, choices=[2, 3], default=None,
                        help="number of UAVs (default: the scenario's)")
     group.add_argument("--seed", type=int, default=None, help="random seed (default: the scenario's)")
-    group.add_argument("--lockstep", action="store_true",
+    group.add_argument("--lockstep", action=argparse.BooleanOptionalAction, default=False,
                        help="advance the clock only when every service has processed the previous tick: "
-                            "deterministic for a seed, as fast as the machine allows")
+                            "deterministic for a seed, as fast as the machine allows (--no-lockstep: real "
+                            "time at --rtf, the default; the later of the two wins)")
     group.add_argument("--duration", type=float, default=None, metavar="S",
                        help="mission time to simulate, seconds (default: the scenario's)")
     group.add_argument("--rtf", type=float, default=1.0, metavar="FACTOR",
