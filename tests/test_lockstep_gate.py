@@ -1,5 +1,5 @@
 """The lockstep gate decides what a service processes at each tick, independent of arrival timing."""
-from services.lib.runtime.lockstep import LockstepGate
+from services.lib.runtime.lockstep import ACK_WAIT_S, TICK_RESEND_S, LockstepGate, TickLedger, await_acks
 
 UP = {"classifier"}
 
@@ -201,3 +201,46 @@ def test_a_subscription_added_during_a_tick_is_waited_for_and_a_cut_during_it_pa
     gate.hold("falconry/uav2/status", 9, "status9")
     gate.recut(lambda key: key.startswith("falconry/uav2/"))
     assert [item for _, item in gate.release(set())] == ["odo4"]  # uav2's status is across the cut
+
+
+# ------------------------------------------------------------------ the master's ledger
+def test_the_ledger_keeps_each_live_services_newest_acknowledgement():
+    ledger = TickLedger()
+    ledger.seen("uav1/tracker", True)
+    ledger.seen("uav1/planner", True)
+    ledger.acknowledged("uav1/tracker", 5, {"falconry/uav1/tracks": 7})
+    ledger.acknowledged("uav1/tracker", 4, {"falconry/uav1/tracks": 6})  # overtaken on the way: ignored
+    assert ledger.waiting(5, ["uav1/tracker", "uav1/planner", "uav2/tracker"]) == ["uav1/planner"]  # uav2's not alive
+    assert ledger.waiting(6, ledger.alive()) == ["uav1/planner", "uav1/tracker"]
+    ledger.acknowledged("uav1/planner", 5, {"falconry/uav1/trajectory": 2, "falconry/uav1/tracks": 9})
+    assert ledger.published() == {"falconry/uav1/tracks": 7, "falconry/uav1/trajectory": 2}  # in name order
+    assert ledger.published(["uav1/planner"]) == {"falconry/uav1/tracks": 9, "falconry/uav1/trajectory": 2}
+    ledger.seen("uav1/tracker", False)  # gone: its acknowledgement with it
+    assert ledger.alive() == {"uav1/planner"} and ledger.published() == {"falconry/uav1/tracks": 9,
+                                                                          "falconry/uav1/trajectory": 2}
+
+
+class _FakeTime:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_master_resends_a_tick_until_answered_and_gives_up_after_its_wait():
+    ledger, clock, resent = TickLedger(), _FakeTime(), []
+    ledger.seen("uav1/tracker", True)
+
+    def pump(seconds: float) -> None:
+        clock.now += seconds
+        if clock.now >= 101.2:  # answers after 1.2 s: the tick went out twice more meanwhile
+            ledger.acknowledged("uav1/tracker", 3, {})
+
+    answered = await_acks(ledger, 3, ledger.alive, pump, lambda: resent.append(clock.now), lambda: False, clock)
+    assert answered == [] and len(resent) == 2 and resent[0] > 100.0 + TICK_RESEND_S
+    silent = await_acks(ledger, 4, ledger.alive, lambda s: setattr(clock, "now", clock.now + s), lambda: None,
+                        lambda: False, clock)
+    assert silent == ["uav1/tracker"] and clock.now - 101.2 > ACK_WAIT_S  # waited it out, then went on
+    assert await_acks(ledger, 4, ledger.alive, lambda s: None, lambda: None, lambda: True, clock) == []  # stopping
+    assert await_acks(ledger, 4, lambda: set(), lambda s: None, lambda: None, lambda: False, clock) == []  # silenced

@@ -50,7 +50,7 @@ from services.lib.geometry import heading_quaternion, wrap_angle, yaw_of
 from services.lib.runtime.clock import seconds, to_ns
 from services.lib.runtime.errors import UsageError
 from services.lib.runtime.counted import CountedWarnings
-from services.lib.runtime.lockstep import ACK_WAIT_S, TICK_RESEND_S, LockstepGate
+from services.lib.runtime.lockstep import ACK_WAIT_S, LockstepGate, TickLedger, await_acks
 from services.lib.runtime.node import Node
 from services.simulator.core import ImuSamples, Simulation
 from services.lib.imu import ImuParams
@@ -109,14 +109,13 @@ class SimulatorNode(Node):
         self.relay = EstimateRelay(to_ns(self.params.estimate_timeout))
         self.sim = Simulation(self.scenario, self.uav_names, self.seed, imu=self.params.imu,
                               positioning=self.positioning)
-        self._alive: set[str] = set()
+        self.ledger = TickLedger()  # the live services and their acknowledgements (this node is the clock master)
         self._vanished: set[str] = set()  # services whose token went since a kill was asked of them
         self._pending_faults = sorted(getattr(self.scenario, "faults", []), key=lambda f: f.time)
         self._refused_references = 0
         self._tallies: dict[str, int] = {}
         self._bad_input = CountedWarnings(self.log)
         self._undo_jumps: list[tuple[int, str, np.ndarray]] = []  # (mission ns, uav, offset)
-        self._acks: dict[str, StepAck] = {}
         # this node makes the clock; in lockstep trajectories wait for the tick they belong to
         self.inputs: LockstepGate = self.drive_clock(self.run_lockstep)
 
@@ -141,16 +140,14 @@ class SimulatorNode(Node):
         if parsed is None or parsed == (keys.SIM, self.service):
             return
         name = f"{parsed[0]}/{parsed[1]}"
-        if alive:
-            self._alive.add(name)
-        else:
-            self._alive.discard(name)
+        self.ledger.seen(name, alive)
+        if not alive:
             self._vanished.add(name)
-            self._acks.pop(name, None)
 
     def _on_ack(self, ack: StepAck, key: str) -> None:
-        parts = key.split("/")
-        self._acks[f"{parts[1]}/{parts[3]}"] = ack
+        owner = keys.ack_owner(key)
+        if owner is not None:
+            self.ledger.acknowledged(owner, ack.step, ack.published)
 
     def on_localization(self, msg: Odometry, key: str) -> None:
         """A localizer's estimate: its error becomes the flight controller's (positioning.py)."""
@@ -171,7 +168,7 @@ class SimulatorNode(Node):
         return self._tallies[what]
 
     def on_trajectory(self, msg: TrajectoryReference, key: str) -> None:
-        uav = key.split("/")[1]
+        uav = keys.uav_of(key)
         p = msg.profile
         try:
             self.sim.set_reference(uav, msg.start, msg.dt, np.array(to_numpy(msg.positions)),
@@ -206,7 +203,7 @@ class SimulatorNode(Node):
                 return
             crashed = []
             if step > 0:
-                self.handle_released(self.inputs.release(self._alive))
+                self.handle_released(self.inputs.release(self.ledger.alive()))
                 for kind, subject, detail in self.sim.step(self.tick_s):
                     self.event(kind, subject, detail)
                     if kind == "collision":
@@ -223,7 +220,7 @@ class SimulatorNode(Node):
             rtf = (seconds(now) - mission_start) / max(time.monotonic() - wall_start, 1e-9)
             tick = SimClock(header=Header(stamp=now), step=step, dt=self.tick_s, lockstep=self.run_lockstep,
                             real_time_factor=rtf, bounds=self.bounds(), finished=step == steps,
-                            alive=sorted(self._alive | {self.sender}))
+                            alive=sorted(self.ledger.alive() | {self.sender}))
             self.clock_pub.put(tick)
             if self.run_lockstep:
                 self.wait_for_acks(tick)
@@ -260,12 +257,12 @@ class SimulatorNode(Node):
         or None when the run is stopping."""
         expected = self.expected_services()
         deadline = time.monotonic() + self.params.startup_timeout
-        while not expected <= self._alive:
+        while not expected <= (alive := self.ledger.alive()):
             if self.stopping:
                 return None
             if time.monotonic() > deadline:
-                self.log.warning("starting without %s", ", ".join(sorted(expected - self._alive)))
-                return expected - self._alive
+                self.log.warning("starting without %s", ", ".join(sorted(expected - alive)))
+                return expected - alive
             self.pump(0.05)
         # A token says a service is up, not that its subscriptions have reached every publisher
         # (declarations travel separately): a first message sent before then is lost, and in
@@ -276,30 +273,18 @@ class SimulatorNode(Node):
         return set()
 
     def bounds(self) -> dict[str, int]:
-        merged: dict[str, int] = {}
-        for name in sorted(self._acks):
-            merged.update(self._acks[name].published)
+        merged = self.ledger.published()
         merged.update({key: seq for key, seq in self.published_seqs().items() if seq and key != keys.CLOCK})
         return merged
 
     def wait_for_acks(self, tick: SimClock) -> None:
-        started = time.monotonic()
-        resend = started + TICK_RESEND_S
-        while True:
-            # a frozen, cut-off or killed service cannot answer: not waiting is part of the fault
-            expected = self.fault_windows.unaffected(self._alive, seconds(tick.header.stamp))
-            waiting = [n for n in expected if (a := self._acks.get(n)) is None or a.step < tick.step]
-            if not waiting or self.stopping:
-                break
-            now = time.monotonic()
-            if now - started > ACK_WAIT_S:
-                self.counters.lockstep_timeouts += 1
-                self.log.warning("tick %d: no acknowledgement from %s; going on", tick.step, ", ".join(sorted(waiting)))
-                break
-            if now > resend:
-                self.clock_pub.put(tick)
-                resend = now + TICK_RESEND_S
-            self.pump(0.05)
+        # a frozen, cut-off or killed service cannot answer: not waiting is part of the fault
+        silent = await_acks(self.ledger, tick.step,
+                            lambda: self.fault_windows.unaffected(self.ledger.alive(), seconds(tick.header.stamp)),
+                            self.pump, lambda: self.clock_pub.put(tick), lambda: self.stopping, time.monotonic)
+        if silent:
+            self.counters.lockstep_timeouts += 1
+            self.log.warning("tick %d: no acknowledgement from %s; going on", tick.step, ", ".join(silent))
         self.inputs.begin(tick.step + 1, self.bounds())
         deadline = time.monotonic() + ACK_WAIT_S
         while (missing := self.inputs.missing(set())) and not self.stopping:
@@ -362,8 +347,9 @@ class SimulatorNode(Node):
         if command.kind != "kill":
             return set()
         prefix = f"{command.uav}/"
-        names = {prefix + command.service} if command.service else {n for n in self._alive if n.startswith(prefix)}
-        names &= self._alive
+        alive = self.ledger.alive()
+        names = {prefix + command.service} if command.service else {n for n in alive if n.startswith(prefix)}
+        names &= alive
         self._vanished -= names
         return names
 

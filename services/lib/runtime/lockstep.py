@@ -15,9 +15,13 @@ down: the cut starts on the tick the schedule says. When the link is back, the f
 that gets through says where the key's publisher is; what it sent before is gone, as over a real
 radio. With the stamp, a message received twice is kept once, and one overtaken on the way goes
 back before the newer one (`hold`). Pure logic: no Zenoh, no clocks.
+
+The clock master's side (the simulator, or replay standing in for it) is `TickLedger`, its book
+of the live services and their acknowledgements, and `await_acks`, its wait for a tick's.
 """
 from __future__ import annotations
 
+import threading
 from collections import deque
 from typing import Callable, Generic, Hashable, Iterable, TypeVar
 
@@ -224,6 +228,81 @@ class LockstepGate(Generic[Item]):
                 out.append((key, item))
         self.joining = False
         return out
+
+
+class TickLedger:
+    """The lockstep master's book (the simulator's, or replay's standing in for it): which services
+    ("<scope>/<service>") are alive, and the newest tick each acknowledged with the sequence numbers
+    it had published by then. Thread-safe (replay feeds it from Zenoh's threads while its loop
+    reads it); `on_change` is called after every change, e.g. to wake a waiting loop."""
+
+    def __init__(self, on_change: Callable[[], None] = lambda: None) -> None:
+        self._lock = threading.Lock()
+        self._alive: set[str] = set()
+        self._acks: dict[str, tuple[int, dict[str, int]]] = {}
+        self._on_change = on_change
+
+    def seen(self, name: str, alive: bool) -> None:
+        """A service's token came (alive) or went: a gone service's acknowledgements go with it."""
+        with self._lock:
+            if alive:
+                self._alive.add(name)
+            else:
+                self._alive.discard(name)
+                self._acks.pop(name, None)
+        self._on_change()
+
+    def acknowledged(self, name: str, step: int, published: dict[str, int]) -> None:
+        """`name` finished tick `step` having published up to `published` (key -> seq); an older
+        acknowledgement overtaken on the way changes nothing."""
+        with self._lock:
+            old = self._acks.get(name)
+            if old is None or step >= old[0]:
+                self._acks[name] = (step, published)
+        self._on_change()
+
+    def alive(self) -> set[str]:
+        with self._lock:
+            return set(self._alive)
+
+    def waiting(self, step: int, names: Iterable[str]) -> list[str]:
+        """Of `names`, the live services that have not acknowledged tick `step` yet (sorted)."""
+        with self._lock:
+            return sorted(n for n in set(names) if n in self._alive
+                          and ((ack := self._acks.get(n)) is None or ack[0] < step))
+
+    def published(self, names: Iterable[str] | None = None) -> dict[str, int]:
+        """The sequence numbers the acknowledgements of `names` (all by default) name, merged in
+        name order (a key two services both publish takes the later name's)."""
+        with self._lock:
+            chosen = self._acks.keys() if names is None else set(names) & self._acks.keys()
+            merged: dict[str, int] = {}
+            for name in sorted(chosen):
+                merged.update(self._acks[name][1])
+            return merged
+
+
+def await_acks(ledger: TickLedger, step: int, names: Callable[[], Iterable[str]], pump: Callable[[float], None],
+               resend: Callable[[], None], stopping: Callable[[], bool], monotonic: Callable[[], float]) -> list[str]:
+    """Wait until every service `names()` lists (asked again each round: a fault may silence one
+    meanwhile) has acknowledged tick `step`, sending the tick again every TICK_RESEND_S (a service
+    may have joined late) and giving up after ACK_WAIT_S. `pump(s)` waits up to s for news;
+`monotonic` is the wall clock the waits are measured on (injected: this module reads no clock).
+    Returns the services still waited for when it gave up ([] when all answered, or stopping)."""
+    started = monotonic()
+    resend_at = started + TICK_RESEND_S
+    while not stopping():
+        waiting = ledger.waiting(step, names())
+        if not waiting:
+            return []
+        now = monotonic()
+        if now - started > ACK_WAIT_S:
+            return waiting
+        if now > resend_at:
+            resend()
+            resend_at = now + TICK_RESEND_S
+        pump(0.05)
+    return []
 
 
 def _never(key: str) -> bool:

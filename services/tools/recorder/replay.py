@@ -35,10 +35,10 @@ from mcap.writer import MCAP0_MAGIC as MAGIC
 from schemas import keys
 from schemas.messages import SimClock, StepAck
 from services.tools.recorder.mcap_io import ReadReport, header_of, read_recording
-from services.tools.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Publish, Tick, ack_owner
+from services.tools.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Publish, Tick
 from services.tools.recorder.selection import DEFAULT_REPLAY_KEYS, KeyFilter, pipeline_order
 from services.lib.runtime.errors import UsageError
-from services.lib.runtime.lockstep import ACK_WAIT_S, TICK_RESEND_S
+from services.lib.runtime.lockstep import TickLedger, await_acks
 
 SETTLE_S = 0.3  # lets services see the stand-in tokens before the first tick
 LINGER_S = 0.3  # lets the last messages leave before the session closes
@@ -84,9 +84,8 @@ class Replayer:
             raise ReplayError(f"lockstep replay drives the services by the recorded ticks: replay {keys.CLOCK}")
         self.stats = ReplayStats()
         self._publishers: dict[str, zenoh.Publisher] = {}
-        self._cond = threading.Condition()
-        self._alive: set[str] = set()
-        self._acks: dict[str, StepAck] = {}
+        self._changed = threading.Event()  # set by the Zenoh threads on news for the ledger
+        self.ledger = TickLedger(on_change=self._changed.set)  # replay stands in for the clock master
         self._tokens: dict[str, zenoh.LivelinessToken] = {}
         self._handles: list = []
         self._published_seq: dict[str, int] = {}
@@ -101,33 +100,21 @@ class Replayer:
         parsed = keys.parse_alive(str(sample.key_expr))
         if parsed is None:
             return
-        name = f"{parsed[0]}/{parsed[1]}"
-        with self._cond:
-            if sample.kind == zenoh.SampleKind.PUT:
-                self._alive.add(name)
-            else:
-                self._alive.discard(name)
-                self._acks.pop(name, None)
-            self._cond.notify_all()
+        self.ledger.seen(f"{parsed[0]}/{parsed[1]}", sample.kind == zenoh.SampleKind.PUT)
 
     def _on_ack(self, sample: zenoh.Sample) -> None:
-        name = ack_owner(str(sample.key_expr))
+        name = keys.ack_owner(str(sample.key_expr))
         if name is None or name in self._tokens:
             return  # our own stand-in acknowledgements
         try:
             ack = self._ack_decoder.decode(sample.payload.to_bytes())
         except (msgspec.DecodeError, msgspec.ValidationError):
             return
-        with self._cond:
-            old = self._acks.get(name)
-            if old is None or ack.step >= old.step:
-                self._acks[name] = ack
-            self._cond.notify_all()
+        self.ledger.acknowledged(name, ack.step, ack.published)
 
     def live_services(self) -> list[str]:
         """Services under test: alive, and not one this replayer stands in for."""
-        with self._cond:
-            return sorted(self._alive - set(self._tokens))
+        return sorted(self.ledger.alive() - set(self._tokens))
 
     def _publish(self, key: str, payload: bytes, count: bool = True) -> None:
         pub = self._publishers.get(key)
@@ -173,7 +160,7 @@ class Replayer:
         """Who published the replayed data in the recorded run (header.sender per key)."""
         senders: dict[str, str] = {}
         report = ReadReport()
-        for msg in read_recording(self.path, lambda k: self.replayed(k) and ack_owner(k) is None, report):
+        for msg in read_recording(self.path, lambda k: self.replayed(k) and keys.ack_owner(k) is None, report):
             if msg.key not in senders:
                 header = header_of(msg.payload)
                 senders[msg.key] = header.sender if header is not None else ""
@@ -182,7 +169,7 @@ class Replayer:
     def _stand_in(self, senders: list[str]) -> None:
         time.sleep(0.1)  # the liveliness history (tokens already there) arrives asynchronously
         for name in senders:
-            if name in self._alive:
+            if name in self.ledger.alive():
                 self.say(f"warning: {name} is running and also published replayed data: not standing in for it")
                 continue
             scope, service = name.split("/")
@@ -194,13 +181,12 @@ class Replayer:
         if not self.wait_for:
             return
         deadline = time.monotonic() + self.wait_timeout
-        with self._cond:
-            while missing := [n for n in self.wait_for if n not in self._alive]:
-                if self.stop.is_set():
-                    return
-                if time.monotonic() > deadline:
-                    raise ReplayError(f"not alive after {self.wait_timeout:g} s: {', '.join(missing)}")
-                self._cond.wait(0.1)
+        while missing := [n for n in self.wait_for if n not in self.ledger.alive()]:
+            if self.stop.is_set():
+                return
+            if time.monotonic() > deadline:
+                raise ReplayError(f"not alive after {self.wait_timeout:g} s: {', '.join(missing)}")
+            self._wait_for_news(0.1)
         self.say("alive: " + ", ".join(self.wait_for))
 
     def _progress(self, tick: SimClock | None) -> None:
@@ -221,7 +207,7 @@ class Replayer:
         self._next_progress = time.monotonic() + self.progress_s
         wall_start = first_log = None
         tick = None
-        for msg in self._read(lambda k: self.replayed(k) and ack_owner(k) is None):
+        for msg in self._read(lambda k: self.replayed(k) and keys.ack_owner(k) is None):
             if self.stop.is_set():
                 return
             if self.rate > 0:
@@ -243,7 +229,7 @@ class Replayer:
     def _run_lockstep(self) -> None:
         self._next_progress = time.monotonic() + self.progress_s
         schedule = LockstepSchedule(self._tokens, pipeline_order(self.say))
-        wanted = lambda k: self.replayed(k) or ack_owner(k) is not None  # noqa: E731
+        wanted = lambda k: self.replayed(k) or keys.ack_owner(k) is not None  # noqa: E731
         tick = None
         for action in schedule.actions(self._read(wanted)):
             if self.stop.is_set():
@@ -267,7 +253,7 @@ class Replayer:
 
     def _publish_recorded(self, action: Publish) -> None:
         payload = action.payload
-        owner = ack_owner(action.key)
+        owner = keys.ack_owner(action.key)
         if owner is not None:  # a stand-in's acknowledgement: only the keys we replay are bounded
             ack = self._ack_decoder.decode(payload)
             kept = {k: v for k, v in ack.published.items() if self.replayed(k)}
@@ -281,30 +267,27 @@ class Replayer:
     def _bounds(self, recorded: dict[str, int]) -> dict[str, int]:
         bounds = dict(self._published_seq)
         bounds.update((k, v) for k, v in recorded.items() if self.replayed(k))
-        with self._cond:
-            for name in sorted(self._alive - set(self._tokens)):
-                ack = self._acks.get(name)
-                if ack is not None:
-                    bounds.update(ack.published)
+        bounds.update(self.ledger.published(self.ledger.alive() - set(self._tokens)))
         return bounds
 
     def _wait_for_acks(self, step: int, names: list[str] | None = None) -> None:
-        started = time.monotonic()
-        resend = started + TICK_RESEND_S
-        while not self.stop.is_set():
-            with self._cond:
-                live = self._alive - set(self._tokens)
-                waiting = [n for n in (names if names is not None else sorted(live))
-                           if n in live and ((a := self._acks.get(n)) is None or a.step < step)]
-                if not waiting:
-                    return
-                self._cond.wait(0.05)
-            now = time.monotonic()
-            if now - started > ACK_WAIT_S:
-                self.stats.ack_timeouts += 1
-                self.say(f"warning: tick {step}: no acknowledgement from {', '.join(waiting)}; going on")
-                return
-            if now > resend and self._tick_payload is not None:
-                self._publish(keys.CLOCK, self._tick_payload, count=False)  # a service may have joined late
-                self.stats.resent_ticks += 1
-                resend = now + TICK_RESEND_S
+        def under_test() -> list[str]:
+            live = self.ledger.alive() - set(self._tokens)
+            return sorted(live) if names is None else [n for n in names if n in live]
+
+        silent = await_acks(self.ledger, step, under_test, self._wait_for_news, self._resend_tick, self.stop.is_set,
+                            time.monotonic)
+        if silent:
+            self.stats.ack_timeouts += 1
+            self.say(f"warning: tick {step}: no acknowledgement from {', '.join(silent)}; going on")
+
+    def _wait_for_news(self, seconds: float) -> None:
+        """Up to `seconds` for a token or an acknowledgement to come or go (cleared after the
+        wait, before the caller looks again: nothing that came before the look is missed)."""
+        if self._changed.wait(seconds):
+            self._changed.clear()
+
+    def _resend_tick(self) -> None:
+        if self._tick_payload is not None:
+            self._publish(keys.CLOCK, self._tick_payload, count=False)  # a service may have joined late
+            self.stats.resent_ticks += 1
