@@ -101,14 +101,26 @@ FAULTS = sim("faults")
 RESUME = sim("resume")
 
 
-def is_ack(key: str) -> bool:
+def ack_owner(key: str) -> str | None:
+    """'uav1/classifier' for falconry/uav1/ack/classifier; None for a key that is no acknowledgement."""
     parts = key.split("/")
-    return len(parts) == 4 and parts[0] == ROOT and parts[2] == "ack"
+    if len(parts) == 4 and parts[0] == ROOT and parts[2] == "ack":
+        return f"{parts[1]}/{parts[3]}"
+    return None
+
+
+def is_ack(key: str) -> bool:
+    return ack_owner(key) is not None
 
 
 def uav_of(key: str) -> str:
     """The UAV segment of a per-UAV key (falconry/uav2/tracks → uav2)."""
     return key.split("/")[1]
+
+
+def topic_of(key: str) -> str:
+    """The topic of a per-UAV key (falconry/uav2/tracks → tracks)."""
+    return key.split("/", 2)[2]
 
 
 def parse_alive(key: str) -> tuple[str, str] | None:

@@ -12,6 +12,7 @@ import math
 
 import numpy as np
 
+from services.lib.geometry import yaw_rotation
 from services.lib.lidar.models import BeamSpacing
 
 
@@ -25,9 +26,7 @@ def _ry(b: float) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
-def _rz(g: float) -> np.ndarray:
-    c, s = math.cos(g), math.sin(g)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+_rz = yaw_rotation  # the rotation about z
 
 
 def _drx(a: float) -> np.ndarray:

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 import sys
+import threading
 
 from schemas import keys
 from services.lib.runtime import tls
@@ -156,3 +158,12 @@ def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
                          connect_timeout=getattr(args, "connect_timeout", None),
                          gossip_connect=getattr(args, "gossip_connect", True),
                          tls_dir=getattr(args, "tls", None) or None, tls_identity=tls_identity(args))
+
+
+def stop_on_signals() -> threading.Event:
+    """An event Ctrl-C (SIGINT) and SIGTERM (`kill`, compose, systemd) set: a long-running command
+    polls it and shuts down cleanly instead of dying in the middle of a write."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    return stop

@@ -181,7 +181,7 @@ class RunMonitor:
                         write_record(self.truth_log, payload)
                 getattr(self, f"_on_{key.rsplit('/', 1)[-1]}")(msg)
                 return
-            uav, topic = key.split("/")[1:3]
+            uav, topic = keys.uav_of(key), keys.topic_of(key)
             if topic == "status":
                 self._on_status(uav, self._status.decode(payload))
             elif topic == "tracks":

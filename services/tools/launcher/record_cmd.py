@@ -4,14 +4,12 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import signal
-import threading
 import time
 from collections.abc import Callable
 
 import zenoh
 
-from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, zenoh_settings
+from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, stop_on_signals, zenoh_settings
 from services.tools.recorder.mcap_io import CHUNK_SIZE, COMPRESSIONS
 from services.tools.recorder.record import DEFAULT_KEYS, SKIPPED_BY_DEFAULT, Recorder, summary_lines
 from services.lib.runtime.zenoh_config import init_logging, open_session
@@ -92,9 +90,7 @@ def run_record(args: argparse.Namespace) -> int:
     key_exprs = check_key_exprs(args.keys or list(DEFAULT_KEYS))
     path = recording_path(args.file, datetime.datetime.now(datetime.timezone.utc))
 
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     init_logging()
     session = open_session(zenoh_settings(args), wait=stop.wait)
     try:

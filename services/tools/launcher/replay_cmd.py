@@ -2,11 +2,9 @@
 from __future__ import annotations
 
 import argparse
-import signal
-import threading
 from pathlib import Path
 
-from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, zenoh_settings
+from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, stop_on_signals, zenoh_settings
 from services.tools.launcher.record_cmd import check_key_exprs
 from services.tools.recorder.replay import Replayer, ReplayError
 from services.tools.recorder.selection import DEFAULT_REPLAY_KEYS
@@ -59,9 +57,7 @@ def run_replay(args: argparse.Namespace) -> int:
             raise CliError(f"--wait-for takes UAV/SERVICE names such as uav1/classifier, not {name!r}")
     key_exprs = check_key_exprs(list(dict.fromkeys((args.keys or list(DEFAULT_REPLAY_KEYS)) + args.also)))
 
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     init_logging()
     session = open_session(zenoh_settings(args), wait=stop.wait)
     try:

@@ -11,13 +11,11 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
 import sys
-import threading
 
 import zenoh
 
-from services.tools.launcher.common import CliError, add_team_options, team_of
+from services.tools.launcher.common import CliError, add_team_options, stop_on_signals, team_of
 from services.lib.runtime import tls
 from services.lib.runtime.zenoh_config import (ZenohConfigError, ZenohUnreachable, check_endpoint, check_tls_endpoints,
                                            default_router, init_logging, load_config_file, pem_file_problem, reason,
@@ -152,9 +150,7 @@ def serve(config: zenoh.Config, where: str, exit_with_parent: bool) -> int:
         session = zenoh.open(config)
     except Exception as exc:  # e.g. the port is busy: worth a restart with back-off
         raise ZenohUnreachable(f"cannot start the router on {where}: {reason(exc)}") from None
-    stop = threading.Event()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     parent = os.getppid()
     print(f"zenoh router listening on {where} (pid {os.getpid()})", file=sys.stderr, flush=True)
     try:

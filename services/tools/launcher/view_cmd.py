@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, zenoh_settings
+from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, stop_on_signals, zenoh_settings
 from services.tools.launcher.monitor import RunMonitor
 from services.tools.recorder.mcap_io import is_mcap
 from services.lib.runtime.errors import UsageError
@@ -155,9 +153,7 @@ def run_view(args: argparse.Namespace) -> int:
 
 
 def _wait_for_stop() -> None:
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     while not stop.wait(0.5):
         pass
 
@@ -178,9 +174,7 @@ def _convert(args: argparse.Namespace, viewer: Viewer) -> None:
 def _live(args: argparse.Namespace, viewer: Viewer) -> None:
     from services.tools.viz.live import LiveFeed
 
-    stop = threading.Event()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: stop.set())
+    stop = stop_on_signals()
     init_logging()
     session = open_session(zenoh_settings(args), wait=stop.wait)
     parent = os.getppid()

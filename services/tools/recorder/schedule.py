@@ -57,14 +57,6 @@ class AwaitAll:
 Action = Union[Publish, Tick, AwaitAck, AwaitAll]
 
 
-def ack_owner(key: str) -> str | None:
-    """'uav1/classifier' for falconry/uav1/ack/classifier, else None."""
-    parts = key.split("/")
-    if len(parts) == 4 and parts[0] == keys.ROOT and parts[2] == "ack":
-        return f"{parts[1]}/{parts[3]}"
-    return None
-
-
 @dataclass
 class _Pending:
     index: int  # position in the file
@@ -113,7 +105,7 @@ class LockstepSchedule:
             if clock.step not in self._ticks and clock.step not in self._done_steps:  # re-sent ticks: once
                 self._ticks[clock.step] = (index, clock, msg.payload)
             return
-        owner = ack_owner(msg.key)
+        owner = keys.ack_owner(msg.key)
         if owner is not None:
             scope, service = owner.split("/")
             if scope != keys.SIM:

@@ -40,6 +40,7 @@ import numpy as np
 from foxglove import messages as fg
 from mcap.writer import CompressionType, Writer
 
+from schemas import keys
 from schemas.arrays import Array, to_numpy
 from schemas.catalogue import catalogue_entry
 from schemas.messages import (CompressedFrame, Detections, GroundTruth, Header, Obstacle, Odometry, PointCloud,
@@ -293,10 +294,6 @@ class _Derived:
     build: Callable[[msgspec.Struct, str, dict], dict]  # (message, key, stamp) -> JSON value
 
 
-def _uav_of(key: str) -> str:
-    return key.split("/")[1]
-
-
 class FoxgloveConverter:
     """Recorded payloads in, JSON messages with their schemas out. Keeps only per-type caches."""
 
@@ -312,13 +309,13 @@ class FoxgloveConverter:
                 _Derived("scan", scan[1], lambda m, key, stamp: scan[0].to_json(_scan_info(m)))],
             Odometry: [
                 _Derived("pose", fox["PoseInFrame"], lambda m, key, stamp: pose_in_frame(m, stamp)),
-                _Derived("tf", fox["FrameTransform"], lambda m, key, stamp: frame_transform(m, _uav_of(key), stamp))],
+                _Derived("tf", fox["FrameTransform"], lambda m, key, stamp: frame_transform(m, keys.uav_of(key), stamp))],
             Tracks: [_Derived("scene", fox["SceneUpdate"], lambda m, key, stamp: tracks_scene(m, stamp))],
             Detections: [_Derived("scene", fox["SceneUpdate"], lambda m, key, stamp: detections_scene(m, stamp))],
             GroundTruth: [_Derived("scene", fox["SceneUpdate"], lambda m, key, stamp: truth_scene(m, stamp))],
             WorldModel: [_Derived("scene", fox["SceneUpdate"], lambda m, key, stamp: world_scene(m, stamp))],
             CompressedFrame: [_Derived("image", fox["CompressedImage"],
-                                       lambda m, key, stamp: compressed_image(m, f"{_uav_of(key)}_camera", stamp))],
+                                       lambda m, key, stamp: compressed_image(m, f"{keys.uav_of(key)}_camera", stamp))],
         }
         # the recorded message itself is kept, as JSON, except a scan's (its points are the foxglove.PointCloud)
         self._replaced = {PointCloud}

@@ -175,7 +175,7 @@ class SceneBuilder:
         self._stamp = self._origin.mission_ns(msg.header.stamp)
         self.mission_ns = max(self.mission_ns, self._stamp)
         try:
-            handler(key.split("/")[1], msg)
+            handler(keys.uav_of(key), msg)
         except (ValueError, IndexError, TypeError):
             self.decode_errors += 1  # well-formed msgpack, impossible content (wrong shapes, …)
         return self._out
