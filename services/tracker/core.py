@@ -81,6 +81,7 @@ from services.lib.geometry import is_covariance
 from services.lib.lidar.sanity import SETTLE_TIME, SensorTrust
 from services.tracker.filters import FILTERS, FilterParams, make_filter
 from services.tracker.filters.base import NS, Estimate, InnovationStatistics
+from services.tracker.filters.deleting import Deleter, UncertaintyDeleter
 from services.tracker.filters.models import (covariance_at_least, manoeuvre_path, manoeuvre_state, turning_path,
                                             uncertainty_radius)
 from services.tracker.filters.turning import Turn, TurnHistory
@@ -297,6 +298,9 @@ class TrackerCore:
         self._lost: list[LostTrack] = []  # confirmed tracks dropped within reidentify_time or stitch_time
         self._next_id = 1
         self.sensor = SensorTrust(self.params.sensor_settle_time)
+        # Alg. 2 lines 15 and 25: a track, or a tentative one replayed, too uncertain to keep
+        self.deleter: Deleter = UncertaintyDeleter(self.params.radius_max, self.params.radius_min,
+                                                   self.params.radius_confidence)
 
     def __len__(self) -> int:
         return len(self._tracks)
@@ -333,7 +337,7 @@ class TrackerCore:
                 self._turned(track)
                 track.statistics.add(update.innovation)
         self._drop_diverged()
-        dropped = [t.id for t in self._tracks if self.radius(t.estimate) > self.params.radius_max]
+        dropped = [t.id for t in self._tracks if self.deleter.deletes(t.estimate, 0)]
         self._remove(dropped, stamp)
         self._merge_duplicates()
         return dropped
@@ -468,7 +472,7 @@ class TrackerCore:
     def _admit(self, stamp: int, position: np.ndarray, noise: np.ndarray, tentative: Replayed,
                view: SimilarityView, taken: set[int]) -> int:
         """Lines 25-31 for one replayed tentative track: dropped, counted to a similar track, or added."""
-        if self.radius(tentative.estimate) > self.params.radius_max:
+        if self.deleter.deletes(tentative.estimate, 0):
             return -1  # lost or a false positive (line 25)
         similar = self._most_similar(tentative.estimate, view, taken)
         if similar is not None:
@@ -564,7 +568,7 @@ class TrackerCore:
     def prune(self, now_ns: int) -> list[int]:
         """Drop the tracks whose uncertainty radius predicted to now_ns exceeds r_max (and diverged ones)."""
         self._drop_diverged()
-        dropped = [e.id for e in self.estimates(now_ns, trajectory=False) if e.uncertainty_radius > self.params.radius_max]
+        dropped = [e.id for e in self.estimates(now_ns, trajectory=False) if self.deleter.deletes(e, 0)]
         self._remove(dropped, now_ns)
         return dropped
 

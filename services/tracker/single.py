@@ -29,24 +29,14 @@ from __future__ import annotations
 import enum
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Protocol
 
 import msgspec
 import numpy as np
 
 from services.tracker.filters.base import Estimate, Filter, Innovation
+from services.tracker.filters.deleting import Deleter
+from services.tracker.filters.gating import Gater
 from services.tracker.frontend import Candidates
-
-
-class Gater(Protocol):
-    def accepts(self, innovation: Innovation) -> bool: ...
-
-    def squared_distances(self, predicted_position: np.ndarray, covariance: np.ndarray,
-                          positions: np.ndarray) -> np.ndarray: ...
-
-
-class Deleter(Protocol):
-    def deletes(self, estimate: Estimate | None, missed_steps: int) -> bool: ...
 
 
 class SingleTargetParams(msgspec.Struct, forbid_unknown_fields=True):

@@ -12,7 +12,7 @@ from services.tracker.filters.models import uncertainty_radius
 
 
 class Deleter(Protocol):
-    def deletes(self, estimate: Estimate, missed_steps: int) -> bool:
+    def deletes(self, estimate: Estimate | None, missed_steps: int) -> bool:
         """Whether the track with this estimate, unmatched for `missed_steps` consecutive steps, is lost."""
 
 

@@ -4,12 +4,23 @@ normalised innovation squared d² = yᵀ S⁻¹ y is within the χ² quantile of
 follows S = H P Hᵀ + R: tighter when the estimate is certain, wider after measurement gaps."""
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 
 from services.tracker.filters.base import Innovation
 from services.tracker.filters.models import symmetrised
 
 MEASUREMENT_DIMENSIONS = 3
+
+
+class Gater(Protocol):
+    def accepts(self, innovation: Innovation) -> bool:
+        """Whether this innovation may update the estimate."""
+
+    def squared_distances(self, predicted_position: np.ndarray, covariance: np.ndarray,
+                          positions: np.ndarray) -> np.ndarray:
+        """The gate's distance² of each of `positions` (N, 3) from a predicted position."""
 
 
 class MahalanobisGater:
