@@ -88,7 +88,7 @@ def main() -> int:
         frame = camera.render(world, look, position, rotation, gains.factors(), rng)
         rendered = time.perf_counter()
         k = camera.intrinsics
-        found = detect(frame.rgb, frame.depth_mm, CameraView(k.fx, k.fy, k.cx, k.cy, position, quaternion(rotation)),
+        found = detect(frame.rgb, frame.depth_mm, CameraView(k, position, quaternion(rotation)),
                        colors, params)
         done = time.perf_counter()
         render_ms.append((rendered - started) * 1e3)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from schemas.messages import Appearance, Obstacle, TargetTruth
-from services.camera.core import Camera, CameraParams, Gains, Intrinsics, camera_rotation
+from services.camera.core import Camera, CameraParams, Gains, camera_rotation
+from services.lib.pinhole import Intrinsics
 from services.lib.world.primitives import pack, primitives_from_obstacles
 
 QUIET = dict(color_noise=0.0, depth_noise=0.0, depth_dropout=0.0, exposure_drift=0.0, white_balance_drift=0.0)

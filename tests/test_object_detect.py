@@ -2,6 +2,7 @@
 correct pooling against eq. 4.7-4.8, thresholds (eq. 4.9-4.10), the LUT, distances on renders."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -124,7 +125,7 @@ def render_balloon(distance: float, bearing: float = 0.0, height: float = 4.0, n
     position, rotation = np.array([0.0, 0.0, 4.0]), camera_rotation(0.0, 0.0)
     frame = cam.render(world, Appearance(), position, rotation, np.ones(3), np.random.default_rng(0))
     k = cam.intrinsics
-    view = CameraView(k.fx, k.fy, k.cx, k.cy, position, quaternion(rotation))
+    view = CameraView(k, position, quaternion(rotation))
     return frame, view, centre
 
 
@@ -174,7 +175,8 @@ def test_a_balloon_cut_by_the_images_edge_is_dropped_without_depth_and_kept_with
     assert blob.clipped  # round enough to be a blob: the edge alone is what drops it below
     found = detect(np.ascontiguousarray(rgb[:, cut:]), None, view, RED, ObjectDetectParams())
     assert len(found.positions) == 0  # its size says only that it is nearer
-    shifted = CameraView(view.fx, view.fy, view.cx - cut, view.cy, view.position, view.orientation)
+    shifted = CameraView(dataclasses.replace(view.intrinsics, width=view.intrinsics.width - cut, cx=view.intrinsics.cx - cut),
+                         view.position, view.orientation)
     found = detect(np.ascontiguousarray(rgb[:, cut:]), np.ascontiguousarray(depth[:, cut:]), shifted, RED,
                    ObjectDetectParams())
     assert len(found.positions) == 1 and np.linalg.norm(found.positions[0] - centre) < 0.3
@@ -213,7 +215,7 @@ def test_picking_a_colour_from_a_frame_finds_the_balloon_the_wrong_colour_does_n
     result = subprocess.run([sys.executable, "-m", "services.tools.launcher", "colors", "pick", str(image), "--roi",
                              f"{int(u) - 5},{int(v) - 5},10,10", "--out", str(out)], capture_output=True, text=True)
     assert result.returncode == 0, result.stderr
-    view = CameraView(k.fx, k.fy, k.cx, k.cy, position, quaternion(rotation))
+    view = CameraView(k, position, quaternion(rotation))
     red = load_color_file(color_file_path("red"))
     assert len(detect(frame.rgb, frame.depth_mm, view, red, ObjectDetectParams()).positions) == 0
     found = detect(frame.rgb, frame.depth_mm, view, load_color_file(out), ObjectDetectParams())

@@ -32,6 +32,7 @@ import numpy as np
 from schemas.messages import Appearance
 from services.camera.render import Tiles, encode_table, noise_table, render_kernel, srgb_to_linear, tile_candidates
 from services.lib.geometry import yaw_rotation
+from services.lib.pinhole import Intrinsics
 from services.lib.world.primitives import Packed
 
 D435_HORIZONTAL_FOV = 69.4  # degrees, colour camera
@@ -83,35 +84,6 @@ class CameraParams(msgspec.Struct, forbid_unknown_fields=True):
             raise ValueError(f"depth_dropout must lie in [0, 1), got {self.depth_dropout}")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError(f"jpeg_quality must lie in 1..100, got {self.jpeg_quality}")
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    @classmethod
-    def from_fov(cls, width: int, height: int, horizontal_fov: float, vertical_fov: float) -> "Intrinsics":
-        fx = (width / 2) / math.tan(math.radians(horizontal_fov) / 2)
-        fy = (height / 2) / math.tan(math.radians(vertical_fov) / 2)
-        return cls(width, height, fx, fy, width / 2, height / 2)
-
-    def pixel_rays(self) -> np.ndarray:
-        """(height · width, 3) unit rays through the pixel centres, camera frame, row-major."""
-        u = np.arange(self.width) + 0.5
-        v = np.arange(self.height) + 0.5
-        uu, vv = np.meshgrid(u, v)
-        rays = np.stack([np.ones_like(uu), (self.cx - uu) / self.fx, (self.cy - vv) / self.fy], axis=-1)
-        return np.ascontiguousarray((rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3))
-
-    def project(self, points_camera: np.ndarray) -> np.ndarray:
-        """(N, 2) pixel coordinates (u, v) of camera-frame points in front of the camera."""
-        p = np.asarray(points_camera, dtype=np.float64).reshape(-1, 3)
-        return np.stack([self.cx - self.fx * p[:, 1] / p[:, 0], self.cy - self.fy * p[:, 2] / p[:, 0]], axis=1)
 
 
 def camera_rotation(heading: float, pitch_deg: float) -> np.ndarray:

@@ -34,6 +34,7 @@ import msgspec
 import numpy as np
 
 from services.lib.geometry import rotation_matrix
+from services.lib.pinhole import Intrinsics
 from services.object_detect.colors import ColorFile
 
 MEDIAN_DEPTH_OFFSET = 1 / math.sqrt(2)  # × R: the median depth of a sphere's visible half in front of its centre
@@ -65,10 +66,7 @@ class ObjectDetectParams(msgspec.Struct, forbid_unknown_fields=True):
 class CameraView:
     """What Object Detect needs of a frame besides its pixels."""
 
-    fx: float
-    fy: float
-    cx: float
-    cy: float
+    intrinsics: Intrinsics
     position: np.ndarray  # camera centre, world
     orientation: tuple[float, float, float, float]  # camera frame → world (w, x, y, z)
 
@@ -135,10 +133,10 @@ def detect(rgb: np.ndarray, depth_mm: np.ndarray | None, view: CameraView, color
     blobs = find_blobs(mask, params) if mask.size else []
     radius_m = colors.diameter / 2
     rotation = rotation_matrix(view.orientation)
-    focal = 0.5 * (view.fx + view.fy)
+    focal = 0.5 * (view.intrinsics.fx + view.intrinsics.fy)
     rows = []
     for blob in blobs:
-        ray = np.array([1.0, (view.cx - blob.u) / view.fx, (view.cy - blob.v) / view.fy])
+        ray = view.intrinsics.rays(blob.u, blob.v)
         ray /= np.linalg.norm(ray)
         # the outline of a sphere seen θ off the optical axis is an ellipse stretched by 1/cos θ across
         # and 1/cos² θ along the radial direction: its area is π (f tan α)² / cos³ θ
@@ -185,7 +183,8 @@ def _depth_range(depth_mm, blob: Blob, view: CameraView, radius_m: float,
     if inside.sum() < 3:
         return math.nan, math.inf
     # depth is along the optical axis: the range of each pixel's point is z · |ray| / ray_x
-    stretch = np.sqrt(1.0 + ((view.cx - uu) / view.fx) ** 2 + ((view.cy - vv) / view.fy) ** 2)
+    rays = view.intrinsics.rays(uu, vv)
+    stretch = np.sqrt(1.0 + rays[..., 1] ** 2 + rays[..., 2] ** 2)
     ranges = patch[inside] * stretch[inside]
     median = float(np.median(ranges))
     sigma = params.depth_noise * median ** 2 / math.sqrt(inside.sum())

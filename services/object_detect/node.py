@@ -18,6 +18,7 @@ from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import CameraFrame, ColorUpdate, Detections, Header
 from services.object_detect.colors import ColorFile, ColorFileError, load_color_file, parse_color_file
+from services.lib.pinhole import Intrinsics
 from services.object_detect.core import CameraView, ObjectDetectParams, detect
 from services.object_detect.sanity import FrameSanity
 from services.lib.runtime.counted import CountedWarnings
@@ -69,8 +70,8 @@ class ObjectDetectNode(Node):
                       self.colors.thresholds.space, self.colors.diameter)
 
     def on_frame(self, msg: CameraFrame, key: str) -> None:
-        view = CameraView(msg.fx, msg.fy, msg.cx, msg.cy, np.asarray(msg.camera_pose.position, dtype=np.float64),
-                          msg.camera_pose.orientation)
+        view = CameraView(Intrinsics(msg.width, msg.height, msg.fx, msg.fy, msg.cx, msg.cy),
+                          np.asarray(msg.camera_pose.position, dtype=np.float64), msg.camera_pose.orientation)
         try:
             rgb = to_numpy(msg.color)
             depth = None if msg.depth is None else to_numpy(msg.depth)
