@@ -63,8 +63,9 @@ KILL_WAIT_S = 5.0  # s of wall time a lockstep tick waits for the processes a ki
 
 class SimulatorParams(msgspec.Struct, forbid_unknown_fields=True):
     # s of wall time to wait for every service before starting anyway. A machine's first run
-    # compiles every service's kernels before its token (each core's warm_up): 3 UAVs took 53 s to
-    # come up on a 2-core machine, and a run started before then gives up waiting at tick 0
+    # compiles every service's kernels before its token (each core's warm_up): cold, 3 UAVs need
+    # about 53 s to come up on a 2-core machine, and a run started before then gives up waiting at
+    # tick 0
     startup_timeout: float = 120.0
     startup_settle: float = 1.0  # s of wall time between the last service coming up and the first tick
     world_period: float = 1.0  # s of mission time between WorldModel re-publications
@@ -355,10 +356,10 @@ class SimulatorNode(Node):
 
     def await_killed(self, names: set[str]) -> None:
         """In lockstep, the tick a kill happens at goes out once the killed processes' tokens are
-        gone. The launcher kills them in wall time: going on at once, a killed service acted on
-        one more tick in one run than in another of the same seed (campaign run 30, agile, 3 UAVs,
-        uav3 killed at 10.2 s: its kill started at 10.15 s in one run and 10.20 in the other, and
-        the rows differed). At most KILL_WAIT_S of wall time: without a launcher nobody kills."""
+        gone. The launcher kills them in wall time: going on at once, a killed service could act on
+        one more tick in one run than in another of the same seed, and the two runs would differ
+        (benchmarks/README.md, separation.py). At most KILL_WAIT_S of wall time: without a launcher
+        nobody kills."""
         deadline = time.monotonic() + KILL_WAIT_S
         while not names <= self._vanished and not self.stopping:
             if time.monotonic() > deadline:

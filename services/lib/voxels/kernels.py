@@ -35,7 +35,7 @@ def clusters_near_occupied(points, cluster, n_clusters, candidate, states, corne
         py = (points[i, 1] - corner[1]) / voxel_size
         pz = (points[i, 2] - corner[2]) / voxel_size
         if not (-reach <= px < nx + reach and -reach <= py < ny + reach and -reach <= pz < nz + reach):
-            continue  # no voxel within reach; and a far point's int() overflowed into out-of-bounds reads
+            continue  # no voxel within reach; and a far point's int() would overflow into out-of-bounds reads
         vx, vy, vz = int(math.floor(px)), int(math.floor(py)), int(math.floor(pz))
         found = False
         for ax in range(max(vx - reach, 0), min(vx + reach + 1, nx)):
@@ -125,8 +125,8 @@ def euclidean_clusters(points, radius):
     neighbouring cells, found through a hash table of the occupied cells. Each pair of neighbouring
     cells is looked at once; when both cells are already connected inside, one link between them
     settles the pair (so a dense surface costs about one distance per cell pair, not one per point
-    pair). The hash table and a counting sort replaced a sort of the cell keys and a binary search
-    per neighbour: about 4.8 → 1.8 ms for the ~18,000 downsampled returns of an OS0-128 scan."""
+    pair). Hashing the cells and grouping the points by a counting sort costs less than sorting the
+    cell keys and a binary search per neighbour (benchmarks/README.md, perception.py)."""
     n = points.shape[0]
     if n == 0:
         return np.zeros(0, dtype=np.int64), 0

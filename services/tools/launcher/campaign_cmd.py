@@ -30,7 +30,11 @@ def add_parser(commands) -> None:
                     "of a balloon it attacks apart), engagements at no target, geofence breaches, targets destroyed, emergency landings, restarts, handler "
                     "errors, undecodable payloads, own-UAV messages not received by services that ran throughout "
                     "(what a killed or frozen service missed while gone follows wall time; each run's summary has "
-                    "it). The same command gives the same table. "
+                    "it). Unless told otherwise every run flies the oracle detector (--detector), not `falconry "
+                    "sim`'s onboard perception, and an os0-32-512 LiDAR on every UAV (--lidar), not the scenario's "
+                    "own: the table is about the faults, not the perception. link_cut needs per-UAV network namespaces, so root and iproute2: without "
+                    "them it is left out of the kinds (one line says so) and every run's draw changes. The same "
+                    "command gives the same table when run as root both times, or as root neither time. "
                     "Exit status 1 when a run did not finish, broke the safety distance, had a collision, "
                     "engaged no target, left the arena or had a handler error.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)

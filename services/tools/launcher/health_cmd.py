@@ -1,5 +1,5 @@
 """`falconry health`: ask every reachable service how it is doing; with `--service`, say by the
-exit status whether the named ones are up (compose health checks, systemd, scripts)."""
+exit status whether the named ones are up (compose health checks, monitoring, scripts)."""
 from __future__ import annotations
 
 import argparse
@@ -15,7 +15,7 @@ from services.lib.runtime.health import query_health
 from services.lib.runtime.zenoh_config import init_logging, open_session
 
 HEALTHY_STATE = "running"  # a node is "starting" until its subscriptions and token are declared
-UNHEALTHY = 1  # what Docker's HEALTHCHECK and systemd's ExecStartPost read as "not healthy"
+UNHEALTHY = 1  # what Docker's HEALTHCHECK (and any script) reads as "not healthy"
 
 
 @dataclass(frozen=True)
@@ -71,8 +71,9 @@ def add_parser(commands) -> None:
         description="Query falconry/*/health/* and print one line per service: state, uptime, CPU share "
                     "since start, resident memory, messages received/published, payloads dropped as undecodable, "
                     f"handler errors. With --service, ask only those and exit 0 when every one answers in state "
-                    f"'{HEALTHY_STATE}', {UNHEALTHY} otherwise, a router out of reach included (a compose or "
-                    f"systemd health check); a usage mistake is 2, as for every command.",
+                    f"'{HEALTHY_STATE}', {UNHEALTHY} otherwise, a router out of reach included (the compose stack's "
+                    f"health check; monitoring, scripts; the onboard systemd units run none); a usage mistake is 2, "
+                    f"as for every command.",
     )
     p.add_argument("--service", action="append", default=[], metavar="UAV/SERVICE", type=service_name_argument,
                    help="a service that must be up, e.g. uav1/tracker or sim/simulator (repeatable)")

@@ -1,4 +1,4 @@
-"""`falconry record FILE`: write every message of a run to an MCAP file."""
+"""`falconry record FILE`: write a run's messages (by default all but the raw camera frames) to an MCAP file."""
 from __future__ import annotations
 
 import argparse
@@ -17,9 +17,11 @@ from services.lib.runtime.zenoh_config import init_logging, open_session
 
 def add_parser(commands) -> None:
     p = commands.add_parser(
-        "record", help="record every message of a run to an MCAP file",
+        "record", help="record a run's messages to an MCAP file (all but the raw camera frames by default)",
         description="Subscribe to falconry/** (or the given key expressions) and write every message to an "
-                    "MCAP file: one channel per key, the raw msgpack payload as message data, the type's JSON "
+                    "MCAP file, except by default the raw camera frames (falconry/*/camera, 1.2 MB each; the "
+                    "compressed falconry/*/camera_jpeg are kept; name them with --keys to record them): one "
+                    "channel per key, the raw msgpack payload as message data, the type's JSON "
                     "Schema per channel, log_time = receive time, publish_time = header.stamp; every --health seconds "
                     "the services' health answers too. Chunks are "
                     "closed every --flush seconds, so a crash loses at most that much; Ctrl-C, SIGTERM or "

@@ -70,7 +70,8 @@ def add_parser(commands) -> None:
                      help="write every ground-truth message (u32 length + msgpack) to FILE")
     run.add_argument("--summary-json", metavar="FILE", help="also write the summary as JSON to FILE")
     run.add_argument("--record", metavar="FILE.mcap",
-                     help="record every message of the run to an MCAP file (replay it with `falconry replay`)")
+                     help="record the run's messages to an MCAP file, all but the raw camera frames (the compressed "
+                          "ones are kept; replay it with `falconry replay`)")
     run.add_argument("--log-file", metavar="FILE", help="write every service's log lines to FILE")
     run.add_argument("--digest-json", metavar="FILE",
                      help="write, per key expression, the count and SHA-256 of every payload published in the run "

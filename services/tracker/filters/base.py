@@ -3,9 +3,9 @@
 A filter is a Predictor (carry an estimate forward in time) and an Updater (correct it with a
 position measurement) sharing one Estimate type; an Initiator starts an estimate from a first
 measurement, a Gater decides which measurements may update it, a Deleter decides when a track is
-lost. Trackers (services/tracker/buffered.py for seed 000's multi-target tracker,
-services/tracker/single.py for seed 002's single-target loop) are written against these protocols
-only, so filters are compared by swapping one part (`make_filter(name, ...)`).
+lost. Trackers (services/tracker/core.py for seed 000's multi-target tracker,
+services/tracker/single.py for seed 002's single-target loop) use a filter only through these
+protocols, so filters are compared by swapping one part (`make_filter(name, ...)`).
 
 All parts are pure: numpy in, numpy out; time is an int stamp in ns handed in by the caller.
 Estimates are never changed in place; every step returns a new one.
