@@ -37,15 +37,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a plain checkout
 import numpy as np  # noqa: E402
 
 from schemas.messages import Appearance  # noqa: E402
-from services.tools import evaluation  # noqa: E402
 from services.camera.core import Camera, CameraParams, Gains  # noqa: E402
 from services.lib.geometry import point_in_polygon, quaternion  # noqa: E402
+from services.lib.world.primitives import pack, primitives_from_obstacles
 from services.object_detect.colors import load_color_file  # noqa: E402
 from services.object_detect.core import CameraView, ObjectDetectParams, detect  # noqa: E402
 from services.object_detect.node import color_file_path  # noqa: E402
-from services.lib.world.primitives import pack, primitives_from_obstacles
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
+from services.tools import evaluation  # noqa: E402
 
 GOAL_MS = 5.0  # render + detect, median per frame
 BIN_M = 5.0

@@ -16,8 +16,8 @@ import numpy as np
 from schemas.messages import Obstacle
 from services.classifier.core import ClassifiedScan, ClassifierCore, ClassifierParams, SensorPose
 from services.lib.lidar.rays import ScanRays
-from services.mapper.core import MapDelta, MapperCore, MapperParams
 from services.lib.voxels.apriori import obstacle_voxels
+from services.mapper.core import MapDelta, MapperCore, MapperParams
 
 
 @dataclass(frozen=True)

@@ -27,10 +27,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from schemas.arrays import from_numpy  # noqa: E402
 from schemas.messages import ConstraintProfile, Header, TrajectoryReference  # noqa: E402
 from services.job_manager.params import JobManagerParams  # noqa: E402
+from services.lib.runtime.clock import NS  # noqa: E402
+from services.lib.tracks import PredictedPath  # noqa: E402
 from services.planner import pursuit as pursuit_law  # noqa: E402
 from services.planner.avoid import Airspace, Clearances, Surroundings  # noqa: E402
 from services.planner.commands import PlannerParams, pursuit_clear, start_state  # noqa: E402
-from services.lib.runtime.clock import NS  # noqa: E402
 from services.simulator import contact  # noqa: E402
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.paths import DronePath  # noqa: E402
@@ -40,7 +41,6 @@ from services.simulator.vehicles import Fleet, make_reference  # noqa: E402
 from services.tracker.core import TURN_MIN_SPEED, TrackerParams  # noqa: E402
 from services.tracker.filters.models import turning_path  # noqa: E402
 from services.tracker.filters.turning import TurnHistory  # noqa: E402
-from services.lib.tracks import PredictedPath  # noqa: E402
 
 STEP = 0.01  # s, the simulator's largest sub-step
 START_DISTANCE = 12.0  # m from the drone

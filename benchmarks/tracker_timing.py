@@ -27,17 +27,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a plain checkout
 import numpy as np  # noqa: E402
 
 from schemas.messages import TargetTruth  # noqa: E402
-from services.tools.evaluation import in_sight  # noqa: E402
 from services.lib.lidar.models import lidar_model  # noqa: E402
-from services.mapper.core import MapperCore  # noqa: E402
 from services.lib.runtime.clock import NS  # noqa: E402
+from services.lib.voxels.apriori import obstacle_voxels  # noqa: E402
 from services.lib.world.primitives import primitives_from_obstacles
+from services.mapper.core import MapperCore  # noqa: E402
 from services.sensor_driver.core import scan
 from services.simulator.core import Simulation  # noqa: E402
 from services.simulator.scenario import load_scenario  # noqa: E402
+from services.tools.evaluation import in_sight  # noqa: E402
 from services.tracker.core import OccupiedVoxels, TrackerCore, TrackerParams  # noqa: E402
 from services.tracker.filters import FILTERS  # noqa: E402
-from services.lib.voxels.apriori import obstacle_voxels  # noqa: E402
 
 SENSOR = "os0-128"
 RATE_HZ = 10.0

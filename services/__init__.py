@@ -3,7 +3,7 @@
 
 - `lib/`: what the services share: the runtime (Zenoh sessions, clocks, the lockstep gate, the
   service base), geometry, voxels, the LiDAR models, the simulated world's primitives and caster,
-  track views, the IMU model.
+  track views, the IMU model, the pinhole camera model.
 - the services, one folder each (camera, classifier, job_manager, localizer, mapper,
   object_detect, oracle, planner, sensor_driver, simulator, tracker): a pure `core` and a thin
   Zenoh `node`; a service imports the contract and `lib/`, never another service.

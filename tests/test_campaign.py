@@ -6,9 +6,18 @@ import tomllib
 
 import pytest
 
-from services.tools.launcher import netns
-from services.tools.launcher.campaign import EARLIEST, HEADER, LATEST_BEFORE_END, RunPlan, RunResult, draw_runs, row, totals
 from services.simulator.scenario import SCENARIO_DIR, parse_scenario
+from services.tools.launcher import netns
+from services.tools.launcher.campaign import (
+    EARLIEST,
+    HEADER,
+    LATEST_BEFORE_END,
+    RunPlan,
+    RunResult,
+    draw_runs,
+    row,
+    totals,
+)
 from tests.conftest import falconry_argv
 
 
@@ -86,8 +95,8 @@ def test_an_engagement_at_no_target_or_a_geofence_breach_fails_a_run_and_runs_ta
 
 
 def test_the_campaigns_arena_picture_marks_where_each_engagement_aimed(tmp_path):
-    from services.tools.launcher.plot import plot_arena
     from services.simulator.scenario import load_scenario
+    from services.tools.launcher.plot import plot_arena
 
     aimed = {"uavs": {"uav1": {"engagements": [{"t": 30.0, "action": "intercept", "aim": [9.0, 2.0, 21.0],
                                                  "target": None, "miss_m": 31.0}]}}}

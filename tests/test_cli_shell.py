@@ -13,10 +13,10 @@ import pytest
 
 from schemas import keys
 from schemas.messages import Header, ServiceHealth
+from services.lib.runtime.zenoh_config import free_port
 from services.tools.launcher.cli import build_parser, main
 from services.tools.launcher.health_cmd import ServiceName, parse_service_name, verdicts
 from services.tools.launcher.record_cmd import recording_path
-from services.lib.runtime.zenoh_config import free_port
 from tests.conftest import falconry_argv
 
 

@@ -22,9 +22,9 @@ import zenoh
 
 from schemas import keys
 from schemas.messages import ServiceHealth, SimEvent
-from services.tools.recorder.mcap_io import read_recording
 from services.lib.runtime import shm
 from services.lib.runtime.zenoh_config import free_port
+from services.tools.recorder.mcap_io import read_recording
 from tests.tools.compose import COMPOSE, REPO, compose_cli, falconry_services, render
 
 ROUTER_CONFIG = REPO / "deploy" / "zenoh" / "router.json5"

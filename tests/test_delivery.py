@@ -8,12 +8,12 @@ import pytest
 
 from schemas import keys
 from schemas.messages import Detections, FaultCommand, Header, UavStatus
-from services.planner.watchdog import JobManagerWatchdog
 from services.lib.runtime.clock import NS, WallClock
 from services.lib.runtime.delivery import DeliveryFaults, Freshness, Reorderer
 from services.lib.runtime.lockstep import LockstepGate
 from services.lib.runtime.node import Node
 from services.lib.runtime.zenoh_config import ZenohSettings
+from services.planner.watchdog import JobManagerWatchdog
 
 DETECTIONS = "falconry/uav1/detections"
 

@@ -18,8 +18,8 @@ import zenoh
 from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import GroundTruth, Odometry, PointCloud, SimEvent, UavStatus
-from services.tools.launcher import netns
 from services.simulator.scenario import SCENARIO_DIR
+from services.tools.launcher import netns
 from tests.conftest import falconry_argv
 from tests.tools.run import join_run, processes_mentioning, read_summary
 

@@ -12,9 +12,9 @@ import threading
 
 import pytest
 
+from services.lib.runtime import shm
 from services.tools.launcher.forkserver import ForkedProcess, ForkServer
 from services.tools.launcher.supervisor import _popen
-from services.lib.runtime import shm
 
 
 @pytest.fixture

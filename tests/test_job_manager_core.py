@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from services.lib.geometry import point_in_polygon, polygon_area, signed_area
 from services.job_manager.areas import clip_x, split_area
+from services.lib.geometry import point_in_polygon, polygon_area, signed_area
 
 RECT = np.array([[0.0, 0.0], [90.0, 0.0], [90.0, 40.0], [0.0, 40.0]])
 # An L: 100 × 60 minus the 50 × 30 upper-right block (area 4500).

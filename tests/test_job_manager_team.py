@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from services.lib.geometry import polygon_area
 from services.job_manager.core import State
 from services.job_manager.team import breach_time
+from services.lib.geometry import polygon_area
 from tests.test_job_manager_machine import BALLOON, HOME, Rig, s
 
 

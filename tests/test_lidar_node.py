@@ -30,9 +30,8 @@ from schemas.messages import (
     VehicleTruth,
     WorldModel,
 )
-from services.lib.lidar.models import BeamSpacing
+from services.lib.lidar.models import DEFAULT_MOUNT, BeamSpacing
 from services.lib.lidar.uncertainty import sampling_covariance
-from services.lib.lidar.models import DEFAULT_MOUNT
 from tests.conftest import REPO
 from tests.tools.health import wait_healthy
 from tests.tools.nodes import collect, start_healthy

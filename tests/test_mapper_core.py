@@ -9,9 +9,9 @@ import pytest
 from schemas import voxels
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.lib.lidar.rays import ScanRays
+from services.lib.voxels import traversal
 from services.mapper import update as mapper_kernels
 from services.mapper.core import MapperCore, MapperParams, exponential_update, warm_up
-from services.lib.voxels import traversal
 from tests.tools.compiled import in_fresh_interpreter, newly_compiled
 
 SMALL = MapperParams(origin=(0.0, 0.0, 0.0), shape=(40, 20, 20), separation_period=1e9)  # 20 × 10 × 10 m

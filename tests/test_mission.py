@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from services.job_manager.params import JobManagerParams
+from services.simulator.scenario import SCENARIO_DIR
 from services.tools.launcher import netns
 from services.tools.launcher.monitor import read_truth_log
-from services.simulator.scenario import SCENARIO_DIR
 from tests.conftest import falconry_argv
 from tests.tools.run import processes_mentioning, read_summary
 

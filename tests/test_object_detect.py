@@ -12,6 +12,7 @@ import pytest
 from schemas.messages import Appearance, TargetTruth
 from services.camera.core import Camera, CameraParams, camera_rotation
 from services.lib.geometry import quaternion
+from services.lib.world.primitives import pack, primitives_from_obstacles
 from services.object_detect.colors import (
     HUE_UNITS,
     ColorFile,
@@ -25,7 +26,6 @@ from services.object_detect.colors import (
     to_space,
 )
 from services.object_detect.core import CameraView, ObjectDetectParams, detect, find_blobs
-from services.lib.world.primitives import pack, primitives_from_obstacles
 
 
 def hsv_pixels(hues_half_degrees, s=200, v=180) -> np.ndarray:

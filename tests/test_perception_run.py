@@ -10,8 +10,8 @@ import subprocess
 import numpy as np
 import pytest
 
-from services.tools.launcher.monitor import read_truth_log
 from services.simulator.scenario import load_scenario
+from services.tools.launcher.monitor import read_truth_log
 from tests.conftest import REPO, falconry_argv
 
 CLEAR = 2.0  # m between the drone's body and the building

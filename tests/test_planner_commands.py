@@ -10,8 +10,8 @@ import pytest
 from schemas.arrays import from_numpy
 from schemas.messages import ConstraintProfile, Header, MissionCommand, TrajectoryReference
 from services.lib.geometry import point_in_polygon
-from services.planner.commands import PlannerParams, VehicleState, plan_command, start_state
 from services.lib.runtime.clock import NS
+from services.planner.commands import PlannerParams, VehicleState, plan_command, start_state
 
 PARAMS = PlannerParams()
 

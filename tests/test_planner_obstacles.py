@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 
 from schemas.messages import ConstraintProfile, Header, MissionCommand, Obstacle
+from services.lib.tracks import PredictedPath
+from services.lib.voxels.apriori import obstacle_voxels
+from services.lib.voxels.grid import GridGeometry
 from services.planner import guard
 from services.planner.avoid import Airspace, Clearances, Surroundings, body_clearance, clip, lead_in, speed_barrier
 from services.planner.commands import PlannerParams, VehicleState, meeting_route, plan_command
 from services.planner.freespace import FreeSpace
 from services.planner.search import Band, route
-from services.lib.tracks import PredictedPath
-from services.lib.voxels.apriori import obstacle_voxels
-from services.lib.voxels.grid import GridGeometry
 
 GRID = GridGeometry((-10.0, -10.0, -1.0), (160, 120, 52), 0.5)
 CLEAR = Clearances(0.4, 1.0, 0.3)

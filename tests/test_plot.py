@@ -9,9 +9,9 @@ import pytest
 
 from schemas.arrays import from_numpy
 from schemas.messages import Detections, GroundTruth, Header, SimEvent, UavStatus, VehicleTruth
+from services.lib.runtime.errors import UsageError
 from services.tools.launcher.monitor import RunMonitor
 from services.tools.launcher.plot import plot_timeline
-from services.lib.runtime.errors import UsageError
 
 S = 1_000_000_000
 encode = msgspec.msgpack.encode

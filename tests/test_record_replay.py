@@ -26,10 +26,10 @@ from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, SimClock, StepAck
 from schemas.voxels import BACKGROUND, UNKNOWN
-from services.tools.recorder.mcap_io import McapRecordWriter, ReadReport, RecordedMessage, read_recording
-from services.tools.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Tick
 from services.lib.runtime import shm
 from services.lib.runtime.zenoh_config import free_port
+from services.tools.recorder.mcap_io import McapRecordWriter, ReadReport, RecordedMessage, read_recording
+from services.tools.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Tick
 from tests.conftest import REPO, falconry_argv
 
 UAV1_DETECTIONS = "falconry/uav1/detections"

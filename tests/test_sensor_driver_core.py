@@ -11,7 +11,7 @@ from schemas.messages import Obstacle, TargetTruth
 from services.lib.lidar.models import beam_directions
 from services.lib.world import numpy_caster as reference
 from services.lib.world import primitives
-from services.lib.world.primitives import cast, cast_with_ids, Primitives, primitives_from_obstacles, target_spheres
+from services.lib.world.primitives import Primitives, cast, cast_with_ids, primitives_from_obstacles, target_spheres
 from services.sensor_driver.core import scan
 from services.sensor_driver.faults import faulty_scan, lidar_faults
 

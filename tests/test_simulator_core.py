@@ -11,8 +11,8 @@ import pytest
 from schemas.arrays import to_numpy
 from schemas.messages import ImuBatch
 from services.lib.geometry import GRAVITY
-from services.simulator.core import Simulation
 from services.lib.imu import ImuParams
+from services.simulator.core import Simulation
 from services.simulator.node import imu_batch
 from services.simulator.scenario import parse_scenario
 from services.simulator.specs import NS

@@ -18,12 +18,12 @@ import time
 import pytest
 
 from schemas import keys
-from services.tools.launcher import supervisor as supervision
-from services.tools.launcher.forkserver import ForkedProcess
-from services.tools.launcher.supervisor import Supervisor, restart_delay
 from services.lib.runtime import shm
 from services.lib.runtime.errors import RUNTIME_FAILURE, USAGE_ERROR
 from services.lib.runtime.zenoh_config import ZenohConfigError, ZenohSettings, build, init_logging, open_session
+from services.tools.launcher import supervisor as supervision
+from services.tools.launcher.forkserver import ForkedProcess
+from services.tools.launcher.supervisor import Supervisor, restart_delay
 from tests.conftest import REPO, falconry_argv
 from tests.tools.health import health, wait_healthy
 from tests.tools.run import processes_mentioning

@@ -40,13 +40,13 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from services.lib.geometry import polygon_area
 from services.job_manager.areas import grown_part, split_area
 from services.job_manager.params import JobManagerParams
 from services.job_manager.plans import PlannedPath
 from services.job_manager.sightings import ConfirmedTracks, Sightings
 from services.job_manager.targets import NS, ForbiddenZones, TargetFilter, usable_detections
 from services.job_manager.team import Mover, SeparationRule, Team
+from services.lib.geometry import polygon_area
 from services.lib.lidar.sanity import SensorTrust
 from services.lib.tracks import PredictedPath
 

@@ -36,9 +36,9 @@ import numpy as np
 from schemas import voxels
 from schemas.voxels import BACKGROUND, FLYING, UNKNOWN
 from services.lib.lidar.rays import ScanRays
-from services.mapper.update import THRESHOLDS, apply_ray_lengths, first_occurrences, weakly_held_voxels
 from services.lib.voxels.grid import GridGeometry
 from services.lib.voxels.traversal import cast_scan
+from services.mapper.update import THRESHOLDS, apply_ray_lengths, first_occurrences, weakly_held_voxels
 
 
 class MapperParams(msgspec.Struct, forbid_unknown_fields=True):

@@ -13,12 +13,12 @@ from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Header, LabelSet, PointCloud, VoxelMap, WorldModel
 from services.lib.lidar.rays import ScanRays, scan_rays
-from services.mapper.core import MapDelta, MapperCore, MapperParams, warm_up
 from services.lib.runtime.clock import to_ns
 from services.lib.runtime.counted import CountedWarnings
 from services.lib.runtime.errors import UsageError
 from services.lib.runtime.node import Node
 from services.lib.voxels.apriori import load_map_file, obstacle_voxels
+from services.mapper.core import MapDelta, MapperCore, MapperParams, warm_up
 
 PENDING = 8  # scans waiting for their other half; older ones are dropped (counted)
 

@@ -17,13 +17,13 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import CameraFrame, ColorUpdate, Detections, Header
-from services.object_detect.colors import ColorFile, ColorFileError, load_color_file, parse_color_file
 from services.lib.pinhole import Intrinsics
-from services.object_detect.core import CameraView, ObjectDetectParams, detect
-from services.object_detect.sanity import FrameSanity
 from services.lib.runtime.counted import CountedWarnings
 from services.lib.runtime.errors import UsageError
 from services.lib.runtime.node import Node
+from services.object_detect.colors import ColorFile, ColorFileError, load_color_file, parse_color_file
+from services.object_detect.core import CameraView, ObjectDetectParams, detect
+from services.object_detect.sanity import FrameSanity
 
 BUILT_IN = Path(__file__).resolve().parent / "colors"
 

@@ -14,10 +14,10 @@ import numpy as np
 from schemas.arrays import from_numpy, to_numpy
 from schemas.messages import Detections, Header, LabelSet, PointCloud, PointTruth, VoxelMap
 from services.lib.lidar.models import beam_spacing
-from services.oracle.core import OracleParams, ScanPairs, detect, label, scan_rng, warm_up
 from services.lib.runtime.node import Node
 from services.lib.voxels.grid import GridGeometry
 from services.lib.voxels.replica import MapReplica, geometry_of
+from services.oracle.core import OracleParams, ScanPairs, detect, label, scan_rng, warm_up
 
 
 class OracleNode(Node):

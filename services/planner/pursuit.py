@@ -88,8 +88,8 @@ from __future__ import annotations
 import numpy as np
 
 from schemas.messages import ConstraintProfile
-from services.planner.timing import DT, Path, check_duration, steer
 from services.lib.tracks import PredictedPath
+from services.planner.timing import DT, Path, check_duration, steer
 
 BRAKING = 0.2  # share of max_acceleration the closing speed plans to brake with (see above)
 GAIN = 4.0  # 1/s: how fast the velocity demand is taken up (then capped by max_acceleration)

@@ -31,15 +31,14 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import from_numpy
 from schemas.messages import FaultCommand, GroundTruth, Header, Odometry, PointCloud, PointTruth, Pose, WorldModel
-from services.lib.geometry import heading_quaternion, yaw_of
+from services.lib.geometry import heading_quaternion, yaw_of, yaw_rotation
 from services.lib.lidar.models import LidarModel, lidar_model
 from services.lib.lidar.rays import body_mask, pack_mask, unpack_mask
 from services.lib.lidar.sanity import SanityLimits, ScanSanity, scan_figures
 from services.lib.runtime.counted import CountedWarnings
 from services.lib.runtime.node import Node
-from services.lib.geometry import yaw_rotation
-from services.lib.world.primitives import noise_stream_key, Primitives, primitives_from_obstacles
-from services.sensor_driver.core import FALLBACK_MODEL, model_scan, reregistered, scan_ranges, SensorDriverParams
+from services.lib.world.primitives import Primitives, noise_stream_key, primitives_from_obstacles
+from services.sensor_driver.core import FALLBACK_MODEL, SensorDriverParams, model_scan, reregistered, scan_ranges
 from services.sensor_driver.faults import faulty_scan, lidar_faults
 
 RNG_SALT = zlib.crc32(b"sensor")  # a fixed number, so the stream differs from other services'

@@ -41,8 +41,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from schemas.messages import Obstacle
-from services.simulator import contact
 from services.lib.imu import Imu, ImuParams, ImuSamples, TickMotion
+from services.simulator import contact
 from services.simulator.specs import NS, POLE_RADIUS, Scenario, pole_name
 from services.simulator.targets import Balloons, Drones, TargetState
 from services.simulator.vehicles import Fleet, OdometryReading, VehicleState, make_reference

@@ -58,10 +58,10 @@ from schemas.messages import (
     VoxelMap,
     WorldModel,
 )
-from services.tools.registry import node_class
 from services.lib.runtime.node import Node
 from services.lib.runtime.typed import _numpy_scalars
 from services.lib.runtime.zenoh_config import ZenohSettings
+from services.tools.registry import node_class
 from tests.tools.samples import concrete
 
 M = TypeVar("M", bound=msgspec.Struct)

@@ -13,11 +13,11 @@ import numpy as np
 from schemas import keys
 from schemas.arrays import to_numpy
 from schemas.messages import Detections, GroundTruth, Tracks, WorldModel
-from services.tools.evaluation.tracking import ScanDetections, TrackSet, TruthSnapshot, TruthTimeline
 from services.lib.lidar.models import lidar_model
+from services.lib.tracks import track_positions
+from services.tools.evaluation.tracking import ScanDetections, TrackSet, TruthSnapshot, TruthTimeline
 from services.tools.recorder.mcap_io import ReadReport, read_recording
 from services.tools.recorder.selection import KeyFilter
-from services.lib.tracks import track_positions
 
 TRACKS = keys.uav("*", "tracks")
 DETECTIONS = keys.uav("*", "detections")

@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.tools.launcher.common import CliError
 from services.lib.lidar.uncertainty import mean_hit_probability
+from services.tools.launcher.common import CliError
 
 DEFAULT_NOISE = ("ideal=0,0,0.02", "rtk=0.02,0.1,0.02", "gnss=0.1,0.5,0.03", "poor=0.3,1.0,0.05")
 

@@ -11,10 +11,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from services.simulator.scenario import load_scenario, scenario_path
 from services.tools.launcher import netns
 from services.tools.launcher.campaign import HEADER, KINDS, RunPlan, RunResult, draw_runs, row, totals
 from services.tools.launcher.common import CliError
-from services.simulator.scenario import load_scenario, scenario_path
 
 RUN_TIMEOUT_S = 900.0
 

@@ -10,8 +10,8 @@ import ipaddress
 import os
 from pathlib import Path
 
-from services.tools.launcher.common import CliError, add_team_options, team_of
 from services.lib.runtime import tls
+from services.tools.launcher.common import CliError, add_team_options, team_of
 
 DEFAULT_UAVS = 3
 DEFAULT_DAYS = 365

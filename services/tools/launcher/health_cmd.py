@@ -9,10 +9,10 @@ import msgspec
 
 from schemas import keys
 from schemas.messages import ServiceHealth
-from services.tools.launcher.common import CliError, add_zenoh_options, zenoh_settings
 from services.lib.runtime.errors import RuntimeFailure
 from services.lib.runtime.health import query_health
 from services.lib.runtime.zenoh_config import init_logging, open_session
+from services.tools.launcher.common import CliError, add_zenoh_options, zenoh_settings
 
 HEALTHY_STATE = "running"  # a node is "starting" until its subscriptions and token are declared
 UNHEALTHY = 1  # what Docker's HEALTHCHECK (and any script) reads as "not healthy"

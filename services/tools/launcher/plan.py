@@ -6,10 +6,10 @@ import sys
 from dataclasses import dataclass, field
 
 from schemas.keys import SIM, uav_services
-from services.tools.launcher.netns import UavNetwork
-from services.tools.launcher.supervisor import SERVICE_MODULE
 from services.lib.runtime import tls
 from services.lib.runtime.zenoh_config import ZenohSettings
+from services.tools.launcher.netns import UavNetwork
+from services.tools.launcher.supervisor import SERVICE_MODULE
 
 SIMULATOR = f"{SIM}/simulator"  # the simulator's child name (its scope and service)
 

@@ -17,8 +17,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
 from matplotlib.patches import Patch  # noqa: E402
 
-from services.tools.launcher.monitor import RunMonitor  # noqa: E402
 from services.lib.runtime.errors import UsageError  # noqa: E402
+from services.tools.launcher.monitor import RunMonitor  # noqa: E402
 from services.tools.viz.style import OTHER_STATE, STATE_COLORS, uav_color  # noqa: E402
 
 

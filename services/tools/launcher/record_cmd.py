@@ -9,10 +9,10 @@ from collections.abc import Callable
 
 import zenoh
 
+from services.lib.runtime.zenoh_config import init_logging, open_session
 from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, stop_on_signals, zenoh_settings
 from services.tools.recorder.mcap_io import CHUNK_SIZE, COMPRESSIONS
 from services.tools.recorder.record import DEFAULT_KEYS, SKIPPED_BY_DEFAULT, Recorder, summary_lines
-from services.lib.runtime.zenoh_config import init_logging, open_session
 
 
 def add_parser(commands) -> None:

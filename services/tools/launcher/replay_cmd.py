@@ -4,11 +4,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from services.lib.runtime.zenoh_config import init_logging, open_session
 from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, stop_on_signals, zenoh_settings
 from services.tools.launcher.record_cmd import check_key_exprs
 from services.tools.recorder.replay import Replayer, ReplayError
 from services.tools.recorder.selection import DEFAULT_REPLAY_KEYS
-from services.lib.runtime.zenoh_config import init_logging, open_session
 
 
 def add_parser(commands) -> None:

@@ -4,10 +4,10 @@ from __future__ import annotations
 import argparse
 
 from schemas import keys
+from services.simulator.options import add_simulator_options
 from services.tools.launcher.common import EXIT_CODES, FOREVER, CliError, add_zenoh_options, zenoh_settings
 from services.tools.launcher.params import ParamsError, params_for
 from services.tools.registry import node_class
-from services.simulator.options import add_simulator_options
 
 
 def add_parser(commands) -> None:

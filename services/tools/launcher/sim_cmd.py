@@ -19,22 +19,22 @@ import msgspec
 
 from schemas import keys
 from schemas.messages import FaultCommand, Header, ServiceHealth, SimEvent
-from services.tools.launcher import netns
-from services.tools.launcher.common import CliError, add_zenoh_options
-from services.tools.launcher.faults import ROUTER, FaultExecutor
-from services.tools.launcher.monitor import RunMonitor
-from services.tools.launcher.params import ParamsError, params_for, read_tables
-from services.tools.launcher.plan import SIMULATOR, own_router_wanted, plan_run
-from services.tools.registry import node_class
-from services.tools.launcher.supervisor import Supervisor, describe_exit
-from services.tools.launcher.view_cmd import DRAIN_S, add_view_options, check_view_options
-from services.tools.recorder.record import Recorder, summary_lines
 from services.lib.runtime import shm, tls
 from services.lib.runtime.health import query_health
 from services.lib.runtime.zenoh_config import free_port, init_logging, open_session, tls_files
 from services.simulator.options import add_simulator_options
 from services.simulator.scenario import ScenarioError, load_scenario
 from services.simulator.specs import FaultSpec
+from services.tools.launcher import netns
+from services.tools.launcher.common import CliError, add_zenoh_options
+from services.tools.launcher.faults import ROUTER, FaultExecutor
+from services.tools.launcher.monitor import RunMonitor
+from services.tools.launcher.params import ParamsError, params_for, read_tables
+from services.tools.launcher.plan import SIMULATOR, own_router_wanted, plan_run
+from services.tools.launcher.supervisor import Supervisor, describe_exit
+from services.tools.launcher.view_cmd import DRAIN_S, add_view_options, check_view_options
+from services.tools.recorder.record import Recorder, summary_lines
+from services.tools.registry import node_class
 from services.tools.viz.settings import web_address
 
 VIEWER = "sim/viewer"

@@ -28,8 +28,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
-from services.tools.launcher.forkserver import ForkedProcess, ForkServer
 from services.lib.runtime.errors import RUNTIME_FAILURE, USAGE_ERROR
+from services.tools.launcher.forkserver import ForkedProcess, ForkServer
 
 MAX_RESTARTS = 5  # within RESTART_WINDOW_S; beyond that the service is given up on
 RESTART_WINDOW_S = 60.0

@@ -14,11 +14,11 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from services.lib.runtime.errors import UsageError
+from services.lib.runtime.zenoh_config import init_logging, open_session
 from services.tools.launcher.common import FOREVER, CliError, add_zenoh_options, stop_on_signals, zenoh_settings
 from services.tools.launcher.monitor import RunMonitor
 from services.tools.recorder.mcap_io import is_mcap
-from services.lib.runtime.errors import UsageError
-from services.lib.runtime.zenoh_config import init_logging, open_session
 from services.tools.viz.settings import WEB_PORT, ViewParams, check_viewer
 
 if TYPE_CHECKING:

@@ -18,9 +18,9 @@ from typing import Any, Iterable
 
 import zenoh
 
-from services.tools.recorder.mcap_io import CHUNK_SIZE, McapRecordWriter, WriteStats
 from services.lib.runtime.health import HealthPoller
 from services.lib.runtime.zenoh_config import undeclare_all
+from services.tools.recorder.mcap_io import CHUNK_SIZE, McapRecordWriter, WriteStats
 
 DEFAULT_KEYS = ("falconry/**",)
 # Raw camera frames stay on their UAV (1.2 MB each, 10 a second); a recording keeps the

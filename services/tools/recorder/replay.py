@@ -34,11 +34,11 @@ from mcap.writer import MCAP0_MAGIC as MAGIC
 
 from schemas import keys
 from schemas.messages import SimClock, StepAck
+from services.lib.runtime.errors import UsageError
+from services.lib.runtime.lockstep import TickLedger, await_acks
 from services.tools.recorder.mcap_io import ReadReport, header_of, read_recording
 from services.tools.recorder.schedule import AwaitAck, AwaitAll, LockstepSchedule, Publish, Tick
 from services.tools.recorder.selection import DEFAULT_REPLAY_KEYS, KeyFilter, pipeline_order
-from services.lib.runtime.errors import UsageError
-from services.lib.runtime.lockstep import TickLedger, await_acks
 
 SETTLE_S = 0.3  # lets services see the stand-in tokens before the first tick
 LINGER_S = 0.3  # lets the last messages leave before the session closes
