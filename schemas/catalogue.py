@@ -27,7 +27,7 @@ CATALOGUE: tuple[Entry, ...] = (
     Entry("falconry/sim/truth", m.GroundTruth, "simulator", "sensor_driver and camera (simulated sensors only), launcher (truth log, summary), `falconry evaluate tracking` (from recordings)", "1/tick"),
     Entry("falconry/sim/events", m.SimEvent, "simulator, launcher (restarts)", "launcher", "on event"),
     Entry("falconry/sim/resume", m.GroundTruth, "launcher (queryable: the last ground truth of the run)", "a restarted simulator", "on query"),
-    Entry("falconry/sim/faults", m.FaultCommand, "simulator (from the scenario's fault schedule)", "sensor_driver, camera, launcher; every service's runtime (lockstep: a silenced upstream is not waited for)", "at each fault's time"),
+    Entry("falconry/sim/faults", m.FaultCommand, "simulator (from the scenario's fault schedule)", "sensor_driver, camera, launcher; every service's runtime in a simulation (never onboard: `--simulated-faults`)", "at each fault's time"),
     Entry("falconry/<uav>/odometry", m.Odometry, "simulator (onboard: flight controller bridge; without GNSS it carries the localizer's estimate and health)", "job_manager, planner; sensor_driver and localizer (without GNSS: scan registration; launch pose, or, restarted in flight, the belief)", "1/tick"),
     Entry("falconry/<uav>/imu", m.ImuBatch, "simulator (onboard: flight controller bridge)", "localizer", "1/tick, 200 samples/s (`[simulator.imu] rate_hz`)"),
     Entry("falconry/<uav>/localization", m.Odometry, "localizer (a UAV flying without GNSS)", "simulator (the flight controller flies on it), `falconry evaluate localization` (from recordings)", "per scan"),

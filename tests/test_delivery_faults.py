@@ -62,7 +62,8 @@ def test_duplicates_a_slow_consumer_and_a_clock_step_on_a_wall_clock_service(hub
     tracks = session.declare_subscriber(keys.uav("uav1", "tracks"), lambda s: stamps.put(
         (time.time_ns(), msgspec.msgpack.decode(s.payload.to_bytes(), type=Tracks).header.stamp)))
     try:
-        tracker = processes.start("run", "tracker", "--uav", "uav1", "--clock", "wall", "--connect", endpoint)
+        tracker = processes.start("run", "tracker", "--uav", "uav1", "--clock", "wall", "--simulated-faults", "on",
+                                  "--connect", endpoint)
         wait_healthy(session, [("uav1", "tracker")])
         # it answers while its Kalman and assignment libraries still load right after its token
         # (services/lib/runtime/warmup.py): the import holds the interpreter for a moment, long enough to
@@ -107,3 +108,24 @@ def test_duplicates_a_slow_consumer_and_a_clock_step_on_a_wall_clock_service(hub
     output, _ = tracker.communicate(timeout=10)
     assert "the system clock moved +3600.000 s against the monotonic clock" in output, output[-2000:]
     assert "Traceback" not in output
+
+
+def test_a_service_on_the_wall_clock_obeys_no_fault_command_unless_told(hub, processes):
+    """Onboard (`--clock wall`, simulated faults auto: off) a fault command on the network changes
+    nothing: duplicates are not made, so nothing is dropped as one, and the service does not say it
+    took the fault."""
+    session, endpoint = hub
+    tracker = processes.start("run", "tracker", "--uav", "uav1", "--clock", "wall", "--connect", endpoint)
+    wait_healthy(session, [("uav1", "tracker")])
+    detector = Detector(session)
+    detector.send(5, every=0.05)
+    time.sleep(0.5)
+    before = counters(session)
+    inject(session, "duplicate", 2.0, topic="detections")
+    detector.send(20, every=0.02)
+    time.sleep(0.5)
+    received, stale, _ = counters(session)
+    assert (received - before[0], stale - before[1]) == (20, 0)  # each once, no copy made
+    tracker.terminate()
+    output, _ = tracker.communicate(timeout=10)
+    assert "fault duplicate" not in output and "Traceback" not in output, output[-2000:]

@@ -130,3 +130,38 @@ class Reorderer(Generic[Item]):
 
     def __bool__(self) -> bool:
         return bool(self._held)
+
+
+class SimulatedNetwork(Generic[Item]):
+    """The network faults a simulation schedules on one service's inputs: each received item goes
+    `through` it (duplicated, or held back behind the next of its key), and a `slow` fault's
+    `delay` comes before handling it. Only a node that obeys the simulator's fault commands has one
+    (Node's `simulated_faults`, on in a simulation and off onboard), so a real UAV's delivery path
+    holds no fault code at all."""
+
+    def __init__(self, scope: str, service: str) -> None:
+        self._faults = DeliveryFaults(scope, service)
+        self._reorderer: Reorderer[Item] = Reorderer()
+
+    def add(self, command, subscribed) -> bool:
+        """Take a fault command; True when it disturbs this service's inputs (DeliveryFaults.add)."""
+        return self._faults.add(command, subscribed)
+
+    def through(self, key: str, item: Item, now: float) -> list[Item]:
+        """What the network hands over of one item of `key` at mission time `now`, in order."""
+        disturbance = self._faults.disturbance(key, now)
+        if disturbance == "duplicate":
+            return [item, item]
+        if disturbance == "reorder" or self._reorderer.holds(key):  # one held at the window's end still waits
+            return self._reorderer.pass_through(key, item)
+        return [item]
+
+    def delay(self, now: float) -> float:
+        return self._faults.delay(now)
+
+    def holding(self) -> bool:
+        """Whether an item is held back (let go as soon as nothing else waits: `flush`)."""
+        return bool(self._reorderer)
+
+    def flush(self) -> list[Item]:
+        return self._reorderer.flush()

@@ -33,7 +33,7 @@ import zenoh
 from schemas import keys
 from schemas.messages import Decision, FaultCommand, Header, ServiceHealth, SimClock, StepAck
 from services.lib.runtime.clock import MissionClock, WallClock
-from services.lib.runtime.delivery import DeliveryFaults, Freshness, Reorderer
+from services.lib.runtime.delivery import Freshness, SimulatedNetwork
 from services.lib.runtime.health import process_usage
 from services.lib.runtime.lockstep import INPUT_WAIT_S, MESSAGE_WAIT_S, FaultWindows, LockstepGate
 from services.lib.runtime.typed import Counters, M, Subscription, TypedPublisher
@@ -74,6 +74,7 @@ class Node:
         tick_hz: float = 20.0,
         exit_with_parent: bool = False,
         options: Any = None,
+        simulated_faults: bool | None = None,
     ) -> None:
         if not self.service:
             raise TypeError("a Node subclass must set `service`")
@@ -118,8 +119,12 @@ class Node:
         self._mission_over = False  # the last tick said the mission is finished
         self._warned_no_clock = False
         self._fault_windows = FaultWindows()
-        self._delivery_faults = DeliveryFaults(self.scope, self.service)
-        self._reorderer: Reorderer = Reorderer()
+        # The simulator's fault commands are obeyed in a simulation only (None: on the simulator's
+        # clock, off on the wall clock): onboard no message on the network can slow, reorder or
+        # part a service, and the delivery path has no fault code in it.
+        self._simulated_faults = clock == "sim" if simulated_faults is None else simulated_faults
+        self._network: SimulatedNetwork | None = SimulatedNetwork(self.scope, self.service) \
+            if self._simulated_faults else None
         self._freshness = Freshness()
         self._queued: dict[str, int] = {}  # key -> samples in the inbox (Zenoh threads add, the loop takes)
         self._queued_lock = threading.Lock()
@@ -349,8 +354,8 @@ class Node:
             self._add_subscription(keys.CLOCK, SimClock, self._on_clock, internal=True)
         for service in self.upstream:
             self._add_subscription(keys.ack(self.scope, service), StepAck, self._on_upstream_ack, internal=True)
-        # every node: a scheduled fault can silence an upstream service or part us from a partner
-        self._add_subscription(keys.FAULTS, FaultCommand, self._on_fault, internal=True)
+        if self._simulated_faults:  # a scheduled fault can silence an upstream service or part us from a partner
+            self._add_subscription(keys.FAULTS, FaultCommand, self._on_fault, internal=True)
         self.on_liveliness(f"{keys.ROOT}/{self.scope}/alive/*", self._on_scope_liveliness, internal=True)
         if self._clock_kind == "sim":
             self.on_liveliness(keys.alive(keys.SIM, "simulator"), self._on_simulator_liveliness, internal=True)
@@ -382,11 +387,11 @@ class Node:
     def _next_item(self, timeout: float) -> tuple | None:
         """The next inbox item, or None after `timeout`. A sample a reorder fault holds back is let
         go as soon as nothing else waits."""
-        if self._reorderer:
+        if self._network is not None and self._network.holding():
             try:
                 return self._inbox.get_nowait()
             except queue.Empty:
-                for sample in self._reorderer.flush():
+                for sample in self._network.flush():
                     self._deliver(*sample)
                 return None
         try:
@@ -443,7 +448,10 @@ class Node:
             if self._lockstep is False and sub.keep is not None and behind >= sub.keep:
                 self._count(self.counters.dropped_backlog, key)  # newer ones wait: this one is history
                 return
-            for sample in self._through_network(sub, key, payload):
+            if self._network is None:
+                self._deliver(sub, key, payload)
+                return
+            for sample in self._network.through(key, (sub, key, payload), self.clock.now_ns() / 1e9):
                 self._deliver(*sample)
         elif kind == "live":
             _, handler, key, alive, internal = item
@@ -454,22 +462,11 @@ class Node:
         elif kind == "query":
             self._answer_health(item[1])
 
-    def _through_network(self, sub: Subscription, key: str, payload: bytes) -> list[tuple]:
-        """What the network hands over of one sample while a scheduled fault disturbs its key."""
-        sample = (sub, key, payload)
-        disturbance = self._delivery_faults.disturbance(key, self.clock.now_ns() / 1e9)
-        if disturbance == "duplicate":
-            return [sample, sample]
-        if disturbance == "reorder" or self._reorderer.holds(key):  # one held at the window's end still waits
-            return self._reorderer.pass_through(key, sample)
-        return [sample]
-
     def _deliver(self, sub: Subscription, key: str, payload: bytes) -> None:
         msg = self._decode(sub, key, payload)
         if msg is None:
             return
-        delay = self._delivery_faults.delay(self.clock.now_ns() / 1e9)
-        if delay > 0:
+        if self._network is not None and (delay := self._network.delay(self.clock.now_ns() / 1e9)) > 0:
             time.sleep(delay)  # a `slow` fault: this computer takes longer over every message
         if self._lockstep:
             if not self._gate.hold(key, msg.header.seq, (sub, msg), msg.header.stamp):
@@ -630,7 +627,7 @@ class Node:
         self._fault_windows.add(command)  # a partner's cut radio parts us too
         if command.kind == "link_cut":  # it may part keys of the tick under way
             self._gate.recut(self._radio_cut(self.clock.now_ns() / 1e9))
-        if self._delivery_faults.add(command, self._wants):
+        if self._network.add(command, self._wants):
             self.log.warning("fault %s%s from %.2f s%s", command.kind, f" on {command.topic}" if command.topic else "",
                              command.header.stamp / 1e9, f" for {command.duration:g} s" if command.duration else "")
         if command.kind == "clock_jump" and command.uav == self.scope and command.service in ("", self.service) \

@@ -26,6 +26,10 @@ def add_parser(commands) -> None:
     p.add_argument("--clock", choices=["sim", "wall"], default="sim",
                    help="sim: follow the simulator's mission clock (default); wall: system time, for onboard runs")
     p.add_argument("--tick-hz", type=float, default=20.0, help="tick rate with --clock wall (default 20)")
+    p.add_argument("--simulated-faults", choices=["auto", "on", "off"], default="auto",
+                   help="obey the simulator's fault commands (falconry/sim/faults: duplicated, reordered or slowed "
+                        "inputs, silenced partners and cut radios in lockstep, clock jumps). auto (default): on "
+                        "with --clock sim, off with --clock wall, so a service onboard never obeys one")
     p.add_argument("--exit-with-parent", action="store_true",
                    help="stop when the launching process dies (the launcher sets this)")
     add_zenoh_options(p, "Embedded default: none (this process only listens).", connect_timeout=FOREVER,
@@ -52,6 +56,7 @@ def run(args: argparse.Namespace) -> int:
         params = params_for(args.service, cls.params_type, args.config)
     except ParamsError as exc:
         raise CliError(str(exc)) from None
+    simulated_faults = {"auto": None, "on": True, "off": False}[args.simulated_faults]
     node = cls(args.uav, zenoh_settings(args), params=params, clock=args.clock, tick_hz=args.tick_hz,
-               exit_with_parent=args.exit_with_parent, options=args)
+               exit_with_parent=args.exit_with_parent, options=args, simulated_faults=simulated_faults)
     return node.run()
