@@ -891,3 +891,14 @@ def test_a_single_camera_blob_or_blobs_that_disagree_in_3d_start_no_engagement()
         rig3.jm.observe_camera(s(t), (BALLOON + [1.5 * (k - 1), 0.0, 0.0])[None], along_x[None])
         rig3.tick(t + 0.05)
     assert rig3.jm.state is State.GOING_TO_TARGET
+
+
+def test_the_preflight_check_wants_every_mission_service_and_one_detector():
+    jm = Rig().jm
+    base = {"sensor_driver", "tracker", "planner"}
+    assert not jm.services_ready(base)  # no detector
+    assert jm.services_ready(base | {"classifier"}) and jm.services_ready(base | {"oracle"})
+    assert not jm.services_ready({"sensor_driver", "planner", "classifier"})  # no tracker
+    jm.positioning_by_localizer = True  # without GNSS the localizer is needed too
+    assert not jm.services_ready(base | {"classifier"}) and jm.services_ready(base | {"classifier", "localizer"})
+

@@ -40,6 +40,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from schemas import keys
 from services.job_manager.areas import grown_part, split_area
 from services.job_manager.params import JobManagerParams
 from services.job_manager.plans import PlannedPath
@@ -170,6 +171,12 @@ def _rows(covariances: np.ndarray | None, keep: np.ndarray) -> np.ndarray | None
 
 def _tuple(v) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
+
+
+# Pre-flight check (seed 004 §3.6, JobManager.services_ready): the services this UAV's mission
+# depends on, and the detectors of which one must run (the classifier, or the evaluation oracle).
+REQUIRED_SERVICES = ("sensor_driver", "tracker", "planner")
+DETECTORS = ("classifier", keys.ORACLE)
 
 
 class JobManager:
@@ -371,6 +378,22 @@ class JobManager:
 
     def is_airborne(self, z: float) -> bool:
         return bool(z - self.ground_z > self.params.airborne_height)
+
+    def services_ready(self, alive: set[str]) -> bool:
+        """The pre-flight check (seed 004 §3.6) on the names of this UAV's services that are alive:
+        every service its mission depends on (the localizer too when flying without GNSS) and one
+        detector (the classifier, or the evaluation oracle that replaces it)."""
+        required = REQUIRED_SERVICES + ((keys.LOCALIZER,) if self.positioning_by_localizer else ())
+        return all(s in alive for s in required) and any(d in alive for d in DETECTORS)
+
+    def positioning_health(self, reported: str, localizer_alive: bool) -> str:
+        """The odometry's health as the machine takes it: "lost" once the localizer of a UAV flying
+        without GNSS is gone (its token vanished), at once and whatever the odometry still says (the
+        flight controller carries its last estimate on unchecked, and would notice the silence only
+        after its estimate timeout: services/simulator/positioning.py); on the ground it only waits."""
+        if self.positioning_by_localizer and not localizer_alive and self.state is not State.PREFLIGHT:
+            return "lost"
+        return reported
 
     @property
     def flying_normally(self) -> bool:

@@ -30,19 +30,13 @@ from schemas.messages import (
     UavStatus,
     WorldModel,
 )
-from services.job_manager.core import NS, JobManager, MissionDecision, State
+from services.job_manager.core import NS, JobManager, MissionDecision
 from services.job_manager.params import JobManagerParams
 from services.job_manager.plans import PlannedPath
 from services.lib.runtime.counted import CountedWarnings
 from services.lib.runtime.node import Node
 from services.lib.tracks import (path_step, track_path, track_position, track_position_covariance, track_positions,
                                    track_velocities, track_velocity)
-
-# Pre-flight check (seed 004 §3.6): every service this UAV's mission depends on is alive,
-# and one detector (the classifier, or the evaluation oracle that replaces it).
-REQUIRED_SERVICES = ("sensor_driver", "tracker", "planner")
-DETECTORS = ("classifier", keys.ORACLE)
-
 
 class JobManagerNode(Node):
     service = "job_manager"
@@ -189,18 +183,8 @@ class JobManagerNode(Node):
                 self.log.warning("partner %s lost %s (liveliness token gone)", scope, service)
 
     # ------------------------------------------------------------------ tick
-    @property
-    def services_ready(self) -> bool:
-        required = REQUIRED_SERVICES + ((keys.LOCALIZER,) if self.core.positioning_by_localizer else ())
-        return all(s in self.alive_services for s in required) and any(d in self.alive_services for d in DETECTORS)
-
     def positioning_health(self) -> str:
-        """The odometry's health; "lost" once the localizer's token is gone, at once (the flight
-        controller would only notice the silence after its estimate timeout: services/simulator/positioning.py)."""
-        if self.core.positioning_by_localizer and keys.LOCALIZER not in self.alive_services \
-                and self.core.state is not State.PREFLIGHT:
-            return "lost"
-        return self.positioning
+        return self.core.positioning_health(self.positioning, keys.LOCALIZER in self.alive_services)
 
     def on_tick(self, now_ns: int) -> None:
         self.decide(now_ns, repeat=True)
@@ -214,9 +198,10 @@ class JobManagerNode(Node):
         sent again when `command_repeat` is due."""
         if self.position is None:
             return
-        decision = self.core.update(now_ns, self.position, self.core.is_airborne(self.position[2]),
-                                    self.services_ready, position_stamp_ns=self.position_stamp,
-                                    velocity=self.velocity, positioning=self.positioning_health())
+        core = self.core
+        decision = core.update(now_ns, self.position, core.is_airborne(self.position[2]),
+                               core.services_ready(self.alive_services), position_stamp_ns=self.position_stamp,
+                               velocity=self.velocity, positioning=self.positioning_health())
         self.report()
         if decision is not None:
             self.send_command(now_ns, decision)
