@@ -173,6 +173,17 @@ def _tuple(v) -> tuple[float, float, float]:
     return (float(v[0]), float(v[1]), float(v[2]))
 
 
+@dataclass(frozen=True, slots=True)
+class _Step:
+    """What one update of the machine sees, for the state rules."""
+
+    now: int
+    position: np.ndarray
+    velocity: np.ndarray
+    airborne: bool
+    services_ready: bool
+
+
 # Pre-flight check (seed 004 §3.6, JobManager.services_ready): the services this UAV's mission
 # depends on, and the detectors of which one must run (the classifier, or the evaluation oracle).
 REQUIRED_SERVICES = ("sensor_driver", "tracker", "planner")
@@ -618,91 +629,124 @@ class JobManager:
 
     def _next_state(self, now: int, position: np.ndarray, velocity: np.ndarray, airborne: bool,
                     services_ready: bool, stamp: int) -> tuple[State, str]:
-        """Every transition of the machine, in one place."""
+        """Every transition of the machine: the abort system's and the mission's first (they hold
+        in every state they watch), then the state timer, then the state's own rule; the state and
+        "" when it stays."""
+        step = _Step(now, position, velocity, airborne, services_ready)
+        rule = self._RULES.get(self.state)
+        return (self._aborted(now, stamp) or self._timed_out(now, position)
+                or (rule(self, step) if rule is not None else None) or (self.state, ""))
+
+    def _aborted(self, now: int, stamp: int) -> tuple[State, str] | None:
+        """The abort system (silent odometry, LiDAR or positioning), the mission timer and the
+        lost-link rule, in the states they watch."""
         p, state = self.params, self.state
         timeout = int(p.sensor_timeout * NS)
-        if state in _WATCHED or state is State.LANDING:
-            if now - stamp > timeout:
-                return State.EMERGENCY_LANDING, f"odometry silent {(now - stamp) / NS:.1f} s"
-        if state in _WATCHED:
-            heard = self.seen.scan_stamp if self.seen.scan_stamp is not None else self.takeoff_at
-            if heard is not None and now - max(heard, self.takeoff_at) > timeout:
-                return State.EMERGENCY_LANDING, f"LiDAR silent {(now - max(heard, self.takeoff_at)) / NS:.1f} s"
-            lost = self._positioning_lost_since
-            if lost is not None and now - lost > timeout:
-                return State.EMERGENCY_LANDING, f"positioning lost {(now - lost) / NS:.1f} s"
-            if self._mission_over(now):
-                return State.LANDING, "mission timer"
-            if (self.team is not None and self.takeoff_at is not None and self.team.isolated(now, self.takeoff_at)
-                    and self.team.lands_when_isolated(now, self.takeoff_at)):
-                return State.LANDING, f"lost link: no partner heard for {p.lost_link_time:g} s, landing where I am"
-        if state in _TIMED and now - self._timed_since(now, position) > int(getattr(p, _TIMED[state]) * NS):
-            limit = getattr(p, _TIMED[state])
-            b_c = self.engagement.position(now) if self.engagement is not None else self._checked
-            if self.engagement is not None and self.engagement.moving:
-                self._no_moving_until = now + int(p.forbidden_lifetime * NS)  # a zone cannot hold a mover
-                self.notes.append(f"no moving targets for {p.forbidden_lifetime:g} s")
-            elif b_c is not None:
-                zone = self.zones.add(b_c, now, f"{state.value} took over {limit:g} s")
-                self.notes.append(f"forbidden zone at ({zone.center[0]:.1f}, {zone.center[1]:.1f}, "
-                                  f"{zone.center[2]:.1f}): {zone.reason}")
-            return State.IDLE, f"state timer {limit:g} s"
-        if state is State.PREFLIGHT:
-            if self._mission_over(now):
-                return State.LANDED, "mission over before take-off"
-            lidar_heard = self.seen.scan_stamp is not None and now - self.seen.scan_stamp <= timeout
-            positioned = not self.positioning_by_localizer or self.positioning == "tracking"
-            if services_ready and lidar_heard and positioned and self.working_area is not None:
-                return State.TAKING_OFF, "pre-flight check passed"
-        elif state is State.TAKING_OFF:
-            if airborne and position[2] >= p.search_height - p.height_tolerance:
-                return State.IDLE, "in the air: state machine started"
-        elif state is State.IDLE:
-            if len(self.candidates(now, position)):
-                return State.CHECKING_TARGET, "target in view"
-            return State.GOING_AROUND, "nothing in view"
-        elif state is State.GOING_AROUND:
-            seen = len(self.candidates(now, position)) > 0
-            if seen:
-                self._candidate_seen = now
-                self._stopping = True
-            elif self._stopping and now - self._candidate_seen > int(p.target_time * NS):
-                self._stopping = False  # a false alarm: back to the sweep
-            if self._stopping and np.linalg.norm(velocity) < p.stop_speed:
-                return State.CHECKING_TARGET, "stopped with a target in view"
-        elif state is State.CHECKING_TARGET:
-            recent = self.recent_candidates(now, position)
-            latest = recent.newest()  # the latest scan or frame that saw any
-            if len(latest.positions):
-                closest = int(np.argmin(np.linalg.norm(latest.positions - position, axis=1)))
-                self._checked = latest.positions[closest]
-                if np.linalg.norm(velocity) < p.stop_speed and self._lock(latest, position, now):
-                    kind = "moving" if self.engagement.moving else "static"
-                    return State.GOING_TO_TARGET, f"{kind} target at {self._fmt(self.engagement.position(now))}"
-            elif now - self.state_since > int(p.target_time * NS):
-                return State.IDLE, f"no target for {p.target_time:g} s"
-        elif state is State.GOING_TO_TARGET:
-            e = self.engagement
-            if (blocked := self._forbid_if_blocked(now)):
-                return State.IDLE, blocked
-            if self._unseen(now, position):
-                return State.CHECKING_TARGET, f"target unseen for {p.target_time:g} s"
-            left = self._left_to_partner(now, position)
-            if left:
-                return State.IDLE, left
-            drop = self._notice_motion(now) or self._static_in_view(now, position)
-            if drop:
-                return State.IDLE, drop
-            gap = e.position(now) - position
-            filter_ready = e.moving or e.filter.updates >= 2
-            if np.linalg.norm(gap[:2]) < p.filter_switch_distance and filter_ready:
-                return State.DESTROYING, f"within {p.filter_switch_distance:g} m"
-        elif state is State.DESTROYING:
-            return self._destroying(now, position, velocity)
-        elif state in _DESCENDING:
-            if not airborne:
-                return State.LANDED, "on the ground"
-        return state, ""
+        if (state in _WATCHED or state is State.LANDING) and now - stamp > timeout:
+            return State.EMERGENCY_LANDING, f"odometry silent {(now - stamp) / NS:.1f} s"
+        if state not in _WATCHED:
+            return None
+        heard = self.seen.scan_stamp if self.seen.scan_stamp is not None else self.takeoff_at
+        if heard is not None and now - max(heard, self.takeoff_at) > timeout:
+            return State.EMERGENCY_LANDING, f"LiDAR silent {(now - max(heard, self.takeoff_at)) / NS:.1f} s"
+        lost = self._positioning_lost_since
+        if lost is not None and now - lost > timeout:
+            return State.EMERGENCY_LANDING, f"positioning lost {(now - lost) / NS:.1f} s"
+        if self._mission_over(now):
+            return State.LANDING, "mission timer"
+        if (self.team is not None and self.takeoff_at is not None and self.team.isolated(now, self.takeoff_at)
+                and self.team.lands_when_isolated(now, self.takeoff_at)):
+            return State.LANDING, f"lost link: no partner heard for {p.lost_link_time:g} s, landing where I am"
+        return None
+
+    def _timed_out(self, now: int, position: np.ndarray) -> tuple[State, str] | None:
+        """Seed 004's state timers: a state that took too long gives its target up (a forbidden zone
+        where it was, or no movers for a while) and goes back to IDLE."""
+        p, state = self.params, self.state
+        if state not in _TIMED or now - self._timed_since(now, position) <= int(getattr(p, _TIMED[state]) * NS):
+            return None
+        limit = getattr(p, _TIMED[state])
+        b_c = self.engagement.position(now) if self.engagement is not None else self._checked
+        if self.engagement is not None and self.engagement.moving:
+            self._no_moving_until = now + int(p.forbidden_lifetime * NS)  # a zone cannot hold a mover
+            self.notes.append(f"no moving targets for {p.forbidden_lifetime:g} s")
+        elif b_c is not None:
+            zone = self.zones.add(b_c, now, f"{state.value} took over {limit:g} s")
+            self.notes.append(f"forbidden zone at ({zone.center[0]:.1f}, {zone.center[1]:.1f}, "
+                              f"{zone.center[2]:.1f}): {zone.reason}")
+        return State.IDLE, f"state timer {limit:g} s"
+
+    def _from_preflight(self, step: _Step) -> tuple[State, str] | None:
+        if self._mission_over(step.now):
+            return State.LANDED, "mission over before take-off"
+        lidar_heard = self.seen.scan_stamp is not None and \
+            step.now - self.seen.scan_stamp <= int(self.params.sensor_timeout * NS)
+        positioned = not self.positioning_by_localizer or self.positioning == "tracking"
+        if step.services_ready and lidar_heard and positioned and self.working_area is not None:
+            return State.TAKING_OFF, "pre-flight check passed"
+        return None
+
+    def _from_taking_off(self, step: _Step) -> tuple[State, str] | None:
+        p = self.params
+        if step.airborne and step.position[2] >= p.search_height - p.height_tolerance:
+            return State.IDLE, "in the air: state machine started"
+        return None
+
+    def _from_idle(self, step: _Step) -> tuple[State, str] | None:
+        if len(self.candidates(step.now, step.position)):
+            return State.CHECKING_TARGET, "target in view"
+        return State.GOING_AROUND, "nothing in view"
+
+    def _from_going_around(self, step: _Step) -> tuple[State, str] | None:
+        p, now = self.params, step.now
+        if len(self.candidates(now, step.position)) > 0:
+            self._candidate_seen = now
+            self._stopping = True
+        elif self._stopping and now - self._candidate_seen > int(p.target_time * NS):
+            self._stopping = False  # a false alarm: back to the sweep
+        if self._stopping and np.linalg.norm(step.velocity) < p.stop_speed:
+            return State.CHECKING_TARGET, "stopped with a target in view"
+        return None
+
+    def _from_checking_target(self, step: _Step) -> tuple[State, str] | None:
+        p, now, position = self.params, step.now, step.position
+        latest = self.recent_candidates(now, position).newest()  # the latest scan or frame that saw any
+        if len(latest.positions):
+            closest = int(np.argmin(np.linalg.norm(latest.positions - position, axis=1)))
+            self._checked = latest.positions[closest]
+            if np.linalg.norm(step.velocity) < p.stop_speed and self._lock(latest, position, now):
+                kind = "moving" if self.engagement.moving else "static"
+                return State.GOING_TO_TARGET, f"{kind} target at {self._fmt(self.engagement.position(now))}"
+        elif now - self.state_since > int(p.target_time * NS):
+            return State.IDLE, f"no target for {p.target_time:g} s"
+        return None
+
+    def _from_going_to_target(self, step: _Step) -> tuple[State, str] | None:
+        p, e, now, position = self.params, self.engagement, step.now, step.position
+        if (blocked := self._forbid_if_blocked(now)):
+            return State.IDLE, blocked
+        if self._unseen(now, position):
+            return State.CHECKING_TARGET, f"target unseen for {p.target_time:g} s"
+        if (left := self._left_to_partner(now, position)):
+            return State.IDLE, left
+        if (drop := self._notice_motion(now) or self._static_in_view(now, position)):
+            return State.IDLE, drop
+        gap = e.position(now) - position
+        filter_ready = e.moving or e.filter.updates >= 2
+        if np.linalg.norm(gap[:2]) < p.filter_switch_distance and filter_ready:
+            return State.DESTROYING, f"within {p.filter_switch_distance:g} m"
+        return None
+
+    def _from_destroying(self, step: _Step) -> tuple[State, str] | None:
+        return self._destroying(step.now, step.position, step.velocity)
+
+    def _from_descending(self, step: _Step) -> tuple[State, str] | None:
+        return (State.LANDED, "on the ground") if not step.airborne else None
+
+    _RULES = {State.PREFLIGHT: _from_preflight, State.TAKING_OFF: _from_taking_off, State.IDLE: _from_idle,
+              State.GOING_AROUND: _from_going_around, State.CHECKING_TARGET: _from_checking_target,
+              State.GOING_TO_TARGET: _from_going_to_target, State.DESTROYING: _from_destroying,
+              State.LANDING: _from_descending, State.EMERGENCY_LANDING: _from_descending}
 
     def _timed_since(self, now: int, position: np.ndarray) -> int:
         """Where the state timer counts from: entering the state; for a mover in DESTROYING, its
