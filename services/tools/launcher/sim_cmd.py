@@ -23,7 +23,7 @@ from services.lib.runtime import shm, tls
 from services.lib.runtime.health import query_health
 from services.lib.runtime.zenoh_config import free_port, init_logging, open_session, tls_files
 from services.simulator.options import add_simulator_options
-from services.simulator.scenario import ScenarioError, load_scenario
+from services.simulator.scenario import Scenario, ScenarioError, load_scenario
 from services.simulator.specs import FaultSpec
 from services.tools.launcher import netns
 from services.tools.launcher.common import CliError, add_zenoh_options
@@ -107,6 +107,59 @@ def run_sim(args: argparse.Namespace) -> int:
     return run.report(outcome)
 
 
+def _load_checked(args: argparse.Namespace) -> tuple[Scenario, dict[str, str], float]:
+    """The scenario, each UAV's positioning and the job manager's safety distance, with every
+    parameter table the run's services read and the numeric options checked (a CliError, one
+    line, before anything starts)."""
+    try:
+        scenario = load_scenario(args.scenario)
+        read_tables(args.config)
+        positioning = {u: scenario.positioning(u, args.positioning) for u in keys.uav_names(args.uavs or scenario.uavs)}
+        services = {s for how in positioning.values() for s in keys.uav_services(args.detector, how)}
+        for service in ["simulator", *sorted(services)]:
+            params_for(service, node_class(service).params_type, args.config)
+        safety_distance = params_for("job_manager", node_class("job_manager").params_type, args.config).safety_distance
+    except (ScenarioError, ParamsError) as exc:
+        raise CliError(str(exc)) from None
+    check_view_options(args)
+    for name, value in (("--duration", args.duration), ("--rtf", args.rtf), ("--tick", args.tick)):
+        if value is not None and value <= 0:
+            raise CliError(f"{name} must be positive")
+    return scenario, positioning, safety_distance
+
+
+def _needs_network(args: argparse.Namespace, scenario: Scenario, uavs: list[str]) -> bool:
+    """Whether the run puts each UAV in its own network namespace (--isolate, link_cut faults),
+    with every combination of options and faults that cannot work refused; a router_restart fault
+    switches the run to its own router. Checks that every TLS identity has its files."""
+    needs_network = args.isolate or any(f.kind == "link_cut" for f in getattr(scenario, "faults", []))
+    if any(f.kind == "router_restart" for f in scenario.faults):
+        if args.connect or args.zenoh_config or needs_network:
+            raise CliError("the scenario schedules router_restart faults, which need the run's own router: "
+                           "leave out --connect, --zenoh-config, --isolate and link_cut faults")
+        if args.lockstep:
+            # a client that loses its router sees every other token go: the simulator would tick on
+            # unpaced with nobody to wait for, for the whole downtime
+            raise CliError("router_restart faults need a real-time run (leave out --lockstep): while the "
+                           "router is down the simulator cannot tell a paused team from a gone one")
+        args.zenoh_profile = "router"  # the run's own router, which the fault restarts
+    if own_router_wanted(args) and needs_network:
+        raise CliError("--zenoh-profile router without --connect runs the run's own router on loopback, "
+                       "which UAVs in network namespaces (--isolate, link_cut faults) cannot reach")
+    if args.tls:
+        if needs_network:
+            raise CliError("--tls with per-UAV network namespaces (--isolate, link_cut faults): the namespaces' "
+                           "addresses are not in the certificates; leave out one or the other")
+        # every party's certificate, before anything starts (the launcher and the simulator are sim)
+        for identity in [tls.SIM, *uavs] + ([tls.GROUND] if args.viz or args.rrd else []) \
+                + ([tls.ROUTER] if own_router_wanted(args) else []):
+            tls_files(args.tls, identity)
+    if needs_network and (why := netns.available()):
+        raise CliError(f"{'--isolate' if args.isolate else 'the scenario schedules link_cut faults, which'} "
+                       f"needs per-UAV network namespaces, but {why}")
+    return needs_network
+
+
 class SimRun:
     """One `falconry sim` run in three steps: `setup` (network, hub session, children),
     `loop` (until the mission is over), `teardown` (stop everything, leave nothing behind);
@@ -114,50 +167,11 @@ class SimRun:
 
     def __init__(self, args: argparse.Namespace) -> None:
         self.args = args
-        try:
-            self.scenario = load_scenario(args.scenario)
-            read_tables(args.config)
-            self.positioning = {u: self.scenario.positioning(u, args.positioning)
-                                for u in keys.uav_names(args.uavs or self.scenario.uavs)}
-            services = {s for u, how in self.positioning.items() for s in keys.uav_services(args.detector, how)}
-            for service in ["simulator", *sorted(services)]:
-                params_for(service, node_class(service).params_type, args.config)
-            self.safety_distance = params_for("job_manager", node_class("job_manager").params_type,
-                                              args.config).safety_distance
-        except (ScenarioError, ParamsError) as exc:
-            raise CliError(str(exc)) from None
-        check_view_options(args)
-        for name, value in (("--duration", args.duration), ("--rtf", args.rtf), ("--tick", args.tick)):
-            if value is not None and value <= 0:
-                raise CliError(f"{name} must be positive")
+        self.scenario, self.positioning, self.safety_distance = _load_checked(args)
         self.uavs = keys.uav_names(args.uavs or self.scenario.uavs)
         self.duration = args.duration if args.duration is not None else self.scenario.duration
         self.seed = args.seed if args.seed is not None else self.scenario.seed
-        needs_network = args.isolate or any(f.kind == "link_cut" for f in getattr(self.scenario, "faults", []))
-        if any(f.kind == "router_restart" for f in self.scenario.faults):
-            if args.connect or args.zenoh_config or needs_network:
-                raise CliError("the scenario schedules router_restart faults, which need the run's own router: "
-                               "leave out --connect, --zenoh-config, --isolate and link_cut faults")
-            if args.lockstep:
-                # a client that loses its router sees every other token go: the simulator would tick on
-                # unpaced with nobody to wait for, for the whole downtime
-                raise CliError("router_restart faults need a real-time run (leave out --lockstep): while the "
-                               "router is down the simulator cannot tell a paused team from a gone one")
-            args.zenoh_profile = "router"  # the run's own router, which the fault restarts
-        if own_router_wanted(args) and needs_network:
-            raise CliError("--zenoh-profile router without --connect runs the run's own router on loopback, "
-                           "which UAVs in network namespaces (--isolate, link_cut faults) cannot reach")
-        if args.tls:
-            if needs_network:
-                raise CliError("--tls with per-UAV network namespaces (--isolate, link_cut faults): the namespaces' "
-                               "addresses are not in the certificates; leave out one or the other")
-            # every party's certificate, before anything starts (the launcher and the simulator are sim)
-            for identity in [tls.SIM, *self.uavs] + ([tls.GROUND] if args.viz or args.rrd else []) \
-                    + ([tls.ROUTER] if own_router_wanted(args) else []):
-                tls_files(args.tls, identity)
-        if needs_network and (why := netns.available()):
-            raise CliError(f"{'--isolate' if args.isolate else 'the scenario schedules link_cut faults, which'} "
-                           f"needs per-UAV network namespaces, but {why}")
+        needs_network = _needs_network(args, self.scenario, self.uavs)
         self.outputs = Outputs(args)
         self.started_wall = time.time()
         self.segments_before = shm.segments()
