@@ -98,6 +98,86 @@ def _arc_vertical_peak(u_in: np.ndarray, normal: np.ndarray, theta: np.ndarray) 
     return np.where(extremum <= theta, np.hypot(a, b), ends)
 
 
+@dataclass(frozen=True)
+class _Corners:
+    """The interior waypoints of a polyline as plan_timing rounds them: each with the unit
+    directions in and out, how far it turns (theta, 0 where it does not bend), the arc's unit normal,
+    whether the vehicle stops there instead, and whether the heading turns with it."""
+
+    u_in: np.ndarray  # (M-2, 3)
+    normal: np.ndarray  # (M-2, 3)
+    theta: np.ndarray  # (M-2,)
+    bending: np.ndarray  # (M-2,) bool
+    stop: np.ndarray  # (M-2,) bool
+    turns_heading: np.ndarray  # (M-2,) bool
+
+    @property
+    def half_tan(self) -> np.ndarray:
+        return np.tan(0.5 * self.theta)
+
+
+def _corners(unit: np.ndarray, follow_travel: bool, rate: float, stop_angle: float) -> _Corners:
+    u_in, u_out = unit[:-1], unit[1:]
+    cos_turn = np.clip(np.sum(u_in * u_out, axis=1), -1.0, 1.0)
+    theta = np.arccos(cos_turn)
+    perpendicular = u_out - cos_turn[:, None] * u_in
+    norm = np.linalg.norm(perpendicular, axis=1)
+    reversing = cos_turn < 0.0
+    bending = norm > 1e-12
+    stop = (theta > stop_angle) | (reversing & ~bending)  # an exact reversal has no arc at all
+    normal = np.where(bending[:, None], perpendicular / np.where(bending, norm, 1.0)[:, None], 0.0)
+    theta = np.where(bending, theta, 0.0)
+    # Heading follows the horizontal direction; only a change of it costs heading rate.
+    h_in, h_out = u_in[:, :2], u_out[:, :2]
+    h_cross = np.abs(h_in[:, 0] * h_out[:, 1] - h_in[:, 1] * h_out[:, 0])
+    yawing = follow_travel and rate > 0
+    turns_heading = yawing & ((h_cross > 1e-9) | (np.sum(h_in * h_out, axis=1) < 0))
+    return _Corners(u_in, normal, theta, bending, stop, turns_heading)
+
+
+def _needed_radius(v, corners: _Corners, acc: float, rate: float) -> np.ndarray:
+    """The arc radius a corner needs at speed v: within the acceleration, and where the heading
+    turns with it, within the heading rate."""
+    return np.where(corners.turns_heading, np.maximum(v**2 / acc, v / max(rate, _EPS)), v**2 / acc)
+
+
+def _corner_speeds(corners: _Corners, length: np.ndarray, v_segment: np.ndarray, corner_cap: np.ndarray,
+                   profile: ConstraintProfile, corner_deviation: float) -> tuple[np.ndarray, np.ndarray]:
+    """(speed, arc radius) through each corner: the tightest of the segments' and the corner's
+    caps, the vertical speed along the arc, the room the segments leave, the deviation allowed."""
+    acc, rate = profile.max_acceleration, profile.max_heading_rate
+    c = corners
+    v_cap = np.minimum.reduce([v_segment[:-1], v_segment[1:], corner_cap[1:-1],
+                               profile.max_vertical_speed / np.maximum(_arc_vertical_peak(c.u_in, c.normal, c.theta),
+                                                                       _EPS)])
+    half_tan = c.half_tan
+    sagitta = 1.0 / np.cos(0.5 * c.theta) - 1.0  # arc's distance from its waypoint per metre of radius
+    r_room = 0.5 * np.minimum(length[:-1], length[1:]) / np.maximum(half_tan, 1e-300)
+    r_deviation = corner_deviation / np.maximum(sagitta, 1e-300)
+    radius = np.where(c.bending, np.minimum.reduce([_needed_radius(v_cap, c, acc, rate), r_room, r_deviation]), 0.0)
+    v_round = np.sqrt(acc * radius)
+    v_round = np.where(c.turns_heading, np.minimum(v_round, rate * radius), v_round)
+    v_corner = np.where(c.bending, np.minimum(v_cap, v_round), v_cap)
+    return np.where(c.stop, 0.0, v_corner), np.where(c.stop, 0.0, radius)
+
+
+def _straight_lengths(radius: np.ndarray, corners: _Corners, length: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(tangent length at each waypoint, the straight piece of each segment between its arcs)."""
+    tangent = np.concatenate([[0.0], radius * corners.half_tan, [0.0]])
+    return tangent, length - tangent[:-1] - tangent[1:]
+
+
+def _reachable(junction: np.ndarray, straight: np.ndarray, acc: float) -> np.ndarray:
+    """The junction speeds lowered to what the straights between them allow: reachable from the
+    previous one (forward pass), and braking for the next one still possible (backward pass)."""
+    junction = junction.copy()
+    for k in range(len(straight)):
+        junction[k + 1] = min(junction[k + 1], math.sqrt(junction[k] ** 2 + 2.0 * acc * straight[k]))
+    for k in range(len(straight) - 1, -1, -1):
+        junction[k] = min(junction[k], math.sqrt(junction[k + 1] ** 2 + 2.0 * acc * straight[k]))
+    return junction
+
+
 def plan_timing(waypoints: np.ndarray, profile: ConstraintProfile, *, corner_speeds=None, segment_speeds=None,
                 start_velocity=None, follow_travel: bool = True, corner_deviation: float = np.inf,
                 stop_angle: float = STOP_ANGLE) -> Timing:
@@ -114,58 +194,24 @@ def plan_timing(waypoints: np.ndarray, profile: ConstraintProfile, *, corner_spe
     length = np.linalg.norm(delta, axis=1)
     unit = delta / length[:, None]
     v_segment = np.minimum(speed_caps(unit, profile), segment_cap)
-
-    u_in, u_out = unit[:-1], unit[1:]
-    cos_turn = np.clip(np.sum(u_in * u_out, axis=1), -1.0, 1.0)
-    theta = np.arccos(cos_turn)
-    perpendicular = u_out - cos_turn[:, None] * u_in
-    norm = np.linalg.norm(perpendicular, axis=1)
-    reversing = cos_turn < 0.0
-    bending = norm > 1e-12
-    stop = (theta > stop_angle) | (reversing & ~bending)  # an exact reversal has no arc at all
-    normal = np.where(bending[:, None], perpendicular / np.where(bending, norm, 1.0)[:, None], 0.0)
-    theta = np.where(bending, theta, 0.0)
-    # Heading follows the horizontal direction; only a change of it costs heading rate.
-    h_in, h_out = u_in[:, :2], u_out[:, :2]
-    h_cross = np.abs(h_in[:, 0] * h_out[:, 1] - h_in[:, 1] * h_out[:, 0])
-    yawing = follow_travel and rate > 0
-    turns_heading = yawing & ((h_cross > 1e-9) | (np.sum(h_in * h_out, axis=1) < 0))
-
-    def needed_radius(v):
-        return np.where(turns_heading, np.maximum(v**2 / acc, v / max(rate, _EPS)), v**2 / acc)
-
-    v_cap = np.minimum.reduce([v_segment[:-1], v_segment[1:], corner_cap[1:-1],
-                               profile.max_vertical_speed / np.maximum(_arc_vertical_peak(u_in, normal, theta), _EPS)])
-    half_tan = np.tan(0.5 * theta)
-    sagitta = 1.0 / np.cos(0.5 * theta) - 1.0  # arc's distance from its waypoint per metre of radius
-    r_room = 0.5 * np.minimum(length[:-1], length[1:]) / np.maximum(half_tan, 1e-300)
-    r_deviation = corner_deviation / np.maximum(sagitta, 1e-300)
-    radius = np.where(bending, np.minimum.reduce([needed_radius(v_cap), r_room, r_deviation]), 0.0)
-    v_round = np.sqrt(acc * radius)
-    v_round = np.where(turns_heading, np.minimum(v_round, rate * radius), v_round)
-    v_corner = np.where(bending, np.minimum(v_cap, v_round), v_cap)
-    v_corner, radius = np.where(stop, 0.0, v_corner), np.where(stop, 0.0, radius)
-
+    corners = _corners(unit, follow_travel, rate, stop_angle)
+    v_corner, radius = _corner_speeds(corners, length, v_segment, corner_cap, profile, corner_deviation)
     v_start = 0.0
     if start_velocity is not None:
         v_start = float(np.clip(np.dot(np.asarray(start_velocity, float).reshape(3), unit[0]), 0.0, v_segment[0]))
-    junction = np.concatenate([[v_start], v_corner, [0.0]])
-
-    def straight_lengths(r):
-        tangent = np.concatenate([[0.0], r * half_tan, [0.0]])
-        return tangent, length - tangent[:-1] - tangent[1:]
-
-    tangent, straight = straight_lengths(radius)
-    for k in range(len(straight)):  # forward pass: reachable from the previous junction
-        junction[k + 1] = min(junction[k + 1], math.sqrt(junction[k] ** 2 + 2.0 * acc * straight[k]))
-    for k in range(len(straight) - 1, -1, -1):  # backward pass: can still brake for the next one
-        junction[k] = min(junction[k], math.sqrt(junction[k + 1] ** 2 + 2.0 * acc * straight[k]))
+    _, straight = _straight_lengths(radius, corners, length)
+    junction = _reachable(np.concatenate([[v_start], v_corner, [0.0]]), straight, acc)
     # Corners the passes slowed down get the tighter arc their speed allows; the straight
     # pieces only grow, so the junction speeds stay reachable.
-    radius = np.minimum(radius, needed_radius(junction[1:-1]))
-    tangent, straight = straight_lengths(radius)
+    radius = np.minimum(radius, _needed_radius(junction[1:-1], corners, acc, rate))
+    return _pieces(wp, unit, length, corners, radius, junction, v_segment, acc)
 
-    # Interleave: straight k at 2k, the arc at waypoint k+1 at 2k+1.
+
+def _pieces(wp: np.ndarray, unit: np.ndarray, length: np.ndarray, corners: _Corners, radius: np.ndarray,
+            junction: np.ndarray, v_segment: np.ndarray, acc: float) -> Timing:
+    """The Timing of the straights and arcs, interleaved: straight k at 2k, the arc at waypoint
+    k+1 at 2k+1, each a speed trapezoid between its junction speeds."""
+    tangent, straight = _straight_lengths(radius, corners, length)
     count = 2 * len(straight) - 1
     start, piece_unit, piece_normal = np.zeros((count, 3)), np.zeros((count, 3)), np.zeros((count, 3))
     piece_radius, piece_length = np.zeros(count), np.zeros(count)
@@ -173,9 +219,9 @@ def plan_timing(waypoints: np.ndarray, profile: ConstraintProfile, *, corner_spe
     start[0::2] = wp[:-1] + tangent[:-1, None] * unit
     piece_unit[0::2], piece_length[0::2] = unit, straight
     v_in[0::2], v_out[0::2], v_limit[0::2] = junction[:-1], junction[1:], v_segment
-    start[1::2] = wp[1:-1] - tangent[1:-1, None] * u_in
-    piece_unit[1::2], piece_normal[1::2] = u_in, normal
-    piece_radius[1::2], piece_length[1::2] = radius, radius * theta
+    start[1::2] = wp[1:-1] - tangent[1:-1, None] * corners.u_in
+    piece_unit[1::2], piece_normal[1::2] = corners.u_in, corners.normal
+    piece_radius[1::2], piece_length[1::2] = radius, radius * corners.theta
     v_in[1::2] = v_out[1::2] = v_limit[1::2] = junction[1:-1]
     peak, t_up, t_cruise, t_down = trapezoid(piece_length, v_in, v_out, v_limit, acc)
     durations = t_up + t_cruise + t_down
