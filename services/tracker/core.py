@@ -33,9 +33,9 @@ Where Falconry departs from the seed, and why:
   takes it when it is confirmed, if it moves like the lost one did (both faster than
   `moving_speed`, or both slower) and lies within reach of where it was last seen: r_max plus
   `stitch_speed` × the time since for a mover, r_max for a standing target. Among several such
-  lost tracks the one nearest relative to its reach is taken. Waiting for confirmation keeps
-  sporadic false detections from taking an identity; the motion check keeps a drone passing a
-  balloon that went out of sight from taking the balloon's.
+  lost tracks the one nearest relative to its reach is taken (the re-identifier, reidentify.py).
+  Waiting for confirmation keeps sporadic false detections from taking an identity; the motion
+  check keeps a drone passing a balloon that went out of sight from taking the balloon's.
 - Two tracks that end up on the same cluster are merged, keeping the older identity: the cloud
   update lets both take the nearest centroid, and two copies of one target would otherwise
   coexist until one drifts off.
@@ -82,10 +82,10 @@ from services.lib.lidar.sanity import SETTLE_TIME, SensorTrust
 from services.tracker.filters import FILTERS, FilterParams, make_filter
 from services.tracker.filters.base import NS, Estimate, InnovationStatistics
 from services.tracker.filters.deleting import Deleter, UncertaintyDeleter
-from services.tracker.filters.models import (covariance_at_least, manoeuvre_path, manoeuvre_state, turning_path,
-                                            uncertainty_radius)
+from services.tracker.filters.models import covariance_at_least, manoeuvre_state, turning_path, uncertainty_radius
 from services.tracker.filters.turning import Turn, TurnHistory
 from services.tracker.kernels import points_near
+from services.tracker.reidentify import LostTrack, LostTracks
 from services.lib.voxels.kernels import clusters_near_occupied, euclidean_clusters
 
 TURN_MIN_SPEED = 1.0  # m/s: slower, a track's heading is noise and its trajectory does not turn
@@ -204,17 +204,6 @@ class _Track:
 
 
 @dataclass(frozen=True)
-class LostTrack:
-    """A confirmed track dropped as too uncertain, remembered for re-identification."""
-
-    id: int
-    corrected: Estimate  # its last corrected state
-    detections: int
-    dropped: int  # ns
-    half_width: float = 0.0  # m, its target's size as it knew it
-
-
-@dataclass(frozen=True)
 class Replayed:
     """A tentative track carried through the buffered clouds newer than its detection."""
 
@@ -295,7 +284,9 @@ class TrackerCore:
         self.occupied: OccupiedVoxels | None = None
         self.counters = TrackerCounters()
         self._tracks: list[_Track] = []
-        self._lost: list[LostTrack] = []  # confirmed tracks dropped within reidentify_time or stitch_time
+        p = self.params
+        self.lost = LostTracks(p.radius_max, p.reidentify_time, p.stitch_time, p.manoeuvre_time, p.moving_speed,
+                               p.stitch_speed)  # the re-identifier: confirmed tracks dropped a while ago
         self._next_id = 1
         self.sensor = SensorTrust(self.params.sensor_settle_time)
         # Alg. 2 lines 15 and 25: a track, or a tentative one replayed, too uncertain to keep
@@ -484,7 +475,7 @@ class TrackerCore:
         track = _Track(self._next_id, tentative.estimate, tentative.corrected, 1, stamp, tentative.statistics,
                        tentative.half_width)
         self._turned(track)
-        lost = self._lost_identity(tentative.estimate)
+        lost = self.lost.at_birth(tentative.estimate)
         if lost is not None:  # the same target back in sight: its identity and its detections
             track.id, track.detections, track.stitch_checked = lost.id, lost.detections + 1, True
             track.reidentified = True  # a lost track was confirmed, however it was (a partner's may have)
@@ -576,28 +567,9 @@ class TrackerCore:
         """Drop tracks; the confirmed ones are remembered for re-identification."""
         for track in self._tracks:
             if track.id in ids and self._confirmed(track):
-                self._lost.append(LostTrack(track.id, track.corrected, track.detections, now, track.half_width))
+                self.lost.remember(LostTrack(track.id, track.corrected, track.detections, now, track.half_width))
         self._tracks = [t for t in self._tracks if t.id not in ids]
-        limit = int(max(self.params.reidentify_time, self.params.stitch_time) * NS)
-        self._lost = [lost for lost in self._lost if now - lost.dropped <= limit]
-
-    def _lost_identity(self, estimate: Estimate) -> LostTrack | None:
-        """The remembered track whose target would be nearest `estimate` by its stamp (within
-        radius_max; its last corrected state carried on by the published trajectory's manoeuvre
-        model), taken out of the memory; None when none is that close."""
-        p, limit = self.params, int(self.params.reidentify_time * NS)
-        best, best_gap = None, p.radius_max
-        for lost in self._lost:
-            elapsed = (estimate.stamp - lost.corrected.stamp) / NS
-            if elapsed <= 0.0 or estimate.stamp - lost.dropped > limit:
-                continue
-            (expected,) = manoeuvre_path(lost.corrected.mean, elapsed, 1, p.manoeuvre_time)
-            gap = float(np.linalg.norm(expected - estimate.position))
-            if gap <= best_gap:
-                best, best_gap = lost, gap
-        if best is not None:
-            self._lost.remove(best)
-        return best
+        self.lost.forget_before(now)
 
     def _confirmed(self, track: _Track) -> bool:
         return track.detections >= self.params.confirm_detections or track.corroborated or track.reidentified
@@ -623,32 +595,13 @@ class TrackerCore:
             if track.stitch_checked or not self._confirmed(track):
                 continue
             track.stitch_checked = True
-            lost = self._stitched_identity(track.estimate, velocities.get(track.id, track.estimate.mean[3:6]))
+            lost = self.lost.at_confirmation(track.estimate, velocities.get(track.id, track.estimate.mean[3:6]))
             if lost is not None:
                 renamed[track.id] = lost.id
                 track.id, track.detections = lost.id, track.detections + lost.detections
                 track.half_width = max(track.half_width, lost.half_width)
                 self.counters.stitched += 1
         return renamed
-
-    def _stitched_identity(self, estimate: Estimate, velocity: np.ndarray) -> LostTrack | None:
-        """The lost track, remembered within stitch_time, that `estimate` moving at `velocity` moves
-        like and is nearest to relative to its reach; taken out of the memory. None when there is none."""
-        p = self.params
-        moving = float(np.linalg.norm(velocity)) > p.moving_speed
-        best, best_share = None, 1.0
-        for lost in self._lost:
-            elapsed = (estimate.stamp - lost.corrected.stamp) / NS
-            was_moving = float(np.linalg.norm(lost.corrected.mean[3:6])) > p.moving_speed
-            if elapsed <= 0.0 or elapsed > p.stitch_time or moving != was_moving:
-                continue
-            reach = p.radius_max + (p.stitch_speed * elapsed if moving else 0.0)
-            share = float(np.linalg.norm(estimate.mean[:3] - lost.corrected.mean[:3])) / reach
-            if share <= best_share:
-                best, best_share = lost, share
-        if best is not None:
-            self._lost.remove(best)
-        return best
 
     def estimates(self, now_ns: int, trajectory: bool = True) -> list[TrackEstimate]:
         """Every track predicted to now_ns (never backwards), without changing the filters; the
