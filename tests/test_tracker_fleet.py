@@ -183,3 +183,19 @@ def test_a_tracker_node_confirms_its_first_detection_of_a_target_its_partner_kee
         sub.undeclare()
         partner.undeclare()
         detections.undeclare()
+
+def test_the_fleet_picture_admits_only_a_healthy_partners_own_sound_confirmed_tracks():
+    from services.tracker.fleet import FLEET_ID_BASE, PartnerReport, admitted
+
+    good = np.eye(9)
+    reports = [PartnerReport(1, True, "uav2", np.zeros(9), good.reshape(-1), 4, 900),  # kept (covariance flat)
+               PartnerReport(2, False, "uav2", np.zeros(9), good, 1, 0),  # tentative: left out
+               PartnerReport(3, True, "uav3", np.zeros(9), good, 5, 0),  # uav3's, heard through uav2: left out
+               PartnerReport(4, True, "uav2", np.full(9, np.nan), good, 5, 0),  # unsound: refused
+               PartnerReport(5, True, "uav2", np.zeros(9), -good, 5, 0),  # not positive definite: refused
+               PartnerReport(FLEET_ID_BASE + 1, True, "uav2", np.zeros(9), good, 5, 0),  # a fleet id: refused
+               PartnerReport(7, True, "uav2", np.zeros(0), np.zeros(0), 5, 0)]  # no numbers: refused
+    tracks, refused = admitted("uav2", 500, True, reports)
+    assert [t.id for t in tracks] == [1] and refused == 4
+    assert tracks[0].covariance.shape == (9, 9) and tracks[0].stamp == 500 and tracks[0].last_correction == 500
+    assert admitted("uav2", 500, False, reports) == ([], 0)  # its LiDAR failing: nothing of it

@@ -61,6 +61,41 @@ class PartnerTrack:
 
 
 @dataclass(frozen=True)
+class PartnerReport:
+    """One track of a partner's Tracks message, as heard (before the fleet picture admits it)."""
+
+    id: int
+    confirmed: bool
+    source: str  # the UAV that keeps it (its own tracks: the partner)
+    mean: np.ndarray
+    covariance: np.ndarray
+    detections: int
+    last_correction: int  # ns
+
+
+def admitted(partner: str, heard: int, sensor_healthy: bool,
+             reports: list[PartnerReport]) -> tuple[list[PartnerTrack], int]:
+    """The partner tracks the fleet picture takes from one message of `partner` heard at `heard`,
+    and how many it refused as unsound. None while the partner's LiDAR fails its sanity check (its
+    tracks may be of nothing); of the others only its own confirmed tracks (a partner's fleet
+    tracks come from their keepers, heard directly), and of those only a finite positive-definite
+    CA state with an own id (below FLEET_ID_BASE)."""
+    if not sensor_healthy:
+        return [], 0
+    tracks, refused = [], 0
+    for report in reports:
+        if not report.confirmed or report.source != partner:
+            continue
+        covariance = report.covariance.reshape(9, 9) if report.covariance.size == 81 else report.covariance
+        if not (sound_partner_track(report.mean, covariance) and 0 <= report.id < FLEET_ID_BASE):
+            refused += 1
+            continue
+        tracks.append(PartnerTrack(report.id, heard, report.mean, covariance, report.detections,
+                                   min(report.last_correction, heard)))
+    return tracks, refused
+
+
+@dataclass(frozen=True)
 class FleetTrack:
     """One track of the fleet picture at the output's stamp."""
 

@@ -29,8 +29,8 @@ from services.lib.runtime.counted import CountedWarnings
 from services.lib.runtime.node import Node
 from services.tracker.core import (OccupiedVoxels, TrackEstimate, TrackerCore, TrackerParams, published_trajectory,
                                    warm_up)
-from services.tracker.fleet import (FLEET_ID_BASE, FleetPicture, FleetTrack, FusionParams, PartnerTrack,
-                                    partner_number, sound_partner_track)
+from services.tracker.fleet import (FleetPicture, FleetTrack, FusionParams, PartnerReport, admitted,
+                                    partner_number)
 from services.lib.voxels.replica import MapReplica
 
 
@@ -120,17 +120,11 @@ class TrackerNode(Node):
         partner = keys.uav_of(key)
         if partner == self.uav or not self.params.fleet or partner_number(partner) <= 0:
             return  # ourselves, or no UAV (a fleet id needs the partner's number)
-        tracks = []
-        for track in [] if msg.sensor_health else msg.tracks:  # a partner whose LiDAR fails: none of its tracks
-            if not track.confirmed or track.source != partner:
-                continue  # a partner's fleet tracks come from their own keepers, heard directly
-            mean, covariance = to_numpy(track.state).reshape(-1), to_numpy(track.covariance)
-            covariance = covariance.reshape(9, 9) if covariance.size == 81 else covariance
-            if not (sound_partner_track(mean, covariance) and 0 <= track.id < FLEET_ID_BASE):
-                self._refuse("partner tracks refused (not a finite positive-definite CA state, or an id out of range)")
-                continue
-            tracks.append(PartnerTrack(track.id, msg.header.stamp, mean, covariance, track.detections,
-                                       min(track.last_correction, msg.header.stamp)))
+        reports = [PartnerReport(t.id, t.confirmed, t.source, _numbers(t.state).reshape(-1), _numbers(t.covariance),
+                                 t.detections, t.last_correction) for t in msg.tracks] if not msg.sensor_health else []
+        tracks, refused = admitted(partner, msg.header.stamp, not msg.sensor_health, reports)
+        for _ in range(refused):
+            self._refuse("partner tracks refused (not a finite positive-definite CA state, or an id out of range)")
         self.fleet.partner_tracks(partner, msg.header.stamp, tracks)
         self._report()
 
@@ -200,3 +194,13 @@ class TrackerNode(Node):
 
 
 NODE = TrackerNode
+
+
+def _numbers(array) -> np.ndarray:
+    """A received array's numbers; none when its dtype or shape does not fit its data (the fleet
+    picture then refuses the track as unsound)."""
+    try:
+        return to_numpy(array)
+    except (ValueError, TypeError):
+        return np.zeros(0)
+
