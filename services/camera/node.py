@@ -11,7 +11,6 @@ are acted on here: `camera_frozen` repeats the last frame, `camera_saturated` se
 """
 from __future__ import annotations
 
-import math
 import zlib
 
 import cv2
@@ -19,14 +18,29 @@ import numpy as np
 
 from schemas import keys
 from schemas.arrays import from_numpy
-from schemas.messages import (Appearance, CameraFrame, CompressedFrame, FaultCommand, GroundTruth, Header, Pose,
-                              WorldModel)
+from schemas.messages import (
+    Appearance,
+    CameraFrame,
+    CompressedFrame,
+    FaultCommand,
+    GroundTruth,
+    Header,
+    Pose,
+    WorldModel,
+)
 from services.camera.core import CAMERA_FAULTS, Camera, CameraParams, Gains, frozen_or_saturated
 from services.lib.geometry import quaternion
 from services.lib.runtime.counted import CountedWarnings
 from services.lib.runtime.node import Node
 from services.lib.runtime.sensor_faults import SensorFaults
-from services.lib.world.primitives import noise_stream_key, pack, Primitives, primitives_from_obstacles
+from services.lib.world.primitives import (
+    Primitives,
+    carrier,
+    finite_pose,
+    noise_stream_key,
+    pack,
+    primitives_from_obstacles,
+)
 
 RNG_SALT = zlib.crc32(b"camera")  # a fixed number, so the stream differs from other services'
 
@@ -97,11 +111,11 @@ class CameraNode(Node):
         slot = (now_ns - self.phase_ns) // self.period_ns
         if slot <= self.last_slot or self.static is None or self.truth is None or self.camera is None:
             return
-        me = next((v for v in self.truth.uavs if v.name == self.uav), None)
-        if me is None or not me.alive:
+        me = carrier(self.truth, self.uav)
+        if me is None:
             return
         self.last_slot = slot
-        if not all(math.isfinite(v) for v in (*me.position, me.heading)):
+        if not finite_pose(me):
             self._unposed += 1
             self._bad_input.update({"frames skipped: our pose in the ground truth is not finite": self._unposed})
             return

@@ -23,7 +23,6 @@ and the job manager then work in the estimate's frame, as they would onboard.
 """
 from __future__ import annotations
 
-import math
 import zlib
 
 import numpy as np
@@ -37,7 +36,7 @@ from services.lib.lidar.rays import body_mask, pack_mask, unpack_mask
 from services.lib.lidar.sanity import SanityLimits, ScanSanity, scan_figures
 from services.lib.runtime.counted import CountedWarnings
 from services.lib.runtime.node import Node
-from services.lib.world.primitives import Primitives, noise_stream_key, primitives_from_obstacles
+from services.lib.world.primitives import Primitives, carrier, finite_pose, noise_stream_key, primitives_from_obstacles
 from services.sensor_driver.core import FALLBACK_MODEL, SensorDriverParams, model_scan, reregistered, scan_ranges
 from services.sensor_driver.faults import faulty_scan, lidar_faults
 
@@ -146,11 +145,11 @@ class SensorDriverNode(Node):
         slot = now_ns // self.period_ns
         if slot <= self.last_slot or self.static is None or self.truth is None or self.rng is None:
             return
-        me = next((v for v in self.truth.uavs if v.name == self.uav), None)
-        if me is None or not me.alive:
+        me = carrier(self.truth, self.uav)
+        if me is None:
             return
         self.last_slot = slot
-        if not all(math.isfinite(v) for v in (*me.position, me.heading)):
+        if not finite_pose(me):
             self._unposed += 1
             self._bad_input.update({"scans skipped: our pose in the ground truth is not finite": self._unposed})
             return

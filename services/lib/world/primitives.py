@@ -16,12 +16,13 @@ says otherwise): the LiDAR ignores it, the simulated camera renders it.
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.messages import Obstacle, TargetTruth, WorldModel
+from schemas.messages import GroundTruth, Obstacle, TargetTruth, VehicleTruth, WorldModel
 from services.lib.world import numpy_caster
 from services.lib.world.raycast import BOX, CONE, CYLINDER, PLANE, SPHERE, Packed, cast_kernel
 
@@ -29,8 +30,9 @@ DRONE_BODY_HEIGHT = 0.3  # m: an intruder multirotor is a flat disk of its radiu
 REFLECTIVITY = {"ground": 0.2, "static": 0.3, "target": 0.6}
 DEFAULT_COLOR = (128, 128, 128)
 
-__all__ = ["DEFAULT_COLOR", "DRONE_BODY_HEIGHT", "REFLECTIVITY", "Packed", "Primitives", "cast", "cast_with_ids",
-           "noise_stream_key", "pack", "primitives_from_obstacles", "read_only", "target_spheres"]
+__all__ = ["DEFAULT_COLOR", "DRONE_BODY_HEIGHT", "REFLECTIVITY", "Packed", "Primitives", "carrier", "cast",
+           "cast_with_ids", "finite_pose", "noise_stream_key", "pack", "primitives_from_obstacles", "read_only",
+           "target_spheres"]
 
 
 @dataclass
@@ -173,6 +175,18 @@ def pack(p: Primitives) -> Packed:
         reflectivity=np.array([r[4] for r in rows], dtype=float),
         colors=np.ascontiguousarray(colors.reshape(-1, 3), dtype=np.uint8),
     )
+
+
+def carrier(truth: GroundTruth, uav: str) -> VehicleTruth | None:
+    """The vehicle a simulated sensor of `uav` rides on, in this ground truth; None when it is not
+    there or no longer alive (a killed UAV's sensors see nothing)."""
+    me = next((v for v in truth.uavs if v.name == uav), None)
+    return me if me is not None and me.alive else None
+
+
+def finite_pose(vehicle: VehicleTruth) -> bool:
+    """Whether a vehicle's position and heading can place a sensor (a bad message may say NaN)."""
+    return all(math.isfinite(v) for v in (*vehicle.position, vehicle.heading))
 
 
 def noise_stream_key(world: WorldModel, uav: str) -> tuple[int, int]:
