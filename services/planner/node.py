@@ -145,8 +145,9 @@ class PlannerNode(Node):
             self._refuse("map messages refused (geometry or contents impossible)")
             self.log.debug("map refused: %s", exc)
             return
-        if not fits:
-            self._refuse("map deltas before a snapshot of their grid (waiting for one)")
+        # a delta before any snapshot is no fault: the mapper's first snapshot is on its way as a run starts
+        if not fits and self.space.replica is not None:
+            self._refuse("map deltas of another grid than the snapshot held (waiting for the next)")
 
     def _refuse(self, what: str) -> None:
         self._refused[what] = self._refused.get(what, 0) + 1
