@@ -131,13 +131,16 @@ _SPELLS_ALONE: dict[Path, bool] = {}
 
 
 def pytest_itemcollected(item):
-    """`make test`'s second part collects only the files that spell `mark.alone` (grep): a test
-    marked so another way would silently run in neither part."""
+    """`make test`'s second part collects only the tests/test_*.py files that spell `mark.alone`
+    (grep): a test marked so another way, or in another file, would silently run in neither part."""
     if item.get_closest_marker("alone") is not None:
-        spelled = _SPELLS_ALONE.setdefault(item.path, "mark.alone" in item.path.read_text())
+        spelled = _SPELLS_ALONE.setdefault(item.path, "mark.alone" in item.path.read_text()
+                                           and item.path.parent == Path(__file__).parent
+                                           and item.path.match("test_*.py"))
         if not spelled:
-            raise pytest.UsageError(f"{item.nodeid} is marked alone, but its file never spells `mark.alone`: "
-                                    "make test's second part (the files grep finds) would leave it out")
+            raise pytest.UsageError(f"{item.nodeid} is marked alone, but its file is not a tests/test_*.py that "
+                                    "spells `mark.alone`: make test's second part (the files grep finds) would "
+                                    "leave it out")
 
 
 @pytest.hookimpl(trylast=True)  # after `-m` has deselected: only the tests that run count

@@ -90,7 +90,9 @@ def test_colour_picking_mistakes_give_one_line_and_exit_2(tmp_path):
                            (("colors", "pick", str(image), "--roi", "1,1,2,2", "--append", str(bad)),
                             "not a colour file written by"),
                            (("run", "object_detect", "--uav", "uav1", "--config", str(config)),
-                            "colour file not found")]:
+                            "colour file not found"),
+                           (("run", "tracker", "--uav", "uav1", "--simulated-faults", "off"),
+                            "--simulated-faults off needs --clock wall")]:
         result = falconry(*args)
         assert result.returncode == 2, result.stderr
         assert "Traceback" not in result.stderr

@@ -13,15 +13,19 @@ ROOT = Path(__file__).resolve().parents[1]
 TOOL_ORDER = {"registry": 0, "recorder": 1, "evaluation": 2, "viz": 3, "launcher": 4}
 
 
-def _imports(path: Path) -> set[str]:
+def _imports(path: Path, package: list[str]) -> set[str]:
+    """The modules a file imports, by absolute name; `package`: the file's package, for relative
+    imports (`from ..voxels import grid` in services/lib/tracks.py is services.lib.voxels.grid)."""
     names: set[str] = set()
     for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
         if isinstance(node, ast.Import):
             names.update(alias.name for alias in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-            names.add(node.module)
-            if node.module in ("services", "services.lib", "services.tools"):  # `from services.lib import voxels`
-                names.update(f"{node.module}.{alias.name}" for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package[:len(package) - node.level + 1] if node.level else []
+            module = ".".join([*base, *([node.module] if node.module else [])])
+            names.add(module)
+            if node.level or module in ("services", "services.lib", "services.tools"):  # `from services import x`
+                names.update(f"{module}.{alias.name}" for alias in node.names)
     return names
 
 
@@ -51,7 +55,8 @@ def reverse_imports(root: Path) -> list[str]:
         own = _unit_of_file(root, path)
         if own is None:
             continue
-        for module in sorted(_imports(path)):
+        parts = list(path.relative_to(root).with_suffix("").parts)
+        for module in sorted(_imports(path, parts[:-1])):
             other = _unit(module)
             if other is None or other == own:
                 continue
@@ -107,6 +112,7 @@ def test_the_layer_check_sees_a_planted_reverse_import(tmp_path):
     plants = {"services/lib/geometry.py": "from services.lib.lidar import rays",
               "services/lib/voxels/grid.py": "def f():\n    from services.planner import core",
               "services/planner/core.py": "from services.tracker.core import TrackerCore",
+              "services/planner/node.py": "from ..job_manager import core",
               "services/tools/recorder/record.py": "from services.tools.launcher import cli",
               "schemas/keys.py": "import services.lib.runtime.clock"}
     for relative, line in plants.items():
@@ -115,6 +121,7 @@ def test_the_layer_check_sees_a_planted_reverse_import(tmp_path):
     found = "\n".join(reverse_imports(tmp_path))
     assert "services/lib/voxels/grid.py -> services.planner: the lib layer imports the service layer above it" in found
     assert "services/planner/core.py -> services.tracker.core: a service imports another service" in found
+    assert "services/planner/node.py -> services.job_manager: a service imports another service" in found  # relative
     assert "services/tools/recorder/record.py -> services.tools.launcher: tool 'recorder' imports tool 'launcher'" in found
     assert "schemas/keys.py -> services.lib.runtime.clock: the schemas layer imports the lib layer" in found
     assert "library cycle: geometry -> lidar -> geometry" in found  # lidar/rays.py imports geometry

@@ -148,7 +148,8 @@ Top-level fields
   delay     float        slow only, required, 0 < delay <= 0.1: s of extra handling time per message
             the slowed service receives (a slow or overloaded computer).
   jump      float        clock_jump only, required non-zero: s the system clock of the UAV's services
-            steps (an NTP step); only services on the wall clock (`falconry run --clock wall`) see it.
+            steps (an NTP step); only services on the wall clock that obey simulated faults see it
+            (`falconry run --clock wall --simulated-faults on`): `falconry sim` runs none.
 """
 from __future__ import annotations
 

@@ -197,10 +197,10 @@ NODE = TrackerNode
 
 
 def _numbers(array) -> np.ndarray:
-    """A received array's numbers; none when its dtype or shape does not fit its data (the fleet
-    picture then refuses the track as unsound)."""
+    """A received array's numbers as float64; none when its dtype or shape does not fit its data or
+    is not a number (the fleet picture then refuses the track as unsound)."""
     try:
-        return to_numpy(array)
+        return np.asarray(to_numpy(array), dtype=np.float64)
     except (ValueError, TypeError):
         return np.zeros(0)
 

@@ -29,7 +29,8 @@ def add_parser(commands) -> None:
     p.add_argument("--simulated-faults", choices=["auto", "on", "off"], default="auto",
                    help="obey the simulator's fault commands (falconry/sim/faults: duplicated, reordered or slowed "
                         "inputs, silenced partners and cut radios in lockstep, clock jumps). auto (default): on "
-                        "with --clock sim, off with --clock wall, so a service onboard never obeys one")
+                        "with --clock sim (where it cannot be off), off with --clock wall, so a service onboard "
+                        "never obeys one")
     p.add_argument("--exit-with-parent", action="store_true",
                    help="stop when the launching process dies (the launcher sets this)")
     add_zenoh_options(p, "Embedded default: none (this process only listens).", connect_timeout=FOREVER,
@@ -56,6 +57,9 @@ def run(args: argparse.Namespace) -> int:
         params = params_for(args.service, cls.params_type, args.config)
     except ParamsError as exc:
         raise CliError(str(exc)) from None
+    if args.simulated_faults == "off" and args.clock == "sim":
+        raise CliError("--simulated-faults off needs --clock wall: a service on the simulator's clock follows its "
+                       "fault commands (in lockstep, which partners a fault silences or cuts off)")
     simulated_faults = {"auto": None, "on": True, "off": False}[args.simulated_faults]
     node = cls(args.uav, zenoh_settings(args), params=params, clock=args.clock, tick_hz=args.tick_hz,
                exit_with_parent=args.exit_with_parent, options=args, simulated_faults=simulated_faults)
