@@ -121,7 +121,7 @@ class TrackerNode(Node):
         if partner == self.uav or not self.params.fleet or partner_number(partner) <= 0:
             return  # ourselves, or no UAV (a fleet id needs the partner's number)
         reports = [PartnerReport(t.id, t.confirmed, t.source, _numbers(t.state).reshape(-1), _numbers(t.covariance),
-                                 t.detections, t.last_correction) for t in msg.tracks] if not msg.sensor_health else []
+                                 t.detections, t.last_correction) for t in msg.tracks]
         tracks, refused = admitted(partner, msg.header.stamp, not msg.sensor_health, reports)
         for _ in range(refused):
             self._refuse("partner tracks refused (not a finite positive-definite CA state, or an id out of range)")
